@@ -1,0 +1,5 @@
+"""The Warp rasteriser: the only room that imports Warp. Both packages render through ``rasterization``."""
+
+from .rendering import RASTERIZE_MODES, RENDER_MODES, rasterization
+
+__all__ = ["rasterization", "RENDER_MODES", "RASTERIZE_MODES"]

@@ -1,0 +1,225 @@
+"""Projection of 3D Gaussians to screen-space ellipses (SPEC section 2, steps 1-6).
+
+For each camera c and Gaussian g: camera-space mean, EWA covariance through the clamped Jacobian,
+low-pass ``eps2d``, antialiasing compensation (a compiled variant, not a run-time branch), conic,
+screen-space extent from the 1/255 touch rule, and the rectangle of tiles the ellipse can touch.
+Units: means in world units, screen quantities in pixels, pixel (u, v) centred at (u+0.5, v+0.5).
+A culled Gaussian has radii (0, 0), zero effective opacity and touches no tile.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import torch
+import warp as wp
+
+from ._warp import ALPHA_MIN, on_device_of, to_wp
+
+# SPEC section 2, step 3: tx/z is clamped to 1.3x the half field of view (0.15 W / fx beyond each edge).
+JACOBIAN_CLAMP_MARGIN = 0.15
+# Extra pixels on each side of the analytic extent so that float32 rounding in the per-pixel touch test can
+# never reach a pixel outside the tile rectangle (which would make the image depend on the tile size).
+EXTENT_MARGIN_PX = 1e-2
+
+
+@dataclass
+class Projection:
+    """Per (camera, Gaussian) screen-space quantities, torch float32/int32 tensors of leading shape [C, N]."""
+
+    means2d: torch.Tensor  # [C, N, 2] pixels
+    conics: torch.Tensor  # [C, N, 3] (a, b, c) of inverse(Sigma2d + eps2d I) = [[a, b], [b, c]]
+    depths: torch.Tensor  # [C, N] camera-space z
+    opacities: torch.Tensor  # [C, N] effective opacity o (compensated when antialiased), 0 when culled
+    radii: torch.Tensor  # [C, N, 2] int32 extent in pixels per axis, (0, 0) when culled
+    tile_rects: torch.Tensor  # [C, N, 4] int32 (tx0, ty0, tx1, ty1) inclusive tile rectangle
+    tiles_touched: torch.Tensor  # [C, N] int32 number of tiles in the rectangle, 0 when culled
+
+
+@wp.func
+def quat_to_rotation(q: wp.vec4) -> wp.mat33:
+    """Rotation matrix of a unit quaternion stored (w, x, y, z)."""
+    w = q[0]
+    x = q[1]
+    y = q[2]
+    z = q[3]
+    return wp.mat33(
+        1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+        2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+        2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y),
+    )
+
+
+@functools.cache
+def projection_kernel(antialiased: bool):
+    """The projection kernel, compiled per rasterize mode."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def project(
+        means: wp.array(dtype=wp.vec3),
+        quats: wp.array(dtype=wp.vec4),
+        scales: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        viewmats: wp.array(dtype=wp.mat44),
+        Ks: wp.array(dtype=wp.mat33),
+        width: int,
+        height: int,
+        near_plane: float,
+        far_plane: float,
+        eps2d: float,
+        tile_size: int,
+        out_means2d: wp.array2d(dtype=wp.vec2),
+        out_conics: wp.array2d(dtype=wp.vec3),
+        out_depths: wp.array2d(dtype=float),
+        out_opacities: wp.array2d(dtype=float),
+        out_radii: wp.array2d(dtype=wp.vec2i),
+        out_rects: wp.array2d(dtype=wp.vec4i),
+        out_tiles: wp.array2d(dtype=wp.int32),
+    ):
+        c, g = wp.tid()
+        out_means2d[c, g] = wp.vec2(0.0, 0.0)
+        out_conics[c, g] = wp.vec3(0.0, 0.0, 0.0)
+        out_opacities[c, g] = 0.0
+        out_radii[c, g] = wp.vec2i(0, 0)
+        out_rects[c, g] = wp.vec4i(0, 0, -1, -1)
+        out_tiles[c, g] = 0
+
+        V = viewmats[c]
+        mean = means[g]
+        # Step 1: camera-space mean; near/far culling (also catches NaN depths: comparisons are false).
+        p = wp.vec3(
+            V[0, 0] * mean[0] + V[0, 1] * mean[1] + V[0, 2] * mean[2] + V[0, 3],
+            V[1, 0] * mean[0] + V[1, 1] * mean[1] + V[1, 2] * mean[2] + V[1, 3],
+            V[2, 0] * mean[0] + V[2, 1] * mean[1] + V[2, 2] * mean[2] + V[2, 3],
+        )
+        out_depths[c, g] = p[2]
+        if not (p[2] > near_plane and p[2] < far_plane):
+            return
+
+        # Step 2: world covariance R S S^T R^T, then camera covariance.
+        q = quats[g]
+        qn = wp.length(q)
+        if not (qn > 0.0):
+            return
+        R = quat_to_rotation(q / qn)
+        s = scales[g]
+        M = R * wp.diag(s)
+        Rv = wp.mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
+        W = Rv * M
+        cov_cam = W * wp.transpose(W)
+
+        # Step 3: Jacobian at the clamped camera-space position.
+        K = Ks[c]
+        fx = K[0, 0]
+        fy = K[1, 1]
+        cx = K[0, 2]
+        cy = K[1, 2]
+        fw = float(width)
+        fh = float(height)
+        lim_x_pos = (fw - cx) / fx + JACOBIAN_CLAMP_MARGIN * fw / fx
+        lim_x_neg = cx / fx + JACOBIAN_CLAMP_MARGIN * fw / fx
+        lim_y_pos = (fh - cy) / fy + JACOBIAN_CLAMP_MARGIN * fh / fy
+        lim_y_neg = cy / fy + JACOBIAN_CLAMP_MARGIN * fh / fy
+        z = p[2]
+        tx = z * wp.clamp(p[0] / z, -lim_x_neg, lim_x_pos)
+        ty = z * wp.clamp(p[1] / z, -lim_y_neg, lim_y_pos)
+        J0 = wp.vec3(fx / z, 0.0, -fx * tx / (z * z))
+        J1 = wp.vec3(0.0, fy / z, -fy * ty / (z * z))
+        cJ0 = cov_cam * J0
+        cJ1 = cov_cam * J1
+        a = wp.dot(J0, cJ0)
+        b = wp.dot(J0, cJ1)
+        d = wp.dot(J1, cJ1)
+
+        # Step 4: low-pass filter and antialiasing compensation.
+        det_orig = a * d - b * b
+        a = a + eps2d
+        d = d + eps2d
+        det = a * d - b * b
+        if not (det > 0.0):
+            return
+        o = opacities[g]
+        if wp.static(antialiased):
+            o = o * wp.sqrt(wp.max(det_orig / det, 0.0))
+        if not (o >= ALPHA_MIN):
+            return
+
+        # Step 5: screen-space mean and conic.
+        m2 = wp.vec2(fx * p[0] / z + cx, fy * p[1] / z + cy)
+        inv_det = 1.0 / det
+        conic = wp.vec3(d * inv_det, -b * inv_det, a * inv_det)
+
+        # Step 6: extent of {sigma <= ln(255 o)}; pixel centres u + 0.5 inside [m - r, m + r].
+        level = 2.0 * wp.log(wp.max(o / ALPHA_MIN, 1.0))
+        rx = wp.sqrt(level * a) + EXTENT_MARGIN_PX
+        ry = wp.sqrt(level * d) + EXTENT_MARGIN_PX
+        # Clamp in float before converting to int so that far-away means cannot overflow.
+        u0 = wp.clamp(wp.ceil(m2[0] - rx - 0.5), -1.0, fw)
+        u1 = wp.clamp(wp.floor(m2[0] + rx - 0.5), -1.0, fw)
+        v0 = wp.clamp(wp.ceil(m2[1] - ry - 0.5), -1.0, fh)
+        v1 = wp.clamp(wp.floor(m2[1] + ry - 0.5), -1.0, fh)
+        if not (u1 >= 0.0 and v1 >= 0.0 and u0 <= fw - 1.0 and v0 <= fh - 1.0 and u0 <= u1 and v0 <= v1):
+            return
+        tx0 = int(wp.max(u0, 0.0)) / tile_size
+        tx1 = int(wp.min(u1, fw - 1.0)) / tile_size
+        ty0 = int(wp.max(v0, 0.0)) / tile_size
+        ty1 = int(wp.min(v1, fh - 1.0)) / tile_size
+
+        out_means2d[c, g] = m2
+        out_conics[c, g] = conic
+        out_opacities[c, g] = o
+        out_radii[c, g] = wp.vec2i(int(wp.min(wp.ceil(rx), 1.0e9)), int(wp.min(wp.ceil(ry), 1.0e9)))
+        out_rects[c, g] = wp.vec4i(tx0, ty0, tx1, ty1)
+        out_tiles[c, g] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+
+    return project
+
+
+def project_gaussians(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+    eps2d: float,
+    antialiased: bool,
+    tile_size: int,
+) -> Projection:
+    """Project N Gaussians into C cameras (float32 tensors on one device; see module docstring)."""
+    C, N = viewmats.shape[0], means.shape[0]
+    f32 = dict(device=means.device, dtype=torch.float32)
+    i32 = dict(device=means.device, dtype=torch.int32)
+    out = Projection(
+        means2d=torch.empty(C, N, 2, **f32),
+        conics=torch.empty(C, N, 3, **f32),
+        depths=torch.empty(C, N, **f32),
+        opacities=torch.empty(C, N, **f32),
+        radii=torch.empty(C, N, 2, **i32),
+        tile_rects=torch.empty(C, N, 4, **i32),
+        tiles_touched=torch.empty(C, N, **i32),
+    )
+    if C == 0 or N == 0:
+        return out
+    with on_device_of(means) as device:
+        wp.launch(
+            projection_kernel(bool(antialiased)),
+            dim=(C, N),
+            inputs=[
+                to_wp(means, wp.vec3), to_wp(quats, wp.vec4), to_wp(scales, wp.vec3), to_wp(opacities),
+                to_wp(viewmats, wp.mat44), to_wp(Ks, wp.mat33), int(width), int(height),
+                float(near_plane), float(far_plane), float(eps2d), int(tile_size),
+            ],
+            outputs=[
+                to_wp(out.means2d, wp.vec2), to_wp(out.conics, wp.vec3), to_wp(out.depths),
+                to_wp(out.opacities), to_wp(out.radii, wp.vec2i), to_wp(out.tile_rects, wp.vec4i),
+                to_wp(out.tiles_touched),
+            ],
+            device=device,
+        )
+    return out

@@ -1,0 +1,147 @@
+"""``rasterization``: the one entry point every part of the project renders through (SPEC section 2).
+
+Same argument names, shapes and meaning as gsplat 1.5's ``rasterization`` for the subset used here.
+Pipeline: project (per camera and Gaussian) -> SH colours (only when colours are needed, compiled for the
+scene's degree) -> tile binning (key sort + scan) -> compositing (compiled for the channel count), then
+background and expected depth as plain torch ops. Differentiable with respect to means, quats, scales,
+opacities, colors and backgrounds through the stages' autograd Functions.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from . import autograd
+from .binning import bin_gaussians
+from .sh import num_sh_bases
+
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+RASTERIZE_MODES = ("classic", "antialiased")
+
+
+def _check(cond: bool, msg: str) -> None:
+    if not cond:
+        raise ValueError(f"rasterization: {msg}")
+
+
+def rasterization(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    sh_degree: int | None = None,
+    backgrounds: torch.Tensor | None = None,
+    render_mode: str = "RGB",
+    rasterize_mode: str = "classic",
+    max_alpha: float = 0.99,
+    tile_size: int = 16,
+) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """Render N 3D Gaussians into C pinhole cameras.
+
+    Args:
+        means: [N, 3] centres, world units.
+        quats: [N, 4] rotations, wxyz, need not be unit (normalised inside; zero-norm ones are culled).
+        scales: [N, 3] standard deviations along the rotated axes, world units (linear, not log).
+        opacities: [N] in [0, 1] (not logits).
+        colors: [N, K, 3] SH coefficients when ``sh_degree`` is given (K >= (sh_degree+1)^2), else [N, D]
+            plain colours (or any features).
+        viewmats: [C, 4, 4] world-to-camera, OpenCV axes (x right, y down, z forward).
+        Ks: [C, 3, 3] pinhole intrinsics in pixels; pixel (u, v) is centred at (u + 0.5, v + 0.5).
+        width, height: image size in pixels.
+        near_plane, far_plane: camera-space z limits; Gaussians outside (near, far) are culled.
+        eps2d: low-pass variance added to the screen-space covariance, pixels^2.
+        sh_degree: 0..3 for SH colours; None for plain colours.
+        backgrounds: [C, D] colour composited behind the Gaussians (colour channels only; depth
+            channels get 0, as in gsplat).
+        render_mode: "RGB", "D" (accumulated depth), "ED" (expected depth = D / alpha), "RGB+D", "RGB+ED";
+            depth is appended as the last channel.
+        rasterize_mode: "classic" or "antialiased" (opacity scaled by sqrt(det(S2d) / det(S2d + eps2d I))).
+        max_alpha: per-Gaussian alpha clamp (gsplat 1.5.3 uses 0.999).
+        tile_size: tile edge in pixels; the image does not depend on it.
+
+    Returns:
+        render_colors [C, H, W, D], render_alphas [C, H, W, 1], meta (screen-space intermediates: means2d,
+        conics, depths, opacities, radii, tiles_per_gauss, tile_ranges, flatten_ids, tile_width,
+        tile_height, tile_size, width, height, n_cameras).
+    """
+    _check(render_mode in RENDER_MODES, f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    _check(rasterize_mode in RASTERIZE_MODES, f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
+    _check(means.ndim == 2 and means.shape[1] == 3, f"means must be [N, 3], got {tuple(means.shape)}")
+    N = means.shape[0]
+    _check(quats.shape == (N, 4), f"quats must be [N, 4] = [{N}, 4], got {tuple(quats.shape)}")
+    _check(scales.shape == (N, 3), f"scales must be [N, 3] = [{N}, 3], got {tuple(scales.shape)}")
+    _check(opacities.shape == (N,), f"opacities must be [N] = [{N}], got {tuple(opacities.shape)}")
+    _check(viewmats.ndim == 3 and viewmats.shape[1:] == (4, 4), f"viewmats must be [C, 4, 4], got {tuple(viewmats.shape)}")
+    C = viewmats.shape[0]
+    _check(Ks.shape == (C, 3, 3), f"Ks must be [C, 3, 3] = [{C}, 3, 3], got {tuple(Ks.shape)}")
+    _check(int(width) >= 1 and int(height) >= 1, f"width and height must be >= 1, got {width}x{height}")
+    _check(int(tile_size) >= 1 and int(tile_size) <= 64, f"tile_size must be in 1..64, got {tile_size}")
+    _check(0.0 < max_alpha <= 1.0, f"max_alpha must be in (0, 1], got {max_alpha}")
+    if sh_degree is not None:
+        _check(0 <= sh_degree <= 3, f"sh_degree must be 0..3 or None, got {sh_degree}")
+        _check(
+            colors.ndim == 3 and colors.shape[0] == N and colors.shape[2] == 3
+            and colors.shape[1] >= num_sh_bases(sh_degree),
+            f"colors must be [N, K>={num_sh_bases(sh_degree)}, 3] SH coefficients for sh_degree={sh_degree}, "
+            f"got {tuple(colors.shape)}",
+        )
+    else:
+        _check(colors.ndim == 2 and colors.shape[0] == N, f"colors must be [N, D] without sh_degree, got {tuple(colors.shape)}")
+    tensors = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                   viewmats=viewmats, Ks=Ks)
+    if backgrounds is not None:
+        tensors["backgrounds"] = backgrounds
+    for name, t in tensors.items():
+        _check(t.dtype == torch.float32, f"{name} must be float32, got {t.dtype}")
+        _check(t.device == means.device, f"{name} is on {t.device}, means on {means.device}")
+    width, height, tile_size = int(width), int(height), int(tile_size)
+
+    proj = autograd.project(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane,
+                            far_plane, eps2d, rasterize_mode == "antialiased", tile_size)
+    with_rgb = render_mode in ("RGB", "RGB+D", "RGB+ED")
+    with_depth = render_mode != "RGB"
+    channels = []
+    if with_rgb:
+        if sh_degree is not None:
+            if sh_degree > 0:
+                campos = torch.linalg.inv(viewmats)[:, :3, 3]
+                dirs = means[None, :, :] - campos[:, None, :]
+            else:  # degree 0 never reads directions
+                dirs = means.new_zeros(C, N, 3)
+            channels.append(autograd.sh_colors(sh_degree, dirs, colors, proj.radii))
+        else:
+            channels.append(colors[None].expand(C, N, colors.shape[1]))
+    if with_depth:
+        channels.append(proj.depths[..., None])
+    features = channels[0] if len(channels) == 1 else torch.cat(channels, dim=-1)
+    features = features.contiguous()
+
+    bins = bin_gaussians(proj, width, height, tile_size)
+    render, alphas, _ = autograd.composite(proj.means2d, proj.conics, features, proj.opacities, bins, width,
+                                           height, tile_size, max_alpha)
+    if render_mode in ("ED", "RGB+ED"):
+        depth = render[..., -1:] / alphas.clamp_min(1e-10)
+        render = torch.cat([render[..., :-1], depth], dim=-1)
+    if backgrounds is not None and with_rgb:
+        D = render.shape[-1] - (1 if with_depth else 0)
+        _check(backgrounds.shape == (C, D), f"backgrounds must be [C, D] = [{C}, {D}], got {tuple(backgrounds.shape)}")
+        bg = backgrounds[:, None, None, :] * (1.0 - alphas)
+        if with_depth:
+            bg = torch.cat([bg, torch.zeros_like(alphas)], dim=-1)
+        render = render + bg
+
+    meta = dict(
+        means2d=proj.means2d, conics=proj.conics, depths=proj.depths, opacities=proj.opacities,
+        radii=proj.radii, tiles_per_gauss=proj.tiles_touched, tile_ranges=bins.tile_ranges,
+        flatten_ids=bins.flatten_ids, tile_width=bins.tiles_x, tile_height=bins.tiles_y,
+        tile_size=tile_size, width=width, height=height, n_cameras=C,
+    )
+    return render, alphas, meta
