@@ -23,9 +23,21 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=render_cmd.run)
 
 
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    from scenesplat_stereo.bench import render as bench_render
+
+    p = sub.add_parser("bench", help="benchmarks: what accuracy costs in time (markdown tables)")
+    benches = p.add_subparsers(dest="bench", required=True)
+    r = benches.add_parser("render", help="rasteriser speed/accuracy knobs, against gsplat and the float64 "
+                           "reference", description=bench_render.__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+    bench_render.add_arguments(r)
+    r.set_defaults(func=bench_render.run)
+
+
 # Each entry adds one sub-command. Kept as a list so that each room registers its own command here
 # in one line, and the parser stays thin.
-_COMMANDS = [_add_render]
+_COMMANDS = [_add_render, _add_bench]
 
 
 def build_parser() -> argparse.ArgumentParser:
