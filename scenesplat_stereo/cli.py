@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
@@ -23,7 +24,51 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=render_cmd.run)
 
 
+def _add_build(sub: argparse._SubParsersAction) -> None:
+    from scenesplat_stereo import build
+
+    p = sub.add_parser("build", help="render teacher scenes into SceneSplat-Stereo shards (stereo pairs + targets)",
+                       description=build.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    build.add_arguments(p)
+    p.set_defaults(func=build.run)
+
+
+def _add_inspect(sub: argparse._SubParsersAction) -> None:
+    from scenesplat_stereo import inspect
+
+    p = sub.add_parser("inspect", help="Table-6 counts, a contact sheet and integrity checks of a built dataset",
+                       description=inspect.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    inspect.add_arguments(p)
+    p.set_defaults(func=inspect.run)
+
+
+def _add_demo_teachers(sub: argparse._SubParsersAction) -> None:
+    from scenesplat_stereo import demo
+
+    p = sub.add_parser("demo-teachers", help="write procedural indoor teacher scenes (plain layout) to OUT",
+                       description=demo.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("out", type=Path, help="output folder; one sub-folder per scene")
+    p.add_argument("--scenes", type=int, default=4, help="number of scenes (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--gaussians", type=int, default=demo.DEFAULT_NUM_GAUSSIANS,
+                   help=f"Gaussians per room (default {demo.DEFAULT_NUM_GAUSSIANS})")
+    p.add_argument("--frames", type=int, default=12, help="trajectory frames per scene (default 12)")
+    p.add_argument("--size", default="256x192", help="native image size WxH in pixels (default 256x192)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    def run(args: argparse.Namespace) -> int:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+        folders = demo.write_demo_teachers(args.out, n_scenes=args.scenes, seed=args.seed,
+                                           num_gaussians=args.gaussians, n_frames=args.frames, width=width,
+                                           height=height, progress=not args.no_progress)
+        print(f"wrote {len(folders)} demo teachers to {args.out}")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def _add_bench(sub: argparse._SubParsersAction) -> None:
+    from scenesplat_stereo.bench import build as bench_build
     from scenesplat_stereo.bench import render as bench_render
 
     p = sub.add_parser("bench", help="benchmarks: what accuracy costs in time (markdown tables)")
@@ -33,11 +78,15 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
     bench_render.add_arguments(r)
     r.set_defaults(func=bench_render.run)
+    b = benches.add_parser("build", help="dataset build throughput: pairs/s, renders/s, time split, projections",
+                           description=bench_build.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    bench_build.add_arguments(b)
+    b.set_defaults(func=bench_build.run)
 
 
 # Each entry adds one sub-command. Kept as a list so that each room registers its own command here
 # in one line, and the parser stays thin.
-_COMMANDS = [_add_render, _add_bench]
+_COMMANDS = [_add_render, _add_build, _add_inspect, _add_demo_teachers, _add_bench]
 
 
 def build_parser() -> argparse.ArgumentParser:

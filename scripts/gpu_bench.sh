@@ -2,13 +2,13 @@
 # Builds, checks and times everything on the lent GPU in one call (see docs/benchmarks.md).
 # Here, once:   bash /work/shared/tools/warp-gpu-kit .gpukit && pip download --no-deps -d .whl gsplat==1.5.3
 # Device call 1 (carry .gpukit/a):          bash .gpukit/a/stash.sh
-# Device call 2 (carry .gpukit/b and .whl): bash scripts/gpu_bench.sh [parity|render|backward|build|all]
+# Device call 2 (carry .gpukit/b, .whl and .devdata with guitar.ply): bash scripts/gpu_bench.sh [parity|render|backward|build|all]
 set -uo pipefail
 what=${1:-all}
 out=${OUT:-/tmp/out}; mkdir -p "$out"
 source .gpukit/b/install.sh || exit 1
-python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD:$PYTHONPATH
-export PYTHONUNBUFFERED=1
+python3 -m pip install -q --no-index --no-deps --no-compile --upgrade --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD:$PYTHONPATH
+export PYTHONUNBUFFERED=1 SCENESPLAT_GUITAR_PLY=$PWD/.devdata/guitar.ply
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -c "import gsplat, torch; print('gsplat', gsplat.__version__, 'torch', torch.__version__)"
 rc=0
@@ -16,10 +16,10 @@ if [[ $what == parity || $what == all ]]; then
   python3 scripts/gpu_parity.py 2>&1 | tee "$out/parity.txt" || rc=1
 fi
 if [[ $what == render || $what == all ]]; then
-  python3 -m scenesplat_stereo.cli bench render --device cuda --out "$out/bench_render.md" || rc=1
+  python3 -m scenesplat_stereo.bench.render --device cuda --out "$out/bench_render.md" || rc=1
 fi
 if [[ $what == backward || $what == all ]]; then
-  python3 -m scenesplat_stereo.cli bench render --device cuda --backward --out "$out/bench_render_backward.md" || rc=1
+  python3 -m scenesplat_stereo.bench.render --device cuda --backward --out "$out/bench_render_backward.md" || rc=1
 fi
 if [[ $what == build || $what == all ]]; then
   python3 -m scenesplat_stereo.cli bench build --device cuda --out "$out/bench_build.md" || rc=1

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import math
+import os
 import statistics
 import time
 from dataclasses import dataclass, replace
@@ -28,7 +29,9 @@ import torch
 from scenesplat_stereo.cameras import look_at, viewmats_from_c2w
 from scenesplat_stereo.raster import rasterization
 
-GUITAR = Path(__file__).resolve().parents[2].parent / "shared/data/teachers/playcanvas-guitar/point_cloud.ply"
+# The real guitar teacher beside a checkout (../shared/data), or where SCENESPLAT_GUITAR_PLY points.
+GUITAR = Path(os.environ.get("SCENESPLAT_GUITAR_PLY", Path(__file__).resolve().parents[2].parent
+                             / "shared/data/teachers/playcanvas-guitar/point_cloud.ply"))
 
 
 @dataclass(frozen=True)
@@ -136,14 +139,16 @@ def _fmt(x: float, digits: int = 1) -> str:
     return "n/a" if x is None else ("inf" if math.isinf(x) else f"{x:.{digits}f}")
 
 
-def reference_psnr(reference, s: Setting, seed: int = 1) -> float | None:
-    """PSNR of our float32 render against the float64 reference on a small frame of the same setting."""
+def reference_psnr(reference, s: Setting, device: str, seed: int = 1) -> float | None:
+    """PSNR of our float32 render (on ``device``) against the float64 reference (on the CPU) on a small
+    frame of the same setting."""
     if reference is None:
         return None
     small = replace(s, n=3000, width=max(8, s.width // 8), height=max(8, s.height // 8))
     scene = random_scene(small.n, s.sh_degree, "cpu", seed)
     viewmats, Ks = identity_camera(small.width, small.height, "cpu")
-    ours = _render_fn(rasterization, scene, viewmats, Ks, small, 0.99)()[0]
+    on_device = {k: v.to(device) for k, v in scene.items()}
+    ours = _render_fn(rasterization, on_device, viewmats.to(device), Ks.to(device), small, 0.99)()[0].cpu()
     d64 = {k: v.double() for k, v in scene.items()}
     ref = reference(d64["means"], d64["quats"], d64["scales"], d64["opacities"], d64["colors"],
                     viewmats.double(), Ks.double(), small.width, small.height, sh_degree=s.sh_degree,
@@ -208,7 +213,7 @@ def sweeps(args, gs, reference) -> list[str]:
             theirs = _render_fn(gs, scenes[key], viewmats, Ks, s, 0.999)
             t_gs = median_seconds(theirs, device, args.repeats)
             p = psnr(ours()[0][..., :3], theirs()[0][..., :3])
-        pref = reference_psnr(reference, s)
+        pref = reference_psnr(reference, s, device)
         out.append(f"| {name} | {s.n:,} | {s.width}x{s.height} | {_fmt(t * 1e3, 2)} | "
                    f"{_fmt(t_gs and t_gs * 1e3, 2)} | {_fmt(p)} | {_fmt(pref)} |")
     return out
@@ -293,3 +298,16 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         args.out.write_text(text + "\n")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m scenesplat_stereo.bench.render``: the same as ``scenesplat-stereo bench render``, with no
+    import of the dataset rooms (for GPU machines that lack OpenImageIO)."""
+    parser = argparse.ArgumentParser(prog="bench render", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

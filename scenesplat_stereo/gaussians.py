@@ -1,0 +1,502 @@
+"""Teacher scenes: ``GaussianScene`` and its ``.ply`` reading and writing. Pure numpy.
+
+Conventions (SPEC section 1): world units as in the file (metres for SceneSplat teachers); quaternions
+wxyz, unit norm; scales linear; opacities in [0, 1]; SH coefficients ``[N, K, 3]`` with K = (d+1)^2,
+``sh[:, 0]`` the DC term.
+
+Two on-disk layouts are read, detected from the header (an element named ``chunk`` means compressed):
+
+* INRIA (3DGS trainer, gsplat, nerfstudio, SuperSplat export): element ``vertex`` with properties read by
+  name, in any order and of any numeric type; ``x y z``, ``f_dc_0..2``, optional ``f_rest_*`` (0, 9, 24 or
+  45 of them, channel-major), ``opacity`` (a logit), ``scale_0..2`` (natural logs), ``rot_0..3`` (wxyz, any
+  norm); ``nx ny nz`` and any other property are ignored. ascii, binary_little_endian, binary_big_endian.
+* PlayCanvas / SuperSplat compressed: element ``chunk`` (one row per 256 splats: ``min_/max_`` x, y, z,
+  ``min_/max_scale_`` x, y, z as log scales, optional ``min_/max_`` r, g, b colour ranges), element
+  ``vertex`` of uint32 ``packed_position`` (11-10-11 bit unorm within the chunk box), ``packed_rotation``
+  (2-bit index of the largest |component| + three 10-bit others in [-1/sqrt2, 1/sqrt2]), ``packed_scale``
+  (11-10-11 within the chunk log-scale box), ``packed_color`` (8-8-8-8: colour in the chunk colour range, or
+  in [0, 1] without one, as ``0.5 + C0 f_dc``; alpha = opacity, decoded as byte/255 so 0 and 1 occur),
+  optional element ``sh`` of uint8 ``f_rest_*`` (channel-major, bucket centres of [-4, 4]).
+
+Rows with non-finite values, zero-norm quaternions or scales that are zero (below the smallest normal
+float32) or infinite in float32 are dropped and counted in one warning (``PlyRepairWarning``), or raise
+with ``strict=True``.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: Real SH constant of band 0 (SPEC section 1); the compressed layout stores colour = 0.5 + SH_C0 * f_dc.
+SH_C0 = 0.28209479177387814
+#: Splats per ``chunk`` row in the compressed layout.
+COMPRESSED_CHUNK_SIZE = 256
+#: Number of ``f_rest_*`` properties -> SH degree (3 channels x ((d+1)^2 - 1) coefficients).
+SH_DEGREE_OF_REST_COUNT = {0: 0, 9: 1, 24: 2, 45: 3}
+#: Opacities are clipped to [eps, 1 - eps] before the logit in ``save_ply`` so that 0 and 1 stay finite.
+OPACITY_EPS = 1e-7
+#: Quaternions whose norm is within this of 1 are kept bit-exact on load (unit within float32 rounding).
+QUAT_UNIT_ATOL = 2.0**-20
+#: ``GaussianScene`` rejects quaternions whose norm is further than this from 1.
+QUAT_VALIDATE_ATOL = 1e-4
+_HEADER_LIMIT = 1 << 20
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+_CHUNK_BOX = [f"{m}_{a}" for m in ("min", "max") for a in "xyz"] + [
+    f"{m}_scale_{a}" for m in ("min", "max") for a in "xyz"]
+_CHUNK_COLOUR = [f"{m}_{c}" for m in ("min", "max") for c in "rgb"]
+_PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
+
+
+class PlyError(ValueError):
+    """A ``.ply`` file that cannot be read as a Gaussian scene; the message names the file and the field."""
+
+
+class PlyRepairWarning(UserWarning):
+    """Rows were dropped while loading a ``.ply`` (the message names the file and the counts per reason)."""
+
+
+@dataclass(eq=False)
+class GaussianScene:
+    """A 3D Gaussian scene in memory (numpy float32, row i is Gaussian i).
+
+    means [N,3] world units; quats [N,4] wxyz unit norm; scales [N,3] linear, > 0; opacities [N] in
+    [0, 1]; sh [N,K,3] real SH coefficients, K = (sh_degree+1)^2, colour = max(SH(d) + 0.5, 0).
+    """
+
+    means: np.ndarray
+    quats: np.ndarray
+    scales: np.ndarray
+    opacities: np.ndarray
+    sh: np.ndarray
+    sh_degree: int
+
+    def __post_init__(self) -> None:
+        if isinstance(self.sh_degree, bool) or not isinstance(self.sh_degree, (int, np.integer)) \
+                or not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"GaussianScene.sh_degree must be an int in 0..3, got {self.sh_degree!r}")
+        self.sh_degree = int(self.sh_degree)
+        n = self.means.shape[0] if isinstance(self.means, np.ndarray) and self.means.ndim == 2 else None
+        k = (self.sh_degree + 1) ** 2
+        for name, shape in (("means", (n, 3)), ("quats", (n, 4)), ("scales", (n, 3)),
+                            ("opacities", (n,)), ("sh", (n, k, 3))):
+            a = getattr(self, name)
+            if not isinstance(a, np.ndarray) or a.dtype != np.float32:
+                raise ValueError(f"GaussianScene.{name} must be a numpy float32 array, got "
+                                 f"{type(a).__name__} {getattr(a, 'dtype', '')} (use .astype(np.float32))")
+            if n is None or a.shape != shape:
+                want = "[N, 3]" if n is None else str(list(shape))
+                raise ValueError(f"GaussianScene.{name} must have shape {want} (sh_degree "
+                                 f"{self.sh_degree}), got {list(a.shape)}")
+            bad = int((~np.isfinite(a)).reshape(n, int(np.prod(shape[1:]))).any(1).sum())
+            if bad:
+                raise ValueError(f"GaussianScene.{name} has {bad} rows with non-finite values")
+        qnorm = np.linalg.norm(self.quats.astype(np.float64), axis=1)
+        checks = (
+            ("quats", np.abs(qnorm - 1.0) > QUAT_VALIDATE_ATOL, f"not unit norm (±{QUAT_VALIDATE_ATOL})"),
+            ("scales", (self.scales <= 0).any(1), "not > 0"),
+            ("opacities", (self.opacities < 0) | (self.opacities > 1), "outside [0, 1]"),
+        )
+        for name, bad_rows, what in checks:
+            if bad_rows.any():
+                raise ValueError(f"GaussianScene.{name}: {int(bad_rows.sum())} rows {what}")
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def num_gaussians(self) -> int:
+        """N, the number of Gaussians."""
+        return len(self)
+
+    def subset(self, mask_or_index: Any) -> GaussianScene:
+        """A new scene (copied arrays) of the rows selected by a bool mask [N], integer indices or a slice."""
+        sel = mask_or_index
+        if not isinstance(sel, slice):
+            sel = np.asarray(sel)
+            if sel.dtype == bool:
+                if sel.shape != (len(self),):
+                    raise ValueError(f"subset: bool mask must have shape [{len(self)}], "
+                                     f"got {list(sel.shape)}")
+            elif sel.size == 0:
+                sel = sel.astype(np.int64)
+            elif not np.issubdtype(sel.dtype, np.integer) or sel.ndim != 1:
+                raise ValueError(f"subset: expected a bool mask, 1-D integer indices or a slice, got "
+                                 f"{sel.dtype} {list(sel.shape)}")
+        return GaussianScene(self.means[sel].copy(), self.quats[sel].copy(), self.scales[sel].copy(),
+                             self.opacities[sel].copy(), self.sh[sel].copy(), self.sh_degree)
+
+    def to_torch(self, device: Any = "cpu") -> dict[str, Any]:
+        """float32 torch tensors keyed by gsplat's ``rasterization`` argument names.
+
+        ``colors`` is the SH tensor [N,K,3]; pass ``sh_degree=scene.sh_degree`` alongside.
+        """
+        import torch
+
+        arrays = {"means": self.means, "quats": self.quats, "scales": self.scales,
+                  "opacities": self.opacities, "colors": self.sh}
+        return {k: torch.from_numpy(np.ascontiguousarray(v)).to(device) for k, v in arrays.items()}
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min [3], max [3]) of the means, world units."""
+        self._require_nonempty("bounds")
+        return self.means.min(0), self.means.max(0)
+
+    def median(self) -> np.ndarray:
+        """Per-axis median [3] of the means, world units."""
+        self._require_nonempty("median")
+        return np.median(self.means, axis=0).astype(np.float32)
+
+    def _require_nonempty(self, what: str) -> None:
+        if len(self) == 0:
+            raise ValueError(f"GaussianScene.{what}() of an empty scene")
+
+
+@dataclass(frozen=True)
+class PlyElement:
+    """One header element: name, row count, properties as (name, numpy type code), (name, None) for lists."""
+
+    name: str
+    count: int
+    properties: tuple[tuple[str, str | None], ...]
+
+    def names(self) -> list[str]:
+        return [p for p, _ in self.properties]
+
+    def dtype(self, byte_order: str) -> np.dtype:
+        return np.dtype([(p, byte_order + t) for p, t in self.properties])  # type: ignore[operator]
+
+    def has_lists(self) -> bool:
+        return any(t is None for _, t in self.properties)
+
+
+@dataclass(frozen=True)
+class PlyHeader:
+    """A parsed ``.ply`` header; ``layout`` is "inria" or "compressed", ``sh_degree`` follows from it."""
+
+    path: Path
+    format: str
+    elements: tuple[PlyElement, ...]
+    body_offset: int
+    layout: str
+    sh_degree: int
+
+    def element(self, name: str) -> PlyElement | None:
+        return next((e for e in self.elements if e.name == name), None)
+
+    @property
+    def num_gaussians(self) -> int:
+        """Rows of element ``vertex`` (before any row is dropped by ``load_ply``)."""
+        return self.element("vertex").count  # type: ignore[union-attr]
+
+
+def read_ply_header(path: str | os.PathLike) -> PlyHeader:
+    """Parse and check the header of a Gaussian ``.ply`` (cheap: the body is not read)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(_HEADER_LIMIT)
+    except OSError as e:
+        raise PlyError(f"{path}: cannot open ({e.strerror or e})") from e
+    if not (head.startswith(b"ply\n") or head.startswith(b"ply\r\n")):
+        raise PlyError(f"{path}: not a PLY file (it does not start with the 'ply' magic line)")
+    end = head.find(b"\nend_header")
+    if end < 0:
+        raise PlyError(f"{path}: no 'end_header' line within the first {_HEADER_LIMIT} bytes")
+    body = end + len(b"\nend_header")
+    if head[body:body + 1] != b"\n" and head[body:body + 2] != b"\r\n":
+        raise PlyError(f"{path}: malformed 'end_header' line")
+    body += 2 if head[body:body + 2] == b"\r\n" else 1
+    try:
+        lines = head[:end].decode("ascii").splitlines()[1:]
+    except UnicodeDecodeError as e:
+        raise PlyError(f"{path}: header is not ASCII text") from e
+    fmt, elements, current = None, [], None
+    for i, line in enumerate(lines, start=2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format" and len(words) == 3:
+            if words[1] not in _FORMATS:
+                raise PlyError(f"{path}: unsupported format '{words[1]}' (header line {i})")
+            fmt = words[1]
+        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+            current = [words[1], int(words[2]), []]
+            elements.append(current)
+        elif words[0] == "property" and current is not None and len(words) in (3, 5):
+            if len(words) == 5 and words[1] != "list":
+                raise PlyError(f"{path}: malformed property line {i}: {line!r}")
+            name, typ = words[-1], words[-2]
+            if typ not in _PLY_TYPES or (len(words) == 5 and words[2] not in _PLY_TYPES):
+                raise PlyError(f"{path}: element '{current[0]}' property '{name}' has unknown type '{typ}'")
+            if name in (p for p, _ in current[2]):
+                raise PlyError(f"{path}: element '{current[0]}' property '{name}' is declared twice")
+            current[2].append((name, None if len(words) == 5 else _PLY_TYPES[typ]))
+        else:
+            raise PlyError(f"{path}: malformed header line {i}: {line!r}")
+    if fmt is None:
+        raise PlyError(f"{path}: header has no 'format' line")
+    elems = tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements)
+    by_name = {e.name: e for e in elems}
+    if "vertex" not in by_name:
+        raise PlyError(f"{path}: no element 'vertex'")
+    layout = "compressed" if "chunk" in by_name else "inria"
+    if layout == "compressed":
+        rest = len(by_name["sh"].properties) if "sh" in by_name else 0
+    else:
+        rest = sum(p.startswith("f_rest_") for p in by_name["vertex"].names())
+    if rest not in SH_DEGREE_OF_REST_COUNT:
+        raise PlyError(f"{path}: {rest} f_rest_* properties; expected 0, 9, 24 or 45 (SH degree 0..3)")
+    return PlyHeader(path, fmt, elems, body, layout, SH_DEGREE_OF_REST_COUNT[rest])
+
+
+def _read_elements(header: PlyHeader, wanted: set[str]) -> dict[str, np.ndarray]:
+    """Structured arrays of the ``wanted`` elements (their properties must be scalars)."""
+    path, out = header.path, {}
+    last = max(i for i, e in enumerate(header.elements) if e.name in wanted)
+    for e in header.elements[:last + 1]:
+        if e.has_lists() and (e.name in wanted or header.format != "ascii"):
+            raise PlyError(f"{path}: element '{e.name}' has list properties, which are not supported here")
+    if header.format == "ascii":
+        with open(path, "rb") as f:
+            f.seek(header.body_offset)
+            lines = [ln for ln in f.read().split(b"\n") if ln.strip()]
+        row = 0
+        for e in header.elements[:last + 1]:
+            block = lines[row:row + e.count]
+            if len(block) < e.count:
+                raise PlyError(f"{path}: body truncated: element '{e.name}' needs {e.count} lines, "
+                               f"found {len(block)}")
+            row += e.count
+            if e.name in wanted:
+                out[e.name] = _parse_ascii(path, e, block)
+        return out
+    size, offset = path.stat().st_size, header.body_offset
+    with open(path, "rb") as f:
+        for e in header.elements[:last + 1]:
+            dtype = e.dtype(_FORMATS[header.format])  # type: ignore[arg-type]
+            need = dtype.itemsize * e.count
+            if offset + need > size:
+                raise PlyError(f"{path}: body truncated: element '{e.name}' needs {need} bytes at offset "
+                               f"{offset}, the file has {max(size - offset, 0)}")
+            if e.name in wanted:
+                f.seek(offset)
+                out[e.name] = np.fromfile(f, dtype=dtype, count=e.count)
+            offset += need
+    rest = header.elements[last + 1:]
+    if offset < size and not any(e.has_lists() for e in rest):
+        extra = size - offset - sum(e.dtype("<").itemsize * e.count for e in rest)
+        if extra > 0:
+            warnings.warn(f"{path}: {extra} bytes after the last element were ignored", PlyRepairWarning,
+                          stacklevel=3)
+    return out
+
+
+def _parse_ascii(path: Path, e: PlyElement, block: list[bytes]) -> np.ndarray:
+    rows = [ln.split() for ln in block]
+    for i, r in enumerate(rows):
+        if len(r) != len(e.properties):
+            raise PlyError(f"{path}: element '{e.name}' row {i} has {len(r)} values, expected "
+                           f"{len(e.properties)}")
+    try:
+        values = np.array(rows, dtype=np.float64).reshape(len(rows), len(e.properties))
+    except ValueError as err:
+        raise PlyError(f"{path}: element '{e.name}' has a non-numeric value ({err})") from err
+    arr = np.empty(len(rows), dtype=e.dtype("="))
+    for j, (name, _) in enumerate(e.properties):
+        arr[name] = values[:, j]
+    return arr
+
+
+def _columns(path: Path, arr: np.ndarray, element: str, names: list[str]) -> np.ndarray:
+    """float64 [N, len(names)] of the named properties; a missing one is a PlyError naming it."""
+    missing = [n for n in names if n not in (arr.dtype.names or ())]
+    if missing:
+        raise PlyError(f"{path}: element '{element}' lacks required properties {', '.join(missing)}")
+    out = np.empty((len(arr), len(names)), dtype=np.float64)
+    for j, n in enumerate(names):
+        out[:, j] = arr[n]
+    return out
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return np.exp(-np.logaddexp(0.0, -x))
+
+
+def _decode_inria(header: PlyHeader) -> tuple[np.ndarray, ...]:
+    path = header.path
+    v = _read_elements(header, {"vertex"})["vertex"]
+    n_rest = 3 * ((header.sh_degree + 1) ** 2 - 1)
+    rest_names = [f"f_rest_{i}" for i in range(n_rest)]
+    present = set(p for p in v.dtype.names or () if p.startswith("f_rest_"))
+    if present != set(rest_names):
+        raise PlyError(f"{path}: f_rest_* properties must be f_rest_0..f_rest_{n_rest - 1}; unexpected "
+                       f"{sorted(present - set(rest_names))}, missing {sorted(set(rest_names) - present)}")
+    names = ["x", "y", "z", "rot_0", "rot_1", "rot_2", "rot_3", "scale_0", "scale_1", "scale_2", "opacity"]
+    cols = _columns(path, v, "vertex", names)
+    _columns(path, v[:0], "vertex", ["f_dc_0", "f_dc_1", "f_dc_2"])  # checks presence only
+    n, k = len(v), (header.sh_degree + 1) ** 2
+    sh = np.empty((n, k, 3), dtype=np.float32)  # float32 straight away: SH is most of a large scene
+    with np.errstate(all="ignore"):  # doubles beyond the float32 range become inf: non-finite, dropped
+        for c in range(3):
+            sh[:, 0, c] = v[f"f_dc_{c}"]
+            for j in range(1, k):  # channel-major: f_rest index c (K-1) + j-1
+                sh[:, j, c] = v[rest_names[c * (k - 1) + j - 1]]
+        opacities = _sigmoid(cols[:, 10])
+    finite = np.isfinite(cols).all(1) & np.isfinite(sh).all((1, 2))
+    return cols[:, 0:3], cols[:, 3:7], cols[:, 7:10], opacities, sh, finite
+
+
+def _unorm(bits: np.ndarray, shift: int, width: int) -> np.ndarray:
+    return ((bits >> np.uint32(shift)) & np.uint32((1 << width) - 1)).astype(np.float64) / ((1 << width) - 1)
+
+
+def _unorm_111011(bits: np.ndarray) -> np.ndarray:
+    """[N, 3] in [0, 1] from 11 (bits 21-31), 10 (bits 11-20) and 11 (bits 0-10) bit unsigned fields."""
+    return np.stack([_unorm(bits, 21, 11), _unorm(bits, 11, 10), _unorm(bits, 0, 11)], 1)
+
+
+def _decode_compressed(header: PlyHeader) -> tuple[np.ndarray, ...]:
+    path = header.path
+    el = _read_elements(header, {e.name for e in header.elements if e.name in ("chunk", "vertex", "sh")})
+    chunk, vertex = el["chunk"], el["vertex"]
+    n = len(vertex)
+    if len(chunk) != -(-n // COMPRESSED_CHUNK_SIZE):
+        raise PlyError(f"{path}: element 'chunk' has {len(chunk)} rows; {n} vertices need "
+                       f"{-(-n // COMPRESSED_CHUNK_SIZE)} (one per {COMPRESSED_CHUNK_SIZE})")
+    typed = [("vertex", p, 4) for p in _PACKED]
+    if "sh" in el:
+        typed += [("sh", p, 1) for p in el["sh"].dtype.names or ()]
+    for e, name, size in typed:
+        t = (el[e].dtype.fields or {}).get(name, (None,))[0]
+        if t is not None and (t.kind != "u" or t.itemsize != size):
+            raise PlyError(f"{path}: element '{e}' property '{name}' must be {8 * size}-bit unsigned, "
+                           f"got {t}")
+    packed = _columns(path, vertex, "vertex", _PACKED).astype(np.uint32)
+    colour_names = [c for c in _CHUNK_COLOUR if c in (chunk.dtype.names or ())]
+    if colour_names and len(colour_names) != len(_CHUNK_COLOUR):
+        raise PlyError(f"{path}: element 'chunk' has colour ranges {colour_names} but lacks "
+                       f"{sorted(set(_CHUNK_COLOUR) - set(colour_names))}")
+    ranges = _columns(path, chunk, "chunk", _CHUNK_BOX + colour_names)[np.arange(n) // COMPRESSED_CHUNK_SIZE]
+    pos, rot, scl, col = packed.T
+
+    def lerp(t: np.ndarray, lo: int) -> np.ndarray:  # ranges[:, lo:lo+3] are the mins, +3 the maxes
+        return ranges[:, lo:lo + 3] * (1.0 - t) + ranges[:, lo + 3:lo + 6] * t
+
+    means, log_scales = lerp(_unorm_111011(pos), 0), lerp(_unorm_111011(scl), 6)
+    rgba = np.stack([_unorm(col, s, 8) for s in (24, 16, 8, 0)], 1)
+    colour = lerp(rgba[:, :3], 12) if colour_names else rgba[:, :3]
+    # packed_rotation: bits 30-31 = index of the largest |component| of wxyz, then the three others in order,
+    # 10 bits each, as unorm(c / sqrt(2) + 0.5); the largest is recovered as sqrt(1 - sum of the others^2).
+    others = np.stack([_unorm(rot, s, 10) for s in (20, 10, 0)], 1) - 0.5
+    others *= np.sqrt(2.0)
+    largest = (rot >> np.uint32(30)).astype(np.int64)
+    quats = np.empty((n, 4), dtype=np.float64)
+    slots = np.array([[j for j in range(4) if j != i] for i in range(4)])
+    quats[np.arange(n)[:, None], slots[largest]] = others
+    quats[np.arange(n), largest] = np.sqrt(np.maximum(0.0, 1.0 - (others**2).sum(1)))
+    k = (header.sh_degree + 1) ** 2
+    sh = np.empty((n, k, 3), dtype=np.float32)
+    sh[:, 0, :] = (colour - 0.5) / SH_C0
+    if k > 1:
+        if len(el["sh"]) != n:
+            raise PlyError(f"{path}: element 'sh' has {len(el['sh'])} rows, element 'vertex' {n}")
+        rest = _columns(path, el["sh"], "sh", [f"f_rest_{i}" for i in range(3 * (k - 1))])
+        # uint8 q encodes trunc(256 (f/8 + 0.5)); decoded at the bucket centre, 0 and 255 at the ends.
+        t = np.where(rest == 0, 0.0, np.where(rest == 255, 1.0, (rest + 0.5) / 256.0))
+        sh[:, 1:, :] = ((t - 0.5) * 8.0).reshape(n, 3, k - 1).transpose(0, 2, 1)
+    finite = np.isfinite(means).all(1) & np.isfinite(log_scales).all(1) & np.isfinite(sh).all((1, 2))
+    return means, quats, log_scales, rgba[:, 3], sh, finite
+
+
+def _assemble(header: PlyHeader, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray,
+              opacities: np.ndarray, sh: np.ndarray, finite: np.ndarray, strict: bool) -> GaussianScene:
+    """Drop (or, strict, refuse) bad rows, normalise quaternions, and build the float32 scene."""
+    norm = np.linalg.norm(np.where(finite[:, None], quats, 0.0), axis=1)
+    zero_quat = finite & (norm == 0)
+    with np.errstate(all="ignore"):
+        scales = np.exp(np.where(finite[:, None], log_scales, 0.0)).astype(np.float32)
+    # Scales below the smallest normal float32 (subnormal or 0) square to 0 in a covariance: zero.
+    bad_scale = finite & ~zero_quat & ((scales < np.finfo(np.float32).tiny) | ~np.isfinite(scales)).any(1)
+    counts = {"non-finite values": int((~finite).sum()), "zero-norm quaternions": int(zero_quat.sum()),
+              "zero or non-finite scales (after exp)": int(bad_scale.sum())}
+    keep = finite & ~zero_quat & ~bad_scale
+    if not keep.all():
+        msg = (f"{header.path}: {int((~keep).sum())} of {len(keep)} Gaussians have bad rows: "
+               + ", ".join(f"{v} with {k}" for k, v in counts.items()))
+        if strict:
+            raise PlyError(msg + " (strict=True)")
+        warnings.warn(msg + "; those rows were dropped", PlyRepairWarning, stacklevel=3)
+    sel = slice(None) if keep.all() else keep  # no copy of the (large) SH array when nothing is dropped
+    q, nq = quats[sel], norm[sel, None]
+    q = np.where(np.abs(nq - 1.0) <= QUAT_UNIT_ATOL, q, q / np.where(nq == 0, 1.0, nq))
+    return GaussianScene(means[sel].astype(np.float32), q.astype(np.float32), scales[sel],
+                         opacities[sel].astype(np.float32), sh[sel], header.sh_degree)
+
+
+def load_ply(path: str | os.PathLike, strict: bool = False) -> GaussianScene:
+    """Read a Gaussian ``.ply`` (INRIA or PlayCanvas compressed layout, detected) into a ``GaussianScene``.
+
+    Bad files raise ``PlyError`` naming the file and field. Rows with non-finite values, zero-norm
+    quaternions or scales that are 0 (below the smallest normal) or inf in float32 are dropped with one
+    ``PlyRepairWarning`` giving the counts per reason, or raise ``PlyError`` when ``strict``. Quaternions
+    already unit within ``QUAT_UNIT_ATOL`` are kept bit-exact; others are divided by their norm (float64).
+    """
+    header = read_ply_header(path)
+    decode = _decode_compressed if header.layout == "compressed" else _decode_inria
+    return _assemble(header, *decode(header), strict=strict)
+
+
+def inria_property_names(sh_degree: int) -> list[str]:
+    """The standard INRIA vertex property order written by ``save_ply``."""
+    n_rest = 3 * ((sh_degree + 1) ** 2 - 1)
+    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+            + [f"f_rest_{i}" for i in range(n_rest)]
+            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+def save_ply(scene: GaussianScene, path: str | os.PathLike) -> Path:
+    """Write ``scene`` in the INRIA layout (binary little-endian float32, standard property order).
+
+    ``opacity`` = logit(clip(o, OPACITY_EPS, 1 - OPACITY_EPS)), ``scale_*`` = ln(s), both computed in
+    float64 and stored as float32; ``nx ny nz`` = 0; ``f_rest`` channel-major. Written to a temporary file
+    in the same folder and moved into place with ``os.replace``. Returns the path.
+    """
+    path = Path(path)
+    n, k = len(scene), (scene.sh_degree + 1) ** 2
+    o = np.clip(scene.opacities.astype(np.float64), OPACITY_EPS, 1.0 - OPACITY_EPS)
+    body = np.concatenate([
+        scene.means, np.zeros((n, 3), np.float32), scene.sh[:, 0, :],
+        scene.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)),
+        np.log(o / (1.0 - o)).astype(np.float32)[:, None],
+        np.log(scene.scales.astype(np.float64)).astype(np.float32), scene.quats,
+    ], axis=1).astype("<f4")
+    names = inria_property_names(scene.sh_degree)
+    head = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+                     + [f"property float {p}" for p in names] + ["end_header\n"])
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(head.encode("ascii"))
+            f.write(np.ascontiguousarray(body).tobytes())
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
