@@ -2,7 +2,7 @@
 # Builds, checks and times everything on the lent GPU in one call (see docs/benchmarks.md).
 # Here, once:   bash /work/shared/tools/warp-gpu-kit .gpukit && pip download --no-deps -d .whl gsplat==1.5.3
 # Device call 1 (carry .gpukit/a):          bash .gpukit/a/stash.sh
-# Device call 2 (carry .gpukit/b, .whl and .devdata with guitar.ply): bash scripts/gpu_bench.sh [parity|render|backward|build|all]
+# Device call 2 (carry .gpukit/b, .whl and .devdata with guitar.ply): bash scripts/gpu_bench.sh [parity|profile|render|backward|build|all]
 set -uo pipefail
 what=${1:-all}
 out=${OUT:-/tmp/out}; mkdir -p "$out"
@@ -14,6 +14,9 @@ python3 -c "import gsplat, torch; print('gsplat', gsplat.__version__, 'torch', t
 rc=0
 if [[ $what == parity || $what == all ]]; then
   python3 scripts/gpu_parity.py 2>&1 | tee "$out/parity.txt" || rc=1
+fi
+if [[ $what == profile || $what == all ]]; then
+  python3 scripts/gpu_profile.py 2>&1 | tee "$out/profile.txt" || rc=1
 fi
 if [[ $what == render || $what == all ]]; then
   python3 -m scenesplat_stereo.bench.render --device cuda --out "$out/bench_render.md" || rc=1

@@ -30,13 +30,16 @@ def warp_device(t: torch.Tensor) -> str:
     return "cpu"
 
 
-def to_wp(t: torch.Tensor, dtype=None, shape=None) -> wp.array:
-    """Zero-copy Warp view of a contiguous torch tensor (``dtype`` may group the last axis in vectors)."""
+def to_wp(t: torch.Tensor, dtype=None, shape=None):
+    """Zero-copy kernel argument for a torch tensor: ``dtype`` may group the trailing axis (vectors) or two
+    axes (matrices) into elements; ``shape`` is the array shape in elements. Returns Warp's low-level array
+    descriptor, which launches take directly at a fraction of the cost of a ``wp.array``. Outputs must be
+    contiguous tensors (a non-contiguous one would be copied, and the kernel would write to the copy)."""
     t = t.contiguous()
-    arr = wp.from_torch(t, dtype=dtype, requires_grad=False)
     if shape is not None:
-        arr = arr.reshape(shape)
-    return arr
+        components = 2 if wp.types.type_is_matrix(dtype) else 1 if wp.types.type_is_vector(dtype) else 0
+        t = t.reshape(*shape, *t.shape[t.dim() - components:])
+    return wp.from_torch(t, dtype=dtype, requires_grad=False, return_ctype=True)
 
 
 @contextlib.contextmanager
@@ -54,3 +57,18 @@ def on_device_of(t: torch.Tensor):
 def vector_type(length: int):
     """The Warp float32 vector type of a given length (the channel count D of a compositing variant)."""
     return wp.types.vector(length=length, dtype=wp.float32)
+
+
+@contextlib.contextmanager
+def cpu_blocks(device: str):
+    """Cooperative (tiled) kernels need real thread blocks; on the CPU Warp runs them as fibers only when
+    ``enable_cpu_blocks`` is set, so set it around such launches."""
+    if device != "cpu":
+        yield
+        return
+    previous = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    try:
+        yield
+    finally:
+        wp.config.enable_cpu_blocks = previous

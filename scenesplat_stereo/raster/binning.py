@@ -73,14 +73,17 @@ def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int) -> 
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     n_tiles = C * tiles_x * tiles_y
-    counts = proj.tiles_touched.reshape(-1).to(torch.int64)
-    offsets = torch.cumsum(counts, 0) - counts
-    total = int(counts.sum().item()) if counts.numel() else 0
+    ranges = torch.zeros(max(n_tiles, 1), 2, device=device, dtype=torch.int32)
+    if C * N == 0:
+        return Bins(ranges[:n_tiles], torch.zeros(0, device=device, dtype=torch.int32), tiles_x, tiles_y)
+    # Inclusive int64 scan (no overflow), one host sync for the total to size the key buffers.
+    ends = torch.cumsum(proj.tiles_touched.reshape(-1), 0)
+    total = int(ends[-1])
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed int32 indexing; render fewer cameras per call")
-    ranges = torch.zeros(max(n_tiles, 1), 2, device=device, dtype=torch.int32)
     if total == 0:
         return Bins(ranges[:n_tiles], torch.zeros(0, device=device, dtype=torch.int32), tiles_x, tiles_y)
+    offsets = (ends - proj.tiles_touched.reshape(-1)).to(torch.int32)
     keys = torch.empty(2 * total, device=device, dtype=torch.int64)
     values = torch.empty(2 * total, device=device, dtype=torch.int32)
     depth_bits = proj.depths.contiguous().view(torch.int32)
@@ -90,13 +93,13 @@ def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int) -> 
             _write_keys,
             dim=(C, N),
             inputs=[
-                to_wp(proj.tile_rects, wp.vec4i), to_wp(offsets.to(torch.int32).reshape(C, N)),
+                to_wp(proj.tile_rects, wp.vec4i), to_wp(offsets.reshape(C, N)),
                 to_wp(depth_bits), tiles_x, tiles_x * tiles_y,
             ],
             outputs=[to_wp(keys), to_wp(values)],
             device=dev,
         )
-        wk, wv = to_wp(keys), to_wp(values)
+        wk, wv = wp.from_torch(keys), wp.from_torch(values)
         wp.utils.radix_sort_pairs(wk, wv, total, begin_bit=0, end_bit=end_bit)
         wp.launch(_tile_ranges, dim=total, inputs=[wk, total], outputs=[to_wp(ranges)], device=dev)
     return Bins(ranges[:n_tiles], values[:total], tiles_x, tiles_y)

@@ -14,26 +14,29 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import ALPHA_MIN, T_MIN, on_device_of, to_wp, vector_type
+from ._warp import ALPHA_MIN, T_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
 
 
+# Per-splat row of the depth-sorted intersection list: mean2d (2), conic (3), opacity (1), then D colours.
+SPLAT_SLOTS = 6
+
+
 @functools.cache
-def composite_kernel(channels: int):
-    """The compositing kernel for ``channels`` colour channels."""
+def composite_kernel(channels: int, tile_size: int):
+    """The compositing kernel for ``channels`` colour channels and square tiles of ``tile_size`` pixels:
+    one thread block per tile, one thread per pixel; the block loads its list in batches of one splat
+    per thread into shared memory and every thread walks the batch from there."""
     vecD = vector_type(channels)
+    block = tile_size * tile_size
+    row = SPLAT_SLOTS + channels
 
     @wp.kernel(enable_backward=False, module="unique")
     def composite(
-        means2d: wp.array(dtype=wp.vec2),
-        conics: wp.array(dtype=wp.vec3),
-        colors: wp.array(dtype=vecD),
-        opacities: wp.array(dtype=float),
+        splats: wp.array2d(dtype=float),
         tile_ranges: wp.array2d(dtype=wp.int32),
-        flatten_ids: wp.array(dtype=wp.int32),
         width: int,
         height: int,
-        tile_size: int,
         tiles_x: int,
         tiles_per_camera: int,
         max_alpha: float,
@@ -41,47 +44,56 @@ def composite_kernel(channels: int):
         out_alphas: wp.array(dtype=float),
         out_last: wp.array(dtype=wp.int32),
     ):
-        tid = wp.tid()
-        tile_area = tile_size * tile_size
-        tile = tid / tile_area  # camera * tiles_per_camera + tile index
-        local = tid - tile * tile_area
+        tile, lane = wp.tid()
         c = tile / tiles_per_camera
         t = tile - c * tiles_per_camera
         ty = t / tiles_x
         tx = t - ty * tiles_x
-        px = tx * tile_size + local % tile_size
-        py = ty * tile_size + local / tile_size
-        if px >= width or py >= height:
-            return
+        px = tx * tile_size + lane % tile_size
+        py = ty * tile_size + lane / tile_size
         fx = float(px) + 0.5
         fy = float(py) + 0.5
+        done = int(0)
+        if px >= width or py >= height:
+            done = 1
 
         T = float(1.0)
         acc = vecD()
         last = int(-1)
-        for i in range(tile_ranges[tile, 0], tile_ranges[tile, 1]):
-            gid = flatten_ids[i]
-            m = means2d[gid]
-            con = conics[gid]
-            dx = m[0] - fx
-            dy = m[1] - fy
-            sigma = 0.5 * (con[0] * dx * dx + con[2] * dy * dy) + con[1] * dx * dy
-            if not (sigma >= 0.0):
-                continue
-            alpha = opacities[gid] * wp.exp(-sigma)
-            if not (alpha >= ALPHA_MIN):
-                continue
-            alpha = wp.min(max_alpha, alpha)
-            next_T = T * (1.0 - alpha)
-            if next_T <= T_MIN:
+        start = tile_ranges[tile, 0]
+        end = tile_ranges[tile, 1]
+        b = start
+        while b < end:
+            # Every thread reaches the cooperative calls; the block stops once all its pixels are done.
+            if wp.tile_sum(wp.tile(done))[0] == block:
                 break
-            acc = acc + (alpha * T) * colors[gid]
-            T = next_T
-            last = i
-        pix = (c * height + py) * width + px
-        out_render[pix] = acc
-        out_alphas[pix] = 1.0 - T
-        out_last[pix] = last
+            batch = wp.tile_load(splats, shape=(block, row), offset=(b, 0), storage="shared")
+            if done == 0:
+                for j in range(wp.min(block, end - b)):
+                    dx = batch[j, 0] - fx
+                    dy = batch[j, 1] - fy
+                    sigma = 0.5 * (batch[j, 2] * dx * dx + batch[j, 4] * dy * dy) + batch[j, 3] * dx * dy
+                    if not (sigma >= 0.0):
+                        continue
+                    alpha = batch[j, 5] * wp.exp(-sigma)
+                    if not (alpha >= ALPHA_MIN):
+                        continue
+                    alpha = wp.min(max_alpha, alpha)
+                    next_T = T * (1.0 - alpha)
+                    if next_T <= T_MIN:
+                        done = 1
+                        break
+                    w = alpha * T
+                    for k in range(channels):
+                        acc[k] = acc[k] + w * batch[j, SPLAT_SLOTS + k]
+                    T = next_T
+                    last = b + j
+            b += block
+        if px < width and py < height:
+            pix = (c * height + py) * width + px
+            out_render[pix] = acc
+            out_alphas[pix] = 1.0 - T
+            out_last[pix] = last
 
     return composite
 
@@ -108,20 +120,22 @@ def composite_forward(
         return render, alphas, last_ids
     vecD = vector_type(D)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
-    with on_device_of(colors) as device:
-        wp.launch(
-            composite_kernel(D),
-            dim=C * tiles_per_camera * tile_size * tile_size,
+    # Depth-sorted rows: one contiguous read per batch instead of an id lookup per splat per pixel.
+    per_splat = torch.cat([means2d, conics, opacities[..., None], colors], dim=-1).reshape(C * N, SPLAT_SLOTS + D)
+    splats = per_splat.index_select(0, bins.flatten_ids)
+    with on_device_of(colors) as device, cpu_blocks(device):
+        wp.launch_tiled(
+            composite_kernel(D, tile_size),
+            dim=[C * tiles_per_camera],
             inputs=[
-                to_wp(means2d, wp.vec2, (C * N,)), to_wp(conics, wp.vec3, (C * N,)),
-                to_wp(colors, vecD, (C * N,)), to_wp(opacities, None, (C * N,)),
-                to_wp(bins.tile_ranges), to_wp(bins.flatten_ids), int(width), int(height),
-                int(tile_size), bins.tiles_x, tiles_per_camera, float(max_alpha),
+                to_wp(splats), to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x,
+                tiles_per_camera, float(max_alpha),
             ],
             outputs=[
                 to_wp(render, vecD, (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
                 to_wp(last_ids, None, (C * height * width,)),
             ],
+            block_dim=tile_size * tile_size,
             device=device,
         )
     return render, alphas, last_ids

@@ -112,7 +112,8 @@ def rasterization(
     if with_rgb:
         if sh_degree is not None:
             if sh_degree > 0:
-                campos = torch.linalg.inv(viewmats)[:, :3, 3]
+                # camera centre = -R^T t for a rigid world-to-camera [R t]
+                campos = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]
                 dirs = means[None, :, :] - campos[:, None, :]
             else:  # degree 0 never reads directions
                 dirs = means.new_zeros(C, N, 3)

@@ -1,0 +1,65 @@
+"""Where the rasteriser's forward time goes on the GPU: each stage timed alone (median of 20 runs,
+synchronised), for the headline workloads of ``bench render``. Used by scripts/gpu_bench.sh (profile)."""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import torch
+
+from scenesplat_stereo.bench.render import GUITAR, Setting, guitar_scene, identity_camera, random_scene
+from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.raster.binning import bin_gaussians
+from scenesplat_stereo.raster.composite import composite_forward
+from scenesplat_stereo.raster.projection import project_gaussians
+from scenesplat_stereo.raster.sh import eval_sh_colors
+
+
+def timed(fn, repeats: int = 20) -> float:
+    for _ in range(3):
+        fn()
+    torch.cuda.synchronize()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e3
+
+
+def profile(name: str, scene: dict, viewmats, Ks, s: Setting) -> None:
+    W, H, ts = s.width, s.height, s.tile_size
+    m, q, sc, o, col = (scene[k] for k in ("means", "quats", "scales", "opacities", "colors"))
+    proj = project_gaussians(m, q, sc, o, viewmats, Ks, W, H, 0.01, 1e10, 0.3, True, ts)
+    campos = torch.linalg.inv(viewmats)[:, :3, 3]
+    dirs = m[None] - campos[:, None]
+    colors = eval_sh_colors(s.sh_degree, dirs, col, proj.radii)
+    bins = bin_gaussians(proj, W, H, ts)
+    rows = {
+        "project": timed(lambda: project_gaussians(m, q, sc, o, viewmats, Ks, W, H, 0.01, 1e10, 0.3, True, ts)),
+        "sh colours": timed(lambda: eval_sh_colors(s.sh_degree, dirs, col, proj.radii)),
+        "bin (scan, keys, sort, ranges)": timed(lambda: bin_gaussians(proj, W, H, ts)),
+        "composite": timed(lambda: composite_forward(proj.means2d, proj.conics, colors, proj.opacities, bins, W,
+                                                     H, ts, 0.999)),
+        "rasterization (all)": timed(lambda: rasterization(m, q, sc, o, col, viewmats, Ks, W, H,
+                                                           sh_degree=s.sh_degree, rasterize_mode="antialiased",
+                                                           max_alpha=0.999)),
+    }
+    visible = int((proj.radii[..., 0] > 0).sum())
+    print(f"\n{name}: {visible:,} visible, {bins.flatten_ids.numel():,} tile intersections")
+    for k, v in rows.items():
+        print(f"  {k:32s} {v:7.3f} ms")
+
+
+def main() -> None:
+    s = Setting(n=1_000_000, width=1280, height=720)
+    profile("random 1M SH3 1280x720", random_scene(s.n, 3, "cuda"), *identity_camera(1280, 720, "cuda"), s)
+    if GUITAR.exists():
+        g, v, K = guitar_scene("cuda", 1280, 720)
+        profile("guitar 1280x720", g, v, K, Setting(n=g["means"].shape[0], width=1280, height=720, sh_degree=0))
+
+
+if __name__ == "__main__":
+    main()
