@@ -1,14 +1,21 @@
 """Front-to-back alpha compositing of the binned Gaussians (SPEC section 2, steps 6-8).
 
-One thread per pixel; the threads of a tile are consecutive, so a warp walks one tile's list in lock
-step and its loads of a Gaussian are broadcasts. Compiled per channel count D (RGB: 3, RGB+D: 4, D: 1,
-plain colours: any D): depth is just one more channel, so a render without depth does no depth work.
-Outputs are the raw sums (no background): render = sum alpha_i T_i c_i, alpha = 1 - T, and the index
-(into ``flatten_ids``) of the last composited Gaussian per pixel, -1 where none, for the backward pass.
+After the sort, each tile intersection's splat (mean2d, conic, opacity, D colours) is gathered into one
+row of ``splats [M, 6 + D]`` in depth order, so the kernels read a tile's list as contiguous memory.
+Two compiled variants of the same per-splat step:
+- cooperative (default on CUDA): one thread block per tile, one thread per pixel; the block copies its
+  list into shared memory a batch of one splat per thread at a time and every thread walks the batch
+  there; the block stops when all its pixels are done;
+- per pixel (default on the CPU, where Warp runs threads serially and shared memory buys nothing): one
+  thread per pixel walks its tile's rows.
+Both are compiled per channel count D (RGB: 3, RGB+D: 4, D: 1, plain colours: any D): depth is one more
+channel, so a render without depth does no depth work. Outputs are the raw sums (no background):
+render = sum alpha_i T_i c_i, alpha = 1 - T, and the index (into ``flatten_ids``) of the last
+composited Gaussian per pixel, -1 where none, for the backward pass.
 """
 
-from __future__ import annotations
-
+# No ``from __future__ import annotations``: Warp evaluates annotations, and those naming the per-D vector
+# type of the kernel factory must be real objects, not strings.
 import functools
 
 import torch
@@ -17,22 +24,84 @@ import warp as wp
 from ._warp import ALPHA_MIN, T_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
 
-
-# Per-splat row of the depth-sorted intersection list: mean2d (2), conic (3), opacity (1), then D colours.
+# Leading slots of a splat row: mean2d (2, pixels), conic (3), effective opacity (1); then D colours.
 SPLAT_SLOTS = 6
 
 
+@wp.func
+def touch_alpha(splats: wp.array2d(dtype=float), i: int, fx: float, fy: float) -> float:
+    """o exp(-sigma) of row i at pixel centre (fx, fy) when the splat touches the pixel (sigma >= 0 and
+    o exp(-sigma) >= 1/255, SPEC step 6), else 0."""
+    dx = splats[i, 0] - fx
+    dy = splats[i, 1] - fy
+    sigma = 0.5 * (splats[i, 2] * dx * dx + splats[i, 4] * dy * dy) + splats[i, 3] * dx * dy
+    if not (sigma >= 0.0):
+        return 0.0
+    alpha = splats[i, 5] * wp.exp(-sigma)
+    if not (alpha >= ALPHA_MIN):
+        return 0.0
+    return alpha
+
+
 @functools.cache
-def composite_kernel(channels: int, tile_size: int):
-    """The compositing kernel for ``channels`` colour channels and square tiles of ``tile_size`` pixels:
-    one thread block per tile, one thread per pixel; the block loads its list in batches of one splat
-    per thread into shared memory and every thread walks the batch from there."""
+def composite_kernel(channels: int, tile_size: int, cooperative: bool):
+    """The compositing kernel for ``channels`` colour channels and ``tile_size`` square tiles."""
     vecD = vector_type(channels)
     block = tile_size * tile_size
     row = SPLAT_SLOTS + channels
 
+    @wp.func
+    def add_splat(rows: wp.array2d(dtype=float), i: int, alpha: float, T: float, acc: vecD) -> vecD:
+        w = alpha * T
+        for k in range(channels):
+            acc[k] = acc[k] + w * rows[i, SPLAT_SLOTS + k]
+        return acc
+
     @wp.kernel(enable_backward=False, module="unique")
-    def composite(
+    def composite_per_pixel(
+        splats: wp.array2d(dtype=float),
+        tile_ranges: wp.array2d(dtype=wp.int32),
+        width: int,
+        height: int,
+        tiles_x: int,
+        tiles_per_camera: int,
+        max_alpha: float,
+        out_render: wp.array(dtype=vecD),
+        out_alphas: wp.array(dtype=float),
+        out_last: wp.array(dtype=wp.int32),
+    ):
+        tid = wp.tid()
+        tile = tid / block  # camera * tiles_per_camera + tile index
+        lane = tid - tile * block
+        c = tile / tiles_per_camera
+        t = tile - c * tiles_per_camera
+        px = (t % tiles_x) * tile_size + lane % tile_size
+        py = (t / tiles_x) * tile_size + lane / tile_size
+        if px >= width or py >= height:
+            return
+        fx = float(px) + 0.5
+        fy = float(py) + 0.5
+        T = float(1.0)
+        acc = vecD()
+        last = int(-1)
+        for i in range(tile_ranges[tile, 0], tile_ranges[tile, 1]):
+            vis = touch_alpha(splats, i, fx, fy)
+            if vis == 0.0:
+                continue
+            alpha = wp.min(max_alpha, vis)
+            next_T = T * (1.0 - alpha)
+            if next_T <= T_MIN:
+                break
+            acc = add_splat(splats, i, alpha, T, acc)
+            T = next_T
+            last = i
+        pix = (c * height + py) * width + px
+        out_render[pix] = acc
+        out_alphas[pix] = 1.0 - T
+        out_last[pix] = last
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def composite_cooperative(
         splats: wp.array2d(dtype=float),
         tile_ranges: wp.array2d(dtype=wp.int32),
         width: int,
@@ -47,22 +116,18 @@ def composite_kernel(channels: int, tile_size: int):
         tile, lane = wp.tid()
         c = tile / tiles_per_camera
         t = tile - c * tiles_per_camera
-        ty = t / tiles_x
-        tx = t - ty * tiles_x
-        px = tx * tile_size + lane % tile_size
-        py = ty * tile_size + lane / tile_size
+        px = (t % tiles_x) * tile_size + lane % tile_size
+        py = (t / tiles_x) * tile_size + lane / tile_size
         fx = float(px) + 0.5
         fy = float(py) + 0.5
         done = int(0)
         if px >= width or py >= height:
             done = 1
-
         T = float(1.0)
         acc = vecD()
         last = int(-1)
-        start = tile_ranges[tile, 0]
+        b = tile_ranges[tile, 0]
         end = tile_ranges[tile, 1]
-        b = start
         while b < end:
             # Every thread reaches the cooperative calls; the block stops once all its pixels are done.
             if wp.tile_sum(wp.tile(done))[0] == block:
@@ -75,10 +140,10 @@ def composite_kernel(channels: int, tile_size: int):
                     sigma = 0.5 * (batch[j, 2] * dx * dx + batch[j, 4] * dy * dy) + batch[j, 3] * dx * dy
                     if not (sigma >= 0.0):
                         continue
-                    alpha = batch[j, 5] * wp.exp(-sigma)
-                    if not (alpha >= ALPHA_MIN):
+                    vis = batch[j, 5] * wp.exp(-sigma)
+                    if not (vis >= ALPHA_MIN):
                         continue
-                    alpha = wp.min(max_alpha, alpha)
+                    alpha = wp.min(max_alpha, vis)
                     next_T = T * (1.0 - alpha)
                     if next_T <= T_MIN:
                         done = 1
@@ -95,7 +160,7 @@ def composite_kernel(channels: int, tile_size: int):
             out_alphas[pix] = 1.0 - T
             out_last[pix] = last
 
-    return composite
+    return composite_cooperative if cooperative else composite_per_pixel
 
 
 def composite_forward(
@@ -108,34 +173,37 @@ def composite_forward(
     height: int,
     tile_size: int,
     max_alpha: float,
+    cooperative: bool | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Composite [C, N] screen-space Gaussians with colours [C, N, D] into (render [C,H,W,D] without
-    background, alphas [C,H,W,1], last_ids [C,H,W] int32)."""
+    background, alphas [C,H,W,1], last_ids [C,H,W] int32). ``cooperative`` picks the variant (default:
+    cooperative on CUDA, per pixel on the CPU); both give the same image."""
     C, N, D = colors.shape
     dev = colors.device
-    render = torch.zeros(C, height, width, D, device=dev, dtype=torch.float32)
-    alphas = torch.zeros(C, height, width, 1, device=dev, dtype=torch.float32)
-    last_ids = torch.full((C, height, width), -1, device=dev, dtype=torch.int32)
     if C == 0 or N == 0 or bins.flatten_ids.numel() == 0 or width * height == 0:
-        return render, alphas, last_ids
+        return (torch.zeros(C, height, width, D, device=dev), torch.zeros(C, height, width, 1, device=dev),
+                torch.full((C, height, width), -1, device=dev, dtype=torch.int32))
+    render = torch.empty(C, height, width, D, device=dev, dtype=torch.float32)
+    alphas = torch.empty(C, height, width, 1, device=dev, dtype=torch.float32)
+    last_ids = torch.empty(C, height, width, device=dev, dtype=torch.int32)
+    if cooperative is None:
+        cooperative = dev.type == "cuda"
     vecD = vector_type(D)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
-    # Depth-sorted rows: one contiguous read per batch instead of an id lookup per splat per pixel.
     per_splat = torch.cat([means2d, conics, opacities[..., None], colors], dim=-1).reshape(C * N, SPLAT_SLOTS + D)
     splats = per_splat.index_select(0, bins.flatten_ids)
-    with on_device_of(colors) as device, cpu_blocks(device):
-        wp.launch_tiled(
-            composite_kernel(D, tile_size),
-            dim=[C * tiles_per_camera],
-            inputs=[
-                to_wp(splats), to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x,
-                tiles_per_camera, float(max_alpha),
-            ],
-            outputs=[
-                to_wp(render, vecD, (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
-                to_wp(last_ids, None, (C * height * width,)),
-            ],
-            block_dim=tile_size * tile_size,
-            device=device,
-        )
+    args = dict(
+        inputs=[to_wp(splats), to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x, tiles_per_camera,
+                float(max_alpha)],
+        outputs=[to_wp(render, vecD, (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
+                 to_wp(last_ids, None, (C * height * width,))],
+    )
+    kernel = composite_kernel(D, tile_size, cooperative)
+    with on_device_of(colors) as device:
+        if cooperative:
+            with cpu_blocks(device):
+                wp.launch_tiled(kernel, dim=[C * tiles_per_camera], block_dim=tile_size * tile_size, device=device,
+                                **args)
+        else:
+            wp.launch(kernel, dim=C * tiles_per_camera * tile_size * tile_size, device=device, **args)
     return render, alphas, last_ids
