@@ -1,7 +1,17 @@
 """torch.autograd glue: one Function per rasteriser stage (projection, SH colours, compositing).
 
-Forward passes call the Warp forward stages. (Backward methods are being added by the backward-pass
-work; until then these Functions are forward-only.)
+Forward passes call the Warp forward stages; backward passes call the hand-written reverse kernels
+(projection_backward, sh_backward, composite_backward). Gradients flow to means, quats, scales, opacities
+and colours (SH coefficients or plain colours); cameras (viewmats, Ks) get none. Everything the stages
+add in torch (depth channel, background, expected depth, SH directions) is differentiated by torch.
+
+Reproducibility: the compositing backward sums over pixels with float atomics by default, whose order
+(and so the last bits of the gradients) can change from run to run on CUDA. ``deterministic=True`` (a
+keyword of ``rasterization``, fixed when the forward pass runs) switches to a fixed-order block reduction
+that gives bit-identical gradients (costs: see composite_backward). On CPU the default is already
+reproducible (Warp runs CPU kernels as one serial loop), so the keyword only matters on CUDA. The
+projection and SH backward passes are atomic-free (one thread per Gaussian walks the cameras in order)
+and always reproducible.
 """
 
 from __future__ import annotations
@@ -10,9 +20,11 @@ import torch
 
 from .binning import Bins
 from .composite import composite_forward
+from .composite_backward import composite_backward, unpack_splat_grads
 from .projection import Projection, project_gaussians
+from .projection_backward import project_gaussians_backward
 from .sh import eval_sh_colors
-
+from .sh_backward import eval_sh_colors_backward
 
 class ProjectGaussians(torch.autograd.Function):
     @staticmethod
@@ -21,25 +33,68 @@ class ProjectGaussians(torch.autograd.Function):
         proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane,
                                  far_plane, eps2d, antialiased, tile_size)
         ctx.mark_non_differentiable(proj.radii, proj.tile_rects, proj.tiles_touched)
+        ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, proj.radii)
+        ctx.config = (width, height, eps2d, antialiased)
         return (proj.means2d, proj.conics, proj.depths, proj.opacities, proj.radii, proj.tile_rects,
                 proj.tiles_touched)
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, v_depths, v_opacities, _v_radii, _v_rects, _v_tiles):
+        means, quats, scales, opacities, viewmats, Ks, radii = ctx.saved_tensors
+        if not any(ctx.needs_input_grad[:4]):
+            return (None,) * 13
+        width, height, eps2d, antialiased = ctx.config
+        v_means, v_quats, v_scales, v_opac = project_gaussians_backward(
+            means, quats, scales, opacities, viewmats, Ks, width, height, eps2d, antialiased, radii,
+            v_means2d, v_conics, v_depths, v_opacities,
+        )
+        grads = [g if need else None for g, need in zip((v_means, v_quats, v_scales, v_opac), ctx.needs_input_grad)]
+        return (*grads, *(None,) * 9)
 
 
 class SHColors(torch.autograd.Function):
     @staticmethod
     def forward(ctx, degree, dirs, coeffs, radii):
+        ctx.save_for_backward(dirs, coeffs, radii)
+        ctx.degree = degree
         return eval_sh_colors(degree, dirs, coeffs, radii)
+
+    @staticmethod
+    def backward(ctx, v_colors):
+        dirs, coeffs, radii = ctx.saved_tensors
+        if not (ctx.needs_input_grad[1] or ctx.needs_input_grad[2]):
+            return None, None, None, None
+        v_dirs, v_coeffs = eval_sh_colors_backward(ctx.degree, dirs, coeffs, radii, v_colors)
+        return (None, v_dirs if ctx.needs_input_grad[1] else None,
+                v_coeffs if ctx.needs_input_grad[2] else None, None)
 
 
 class CompositeTiles(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, tile_ranges, flatten_ids, tiles_x, tiles_y, width,
-                height, tile_size, max_alpha):
+                height, tile_size, max_alpha, deterministic):
         bins = Bins(tile_ranges, flatten_ids, tiles_x, tiles_y)
         render, alphas, last_ids = composite_forward(means2d, conics, colors, opacities, bins, width, height,
                                                      tile_size, max_alpha)
         ctx.mark_non_differentiable(last_ids)
+        ctx.save_for_backward(means2d, conics, colors, opacities, tile_ranges, flatten_ids, alphas, last_ids)
+        ctx.config = (tiles_x, tiles_y, width, height, tile_size, max_alpha, deterministic)
         return render, alphas, last_ids
+
+    @staticmethod
+    def backward(ctx, v_render, v_alphas, _v_last_ids):
+        means2d, conics, colors, opacities, tile_ranges, flatten_ids, alphas, last_ids = ctx.saved_tensors
+        if not any(ctx.needs_input_grad[:4]):
+            return (None,) * 13
+        tiles_x, tiles_y, width, height, tile_size, max_alpha, deterministic = ctx.config
+        packed = composite_backward(
+            means2d, conics, colors, opacities, Bins(tile_ranges, flatten_ids, tiles_x, tiles_y), width,
+            height, tile_size, max_alpha, alphas, last_ids, v_render, v_alphas, deterministic,
+        )
+        v_means2d, v_conics, v_colors, v_opac = unpack_splat_grads(packed)
+        grads = [g if need else None
+                 for g, need in zip((v_means2d, v_conics, v_colors, v_opac), ctx.needs_input_grad)]
+        return (*grads, *(None,) * 9)
 
 
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
@@ -55,7 +110,10 @@ def sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torc
     return SHColors.apply(degree, dirs, coeffs, radii)
 
 
-def composite(means2d, conics, colors, opacities, bins: Bins, width, height, tile_size, max_alpha):
-    """Differentiable compositing (see composite.composite_forward): (render, alphas, last_ids)."""
+def composite(means2d, conics, colors, opacities, bins: Bins, width, height, tile_size, max_alpha,
+              deterministic: bool = False):
+    """Differentiable compositing (see composite.composite_forward): (render, alphas, last_ids);
+    ``deterministic`` selects the bit-reproducible backward reduction."""
     return CompositeTiles.apply(means2d, conics, colors, opacities, bins.tile_ranges, bins.flatten_ids,
-                                bins.tiles_x, bins.tiles_y, width, height, tile_size, max_alpha)
+                                bins.tiles_x, bins.tiles_y, width, height, tile_size, max_alpha,
+                                bool(deterministic))

@@ -186,8 +186,8 @@ def composite_forward(
     render = torch.empty(C, height, width, D, device=dev, dtype=torch.float32)
     alphas = torch.empty(C, height, width, 1, device=dev, dtype=torch.float32)
     last_ids = torch.empty(C, height, width, device=dev, dtype=torch.int32)
-    if cooperative is None:
-        cooperative = dev.type == "cuda"
+    if cooperative is None:  # a CUDA block holds at most 1024 threads: larger tiles go per pixel
+        cooperative = dev.type == "cuda" and tile_size * tile_size <= 1024
     vecD = vector_type(D)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
     per_splat = torch.cat([means2d, conics, opacities[..., None], colors], dim=-1).reshape(C * N, SPLAT_SLOTS + D)

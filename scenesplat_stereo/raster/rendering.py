@@ -43,6 +43,7 @@ def rasterization(
     rasterize_mode: str = "classic",
     max_alpha: float = 0.99,
     tile_size: int = 16,
+    deterministic: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """Render N 3D Gaussians into C pinhole cameras.
 
@@ -66,6 +67,8 @@ def rasterization(
         rasterize_mode: "classic" or "antialiased" (opacity scaled by sqrt(det(S2d) / det(S2d + eps2d I))).
         max_alpha: per-Gaussian alpha clamp (gsplat 1.5.3 uses 0.999).
         tile_size: tile edge in pixels; the image does not depend on it.
+        deterministic: bit-reproducible gradients on CUDA (a fixed-order reduction instead of float
+            atomics; costs time and M x (6 + D) x 4 bytes, see docs/benchmarks.md). Not in gsplat.
 
     Returns:
         render_colors [C, H, W, D], render_alphas [C, H, W, 1], meta (screen-space intermediates: means2d,
@@ -127,7 +130,7 @@ def rasterization(
 
     bins = bin_gaussians(proj, width, height, tile_size)
     render, alphas, _ = autograd.composite(proj.means2d, proj.conics, features, proj.opacities, bins, width,
-                                           height, tile_size, max_alpha)
+                                           height, tile_size, max_alpha, deterministic)
     if render_mode in ("ED", "RGB+ED"):
         depth = render[..., -1:] / alphas.clamp_min(1e-10)
         render = torch.cat([render[..., :-1], depth], dim=-1)

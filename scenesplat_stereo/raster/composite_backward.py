@@ -1,0 +1,308 @@
+"""Reverse of the front-to-back compositing (SPEC section 2, steps 6-8): per-pixel gradients to splats.
+
+With T_k the transmittance in front of splat k, alpha_k its alpha, c_k its colour (all D channels, depth
+included) and S_k = sum_{j>k} alpha_j T_j c_j the colour composited behind it, a pixel's outputs are
+render = sum_k alpha_k T_k c_k and alpha = 1 - T_final, so
+
+    d render / d c_k = alpha_k T_k,
+    d render / d alpha_k = T_k c_k - S_k / (1 - alpha_k),      d alpha / d alpha_k = T_final / (1 - alpha_k).
+
+Each pixel walks its tile's list backwards from the last composited splat (``last_ids``) to the tile's
+start, recovering T_k = T_{k+1} / (1 - alpha_k) from T_final = 1 - alpha and accumulating S_k as it goes.
+Through alpha = o exp(-sigma), sigma = 0.5 delta^T conic delta, delta = mean2d - pixel centre:
+d alpha / d o = exp(-sigma), d alpha / d sigma = -alpha. Where the max_alpha clamp binds, alpha is constant
+(no gradient to o, conic, mean2d); splats skipped by the 1/255 or sigma >= 0 tests and the splat that
+triggered the T <= 1e-4 stop were not composited and get nothing. The same float32 expressions as the
+forward kernel decide which splats were composited, so the walk retraces the forward exactly.
+
+Gradients come out packed per (camera, Gaussian) as F = 6 + D floats:
+(d mean2d [2] pixels, d conic [3], d o [1], d colour [D]), see ``unpack_splat_grads``.
+
+Two reductions over pixels, one source for CPU and CUDA:
+- default: one thread per pixel, ``wp.atomic_add`` into the packed gradients (float atomics on CUDA add
+  in a run-dependent order, so the last bits can change between runs; Warp's CPU launches are one serial
+  loop, so on CPU this path is already bit-reproducible);
+- deterministic: one block per tile (or per group of at most ``DETERMINISTIC_BLOCK`` pixels of a tile)
+  walks the list in lock step; every entry's gradient is summed over the block's pixels with a
+  cooperative block reduction (fixed order) and written, without atomics, to that entry's own row; rows
+  are then summed per Gaussian in ascending entry order. Bit-reproducible; costs M x F x 4 bytes of rows
+  (M = number of tile intersections, times ceil(tile_size^2 / 256)), a block-wide reduction per list
+  entry and one stable sort of M ids. On CPU the same kernel runs on Warp's cooperative fibers
+  (``wp.config.enable_cpu_blocks``, switched on for the launch only), about 20x slower than the atomic
+  path there (20k Gaussians, 320x180: 5.4 s against 0.26-0.5 s on the 2-core test machine), and is
+  useful there only to test the CUDA code path.
+"""
+
+# No ``from __future__ import annotations`` here: Warp evaluates kernel annotations, and those naming the
+# per-D vector types of the kernel factory must be real objects, not strings.
+import contextlib
+import functools
+
+import torch
+import warp as wp
+
+from ._warp import ALPHA_MIN, on_device_of, to_wp, vector_type
+from .binning import Bins
+
+# Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
+# tiles are split into groups of this many pixels, each with its own row per list entry).
+DETERMINISTIC_BLOCK = 256
+# Leading packed slots before the D colour channels: d mean2d (2), d conic (3), d opacity (1).
+SPLAT_GRAD_SLOTS = 6
+
+
+@functools.cache
+def _kernels(channels: int):
+    """(pixel-parallel atomic kernel, deterministic block kernel, row-gather kernel) for D channels."""
+    vecD = vector_type(channels)
+    vecF = vector_type(channels + SPLAT_GRAD_SLOTS)
+
+    @wp.func
+    def reverse_step(
+        m: wp.vec2,
+        con: wp.vec3,
+        o: float,
+        col: vecD,
+        fx: float,
+        fy: float,
+        max_alpha: float,
+        T: float,
+        T_final: float,
+        S: vecD,
+        v_rgb: vecD,
+        v_alpha: float,
+    ):
+        """Undo one list entry at pixel centre (fx, fy): (T in front of it, S updated, its gradient)."""
+        grad = vecF()
+        dx = m[0] - fx
+        dy = m[1] - fy
+        sigma = 0.5 * (con[0] * dx * dx + con[2] * dy * dy) + con[1] * dx * dy
+        if not (sigma >= 0.0):
+            return T, S, grad
+        vis = o * wp.exp(-sigma)
+        if not (vis >= ALPHA_MIN):
+            return T, S, grad
+        alpha = wp.min(max_alpha, vis)
+        ra = 1.0 / (1.0 - alpha)
+        T = T * ra
+        fac = alpha * T
+        v_a = wp.dot(col * T - S * ra, v_rgb) + v_alpha * T_final * ra
+        S = S + fac * col
+        for k in range(channels):
+            grad[SPLAT_GRAD_SLOTS + k] = fac * v_rgb[k]
+        if vis < max_alpha:
+            v_sigma = -v_a * vis
+            grad[0] = v_sigma * (con[0] * dx + con[1] * dy)
+            grad[1] = v_sigma * (con[1] * dx + con[2] * dy)
+            grad[2] = v_sigma * 0.5 * dx * dx
+            grad[3] = v_sigma * dx * dy
+            grad[4] = v_sigma * 0.5 * dy * dy
+            grad[5] = v_a * wp.exp(-sigma)
+        return T, S, grad
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def composite_backward_atomic(
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        colors: wp.array(dtype=vecD),
+        opacities: wp.array(dtype=float),
+        tile_ranges: wp.array2d(dtype=wp.int32),
+        flatten_ids: wp.array(dtype=wp.int32),
+        width: int,
+        height: int,
+        tile_size: int,
+        tiles_x: int,
+        tiles_per_camera: int,
+        max_alpha: float,
+        alphas: wp.array(dtype=float),
+        last_ids: wp.array(dtype=wp.int32),
+        v_render: wp.array(dtype=vecD),
+        v_alphas: wp.array(dtype=float),
+        out_grads: wp.array(dtype=vecF),
+    ):
+        tid = wp.tid()
+        tile_area = tile_size * tile_size
+        tile = tid / tile_area
+        local = tid - tile * tile_area
+        c = tile / tiles_per_camera
+        t = tile - c * tiles_per_camera
+        ty = t / tiles_x
+        tx = t - ty * tiles_x
+        px = tx * tile_size + local % tile_size
+        py = ty * tile_size + local / tile_size
+        if px >= width or py >= height:
+            return
+        pix = (c * height + py) * width + px
+        start = tile_ranges[tile, 0]
+        T_final = 1.0 - alphas[pix]
+        T = T_final
+        S = vecD()
+        v_rgb = v_render[pix]
+        v_alpha = v_alphas[pix]
+        fx = float(px) + 0.5
+        fy = float(py) + 0.5
+        i = last_ids[pix]
+        while i >= start:
+            gid = flatten_ids[i]
+            T, S, grad = reverse_step(means2d[gid], conics[gid], opacities[gid], colors[gid], fx, fy,
+                                      max_alpha, T, T_final, S, v_rgb, v_alpha)
+            wp.atomic_add(out_grads, gid, grad)
+            i -= 1
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def composite_backward_rows(
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        colors: wp.array(dtype=vecD),
+        opacities: wp.array(dtype=float),
+        tile_ranges: wp.array2d(dtype=wp.int32),
+        flatten_ids: wp.array(dtype=wp.int32),
+        width: int,
+        height: int,
+        tile_size: int,
+        tiles_x: int,
+        tiles_per_camera: int,
+        max_alpha: float,
+        alphas: wp.array(dtype=float),
+        last_ids: wp.array(dtype=wp.int32),
+        v_render: wp.array(dtype=vecD),
+        v_alphas: wp.array(dtype=float),
+        groups: int,
+        group_size: int,
+        out_rows: wp.array(dtype=vecF),
+    ):
+        block, lane = wp.tid()
+        tile = block / groups
+        group = block - tile * groups
+        local = group * group_size + lane
+        c = tile / tiles_per_camera
+        t = tile - c * tiles_per_camera
+        ty = t / tiles_x
+        tx = t - ty * tiles_x
+        px = tx * tile_size + local % tile_size
+        py = ty * tile_size + local / tile_size
+        # Every lane takes part in the block reductions; lanes off the image or the tile stay idle.
+        last = int(-1)
+        pix = int(0)
+        if local < tile_size * tile_size and px < width and py < height:
+            pix = (c * height + py) * width + px
+            last = last_ids[pix]
+        T_final = 1.0 - alphas[pix]
+        T = T_final
+        S = vecD()
+        v_rgb = v_render[pix]
+        v_alpha = v_alphas[pix]
+        fx = float(px) + 0.5
+        fy = float(py) + 0.5
+        start = tile_ranges[tile, 0]
+        i = wp.tile_max(wp.tile(last))[0]
+        while i >= start:
+            grad = vecF()
+            if i <= last:
+                gid = flatten_ids[i]
+                T, S, grad = reverse_step(means2d[gid], conics[gid], opacities[gid], colors[gid], fx, fy,
+                                          max_alpha, T, T_final, S, v_rgb, v_alpha)
+            total = wp.tile_sum(wp.tile(grad, preserve_type=True))[0]
+            if lane == 0:
+                out_rows[i * groups + group] = total
+            i -= 1
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def gather_rows(
+        order: wp.array(dtype=wp.int32),
+        segment_start: wp.array(dtype=wp.int32),
+        groups: int,
+        rows: wp.array(dtype=vecF),
+        out_grads: wp.array(dtype=vecF),
+    ):
+        gid = wp.tid()
+        acc = vecF()
+        for j in range(segment_start[gid], segment_start[gid + 1]):
+            base = order[j] * groups
+            for s in range(groups):
+                acc = acc + rows[base + s]
+        out_grads[gid] = acc
+
+    return composite_backward_atomic, composite_backward_rows, gather_rows
+
+
+@contextlib.contextmanager
+def _cpu_blocks(device: str):
+    """Warp runs CPU blocks of more than one thread (cooperative fibers) only when asked; ask for one launch."""
+    if device != "cpu":
+        yield
+        return
+    previous = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    try:
+        yield
+    finally:
+        wp.config.enable_cpu_blocks = previous
+
+
+def composite_backward(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    colors: torch.Tensor,
+    opacities: torch.Tensor,
+    bins: Bins,
+    width: int,
+    height: int,
+    tile_size: int,
+    max_alpha: float,
+    alphas: torch.Tensor,
+    last_ids: torch.Tensor,
+    v_render: torch.Tensor,
+    v_alphas: torch.Tensor,
+    deterministic: bool = False,
+) -> torch.Tensor:
+    """Packed splat gradients [C, N, 6 + D] (see ``unpack_splat_grads``) of a compositing pass.
+
+    Inputs are those of ``composite.composite_forward`` plus its outputs ``alphas`` [C,H,W,1] and
+    ``last_ids`` [C,H,W], and the cotangents ``v_render`` [C,H,W,D], ``v_alphas`` [C,H,W,1].
+    ``deterministic=True`` gives bit-reproducible sums (see the module docstring for the cost).
+    """
+    C, N, D = colors.shape
+    F = D + SPLAT_GRAD_SLOTS
+    grads = torch.zeros(C, N, F, device=colors.device, dtype=torch.float32)
+    M = bins.flatten_ids.numel()
+    if C == 0 or N == 0 or M == 0:
+        return grads
+    atomic_kernel, rows_kernel, gather_kernel = _kernels(D)
+    vecD, vecF = vector_type(D), vector_type(F)
+    tiles_per_camera = bins.tiles_x * bins.tiles_y
+    HW = C * height * width
+    common = [
+        to_wp(means2d, wp.vec2, (C * N,)), to_wp(conics, wp.vec3, (C * N,)), to_wp(colors, vecD, (C * N,)),
+        to_wp(opacities, None, (C * N,)), to_wp(bins.tile_ranges), to_wp(bins.flatten_ids), int(width),
+        int(height), int(tile_size), bins.tiles_x, tiles_per_camera, float(max_alpha),
+        to_wp(alphas, None, (HW,)), to_wp(last_ids, None, (HW,)), to_wp(v_render, vecD, (HW,)),
+        to_wp(v_alphas, None, (HW,)),
+    ]
+    with on_device_of(colors) as device:
+        if not deterministic:
+            wp.launch(atomic_kernel, dim=C * tiles_per_camera * tile_size * tile_size, inputs=common,
+                      outputs=[to_wp(grads, vecF, (C * N,))], device=device)
+            return grads
+        area = tile_size * tile_size
+        group_size = min(area, DETERMINISTIC_BLOCK)
+        groups = -(-area // group_size)
+        rows = torch.zeros(M * groups, F, device=colors.device, dtype=torch.float32)
+        with _cpu_blocks(device):
+            wp.launch_tiled(rows_kernel, dim=[C * tiles_per_camera * groups],
+                            inputs=common + [groups, group_size], outputs=[to_wp(rows, vecF)],
+                            block_dim=group_size, device=device)
+        ids = bins.flatten_ids.long()
+        order = torch.sort(ids, stable=True).indices.to(torch.int32)
+        segment_start = torch.zeros(C * N + 1, device=colors.device, dtype=torch.int64)
+        segment_start[1:] = torch.cumsum(torch.bincount(ids, minlength=C * N), 0)
+        wp.launch(gather_kernel, dim=C * N,
+                  inputs=[to_wp(order), to_wp(segment_start.to(torch.int32)), groups, to_wp(rows, vecF)],
+                  outputs=[to_wp(grads, vecF, (C * N,))], device=device)
+    return grads
+
+
+def unpack_splat_grads(grads: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Split packed [C, N, 6 + D] gradients into (d means2d [C,N,2], d conics [C,N,3], d colours [C,N,D],
+    d opacities [C,N])."""
+    return grads[..., 0:2], grads[..., 2:5], grads[..., SPLAT_GRAD_SLOTS:], grads[..., 5]

@@ -1,0 +1,167 @@
+"""Reverse of the view-dependent SH colours (SPEC section 1, "Colour"): rgb = max(SH(d) + 0.5, 0) with
+d = normalise(dir), dir = mean - camera centre (world units), real SH in the INRIA/gsplat basis of sh.py.
+
+Gradients: d rgb / d coeff_k = Y_k(d) per channel (zero in channels where the clamp at 0 binds);
+d rgb / d d = sum_k coeff_k dY_k/dd, taken through the normalisation, d dir = (g - d (d . g)) / |dir|
+(a zero direction, a Gaussian at the camera centre, gets a zero gradient). One thread per Gaussian walks
+the cameras in order, so the coefficient gradients are summed without atomics (reproducible). Compiled per
+degree: degree 0 never reads or writes directions. Culled (camera, Gaussian) pairs contribute nothing.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+import warp as wp
+
+from ._warp import on_device_of, to_wp
+from .sh import SH_C0, SH_C1, SH_C2, SH_C3, sh_basis_1
+
+
+@functools.cache
+def sh_backward_kernel(degree: int):
+    """Per-Gaussian SH backward kernel, compiled per SH degree."""
+    C2_0, C2_1, C2_2, C2_3, C2_4 = SH_C2
+    C3_0, C3_1, C3_2, C3_3, C3_4, C3_5, C3_6 = SH_C3
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def sh_backward(
+        dirs: wp.array2d(dtype=wp.vec3),
+        coeffs: wp.array2d(dtype=wp.vec3),
+        radii: wp.array2d(dtype=wp.vec2i),
+        v_colors: wp.array2d(dtype=wp.vec3),
+        out_v_coeffs: wp.array2d(dtype=wp.vec3),
+        out_v_dirs: wp.array2d(dtype=wp.vec3),
+    ):
+        g = wp.tid()
+        for c in range(radii.shape[0]):
+            r = radii[c, g]
+            if r[0] <= 0 and r[1] <= 0:
+                continue
+            # Forward colour (before the clamp) to find the channels where max(., 0) passes gradient.
+            rgb = SH_C0 * coeffs[g, 0]
+            v = wp.vec3(0.0, 0.0, 0.0)
+            n = float(0.0)
+            if wp.static(degree >= 1):
+                v = dirs[c, g]
+                n = wp.length(v)
+                if n > 0.0:
+                    v = v / n
+                b1 = sh_basis_1(v)
+                rgb = rgb + b1[0] * coeffs[g, 1] + b1[1] * coeffs[g, 2] + b1[2] * coeffs[g, 3]
+                if wp.static(degree >= 2):
+                    x = v[0]
+                    y = v[1]
+                    z = v[2]
+                    xx = x * x
+                    yy = y * y
+                    zz = z * z
+                    rgb = (
+                        rgb
+                        + (C2_0 * x * y) * coeffs[g, 4]
+                        + (C2_1 * y * z) * coeffs[g, 5]
+                        + (C2_2 * (2.0 * zz - xx - yy)) * coeffs[g, 6]
+                        + (C2_3 * x * z) * coeffs[g, 7]
+                        + (C2_4 * (xx - yy)) * coeffs[g, 8]
+                    )
+                    if wp.static(degree >= 3):
+                        rgb = (
+                            rgb
+                            + (C3_0 * y * (3.0 * xx - yy)) * coeffs[g, 9]
+                            + (C3_1 * x * y * z) * coeffs[g, 10]
+                            + (C3_2 * y * (4.0 * zz - xx - yy)) * coeffs[g, 11]
+                            + (C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * coeffs[g, 12]
+                            + (C3_4 * x * (4.0 * zz - xx - yy)) * coeffs[g, 13]
+                            + (C3_5 * z * (xx - yy)) * coeffs[g, 14]
+                            + (C3_6 * x * (xx - 3.0 * yy)) * coeffs[g, 15]
+                        )
+            vc = v_colors[c, g]
+            vc = wp.vec3(
+                wp.where(rgb[0] + 0.5 >= 0.0, vc[0], 0.0),
+                wp.where(rgb[1] + 0.5 >= 0.0, vc[1], 0.0),
+                wp.where(rgb[2] + 0.5 >= 0.0, vc[2], 0.0),
+            )
+            out_v_coeffs[g, 0] += SH_C0 * vc
+            if wp.static(degree >= 1):
+                b1 = sh_basis_1(v)
+                out_v_coeffs[g, 1] += b1[0] * vc
+                out_v_coeffs[g, 2] += b1[1] * vc
+                out_v_coeffs[g, 3] += b1[2] * vc
+                # d rgb / d v, contracted with vc: sum_k (coeff_k . vc) grad Y_k(v)
+                w1 = wp.dot(coeffs[g, 1], vc)
+                w2 = wp.dot(coeffs[g, 2], vc)
+                w3 = wp.dot(coeffs[g, 3], vc)
+                v_v = SH_C1 * wp.vec3(-w3, -w1, w2)
+                if wp.static(degree >= 2):
+                    x = v[0]
+                    y = v[1]
+                    z = v[2]
+                    xx = x * x
+                    yy = y * y
+                    zz = z * z
+                    out_v_coeffs[g, 4] += (C2_0 * x * y) * vc
+                    out_v_coeffs[g, 5] += (C2_1 * y * z) * vc
+                    out_v_coeffs[g, 6] += (C2_2 * (2.0 * zz - xx - yy)) * vc
+                    out_v_coeffs[g, 7] += (C2_3 * x * z) * vc
+                    out_v_coeffs[g, 8] += (C2_4 * (xx - yy)) * vc
+                    w4 = wp.dot(coeffs[g, 4], vc)
+                    w5 = wp.dot(coeffs[g, 5], vc)
+                    w6 = wp.dot(coeffs[g, 6], vc)
+                    w7 = wp.dot(coeffs[g, 7], vc)
+                    w8 = wp.dot(coeffs[g, 8], vc)
+                    v_v += w4 * C2_0 * wp.vec3(y, x, 0.0)
+                    v_v += w5 * C2_1 * wp.vec3(0.0, z, y)
+                    v_v += w6 * C2_2 * wp.vec3(-2.0 * x, -2.0 * y, 4.0 * z)
+                    v_v += w7 * C2_3 * wp.vec3(z, 0.0, x)
+                    v_v += w8 * C2_4 * wp.vec3(2.0 * x, -2.0 * y, 0.0)
+                    if wp.static(degree >= 3):
+                        out_v_coeffs[g, 9] += (C3_0 * y * (3.0 * xx - yy)) * vc
+                        out_v_coeffs[g, 10] += (C3_1 * x * y * z) * vc
+                        out_v_coeffs[g, 11] += (C3_2 * y * (4.0 * zz - xx - yy)) * vc
+                        out_v_coeffs[g, 12] += (C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * vc
+                        out_v_coeffs[g, 13] += (C3_4 * x * (4.0 * zz - xx - yy)) * vc
+                        out_v_coeffs[g, 14] += (C3_5 * z * (xx - yy)) * vc
+                        out_v_coeffs[g, 15] += (C3_6 * x * (xx - 3.0 * yy)) * vc
+                        w9 = wp.dot(coeffs[g, 9], vc)
+                        w10 = wp.dot(coeffs[g, 10], vc)
+                        w11 = wp.dot(coeffs[g, 11], vc)
+                        w12 = wp.dot(coeffs[g, 12], vc)
+                        w13 = wp.dot(coeffs[g, 13], vc)
+                        w14 = wp.dot(coeffs[g, 14], vc)
+                        w15 = wp.dot(coeffs[g, 15], vc)
+                        v_v += w9 * C3_0 * wp.vec3(6.0 * x * y, 3.0 * (xx - yy), 0.0)
+                        v_v += w10 * C3_1 * wp.vec3(y * z, x * z, x * y)
+                        v_v += w11 * C3_2 * wp.vec3(-2.0 * x * y, 4.0 * zz - xx - 3.0 * yy, 8.0 * y * z)
+                        v_v += w12 * C3_3 * wp.vec3(-6.0 * x * z, -6.0 * y * z, 6.0 * zz - 3.0 * xx - 3.0 * yy)
+                        v_v += w13 * C3_4 * wp.vec3(4.0 * zz - 3.0 * xx - yy, -2.0 * x * y, 8.0 * x * z)
+                        v_v += w14 * C3_5 * wp.vec3(2.0 * x * z, -2.0 * y * z, xx - yy)
+                        v_v += w15 * C3_6 * wp.vec3(3.0 * (xx - yy), -6.0 * x * y, 0.0)
+                if n > 0.0:
+                    out_v_dirs[c, g] = (v_v - v * wp.dot(v, v_v)) / n
+
+    return sh_backward
+
+
+def eval_sh_colors_backward(
+    degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor, v_colors: torch.Tensor
+) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """Gradients (dirs [C,N,3] or None for degree 0, coeffs [N,K,3]) of ``sh.eval_sh_colors`` from the
+    cotangent ``v_colors`` [C,N,3]; bands beyond ``degree`` get zero gradient."""
+    C, N = radii.shape[:2]
+    f32 = dict(device=coeffs.device, dtype=torch.float32)
+    v_coeffs = torch.zeros(coeffs.shape, **f32)
+    v_dirs = torch.zeros(C, N, 3, **f32) if degree > 0 else None
+    if C == 0 or N == 0:
+        return v_dirs, v_coeffs
+    dirs_arg = dirs if degree > 0 else torch.zeros(1, 1, 3, **f32)
+    with on_device_of(coeffs) as device:
+        wp.launch(
+            sh_backward_kernel(degree),
+            dim=N,
+            inputs=[to_wp(dirs_arg, wp.vec3), to_wp(coeffs, wp.vec3), to_wp(radii, wp.vec2i),
+                    to_wp(v_colors, wp.vec3)],
+            outputs=[to_wp(v_coeffs, wp.vec3), to_wp(v_dirs if v_dirs is not None else dirs_arg, wp.vec3)],
+            device=device,
+        )
+    return v_dirs, v_coeffs
