@@ -1,0 +1,200 @@
+"""``scenesplat-stereo bench build``: what the dataset build costs in time.
+
+A synthetic teacher (``demo.make_room`` with ``--gaussians`` Gaussians, SH degree ``--sh-degree``) is
+rendered along ``demo.room_trajectory`` through the build's own pipeline (``build.render_batch``: all 12
+cameras of ``--batch-pairs`` pairs per rasterisation call -> encoder threads -> ``ShardWriter`` into a
+temporary folder). Per configuration, after one warm-up batch (kernel compilation), ``--pairs`` pairs are
+timed; the table reports pairs/s and renders/s of the whole pipeline (wall clock) and the split: render
+(rasterisation, uint8 conversion and the device-to-host copy, s), encode (summed over encoder threads,
+worker-s), write (tar + marker, s), and how long the renderer waited for the encoders.
+
+Rows: the base setting at each ``--sizes`` entry; at the first size, JPEG quality ``--qualities``, then
+``--with-depth`` and ``--effects`` on (off, they are skipped code paths: the base row is the "off" cost),
+and with ``--gsplat`` the same pipeline rendering with gsplat's ``rasterization`` (CUDA only). A second
+table measures encoder-thread scaling (OpenImageIO releases the GIL). Last, the projected time of the
+paper's training set (appendix B: 174,621 ScanNetGS pairs at 616x456 and 149,196 ScanNetPPGS-V2 pairs at
+1752x1168, 12 images each) on this device, from the base rows at those sizes (or, for a size not measured,
+scaled by pixel count from the nearest measured one, and labelled so).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+import tempfile
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from scenesplat_stereo.build import BuildSettings, render_batch
+from scenesplat_stereo.cameras import intrinsics_matrix
+from scenesplat_stereo.demo import make_room, room_trajectory
+from scenesplat_stereo.effects import CameraEffects
+from scenesplat_stereo.encode import SampleEncoder, encode_sample
+from scenesplat_stereo.protocol import JPEG_QUALITY, plan_scene
+from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.shards import ShardWriter
+from scenesplat_stereo.teachers import Teacher
+
+# Paper appendix B ("Scene splits and counts", "Rendering and valid masks"): training pairs per subset at
+# the subsets' native resolutions.
+PAPER_TRAIN_PAIRS = {(616, 456): 174_621, (1752, 1168): 149_196}
+FOV_X_DEG = 70.0  # synthetic camera
+
+
+@dataclass
+class Timing:
+    label: str
+    size: tuple[int, int]
+    pairs: int
+    renders: int
+    wall_s: float
+    render_s: float
+    encode_s: float
+    write_s: float
+    wait_s: float
+    mbytes: float
+
+    def row(self) -> str:
+        w, h = self.size
+        return (f"| {self.label} | {w}x{h} | {self.pairs / self.wall_s:.3f} | {self.renders / self.wall_s:.2f} | "
+                f"{1e3 * self.render_s / self.pairs:.1f} | {1e3 * self.encode_s / self.pairs:.1f} | "
+                f"{1e3 * self.write_s / self.pairs:.1f} | {1e3 * self.wait_s / self.pairs:.1f} | "
+                f"{self.mbytes / self.pairs:.2f} |")
+
+
+HEADER = ("| setting | size | pairs/s | renders/s | render ms/pair | encode worker-ms/pair | write ms/pair | "
+          "wait-for-encoder ms/pair | MB/pair |\n|---|---|---:|---:|---:|---:|---:|---:|---:|")
+
+
+def synthetic_teacher(n: int, sh_degree: int, frames: int, size: tuple[int, int], device: str) -> tuple[Teacher, dict]:
+    """A room of n Gaussians and a Teacher record for its trajectory (no file on disk)."""
+    scene = make_room(seed=0, sh_degree=sh_degree, num_gaussians=n)
+    c2w = room_trajectory(frames, seed=0)
+    w, h = size
+    fx = 0.5 * w / math.tan(math.radians(0.5 * FOV_X_DEG))
+    K = intrinsics_matrix(fx, fx, 0.5 * w, 0.5 * h)
+    teacher = Teacher(scene_id="bench", subset="bench", layout="plain", ply_path=Path("-"), psnr=33.0, c2w=c2w,
+                      Ks=np.repeat(K[None], frames, 0), width=w, height=h, sh_degree=sh_degree,
+                      camera_convention="opencv", frame_names=[str(i) for i in range(frames)])
+    return teacher, scene.to_torch(device)
+
+
+def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: BuildSettings, size: tuple[int, int],
+                  pairs: int, rasterize=rasterization) -> Timing:
+    """Warm up with one batch, then time ``pairs`` pairs through render -> encode -> write."""
+    plans = plan_scene(teacher, "train", resolution=size)
+    plans = (plans * math.ceil((pairs + settings.batch_pairs) / len(plans)))[:pairs + settings.batch_pairs]
+    render_batch(gaussians, teacher.sh_degree, plans[:settings.batch_pairs], settings, rasterize)
+    plans = [replace(p, key=f"bench__{i:06d}") for i, p in enumerate(plans[settings.batch_pairs:])]
+    sync = torch.cuda.synchronize if str(settings.device).startswith("cuda") else (lambda: None)
+    with tempfile.TemporaryDirectory() as tmp:
+        sync()
+        t0, render_s, renders = time.perf_counter(), 0.0, 0
+        with ShardWriter(Path(tmp), "bench", len(plans)) as writer:
+            with SampleEncoder(writer.add, settings.workers, settings.jpeg_quality) as enc:
+                for start in range(0, len(plans), settings.batch_pairs):
+                    batch = plans[start:start + settings.batch_pairs]
+                    t1 = time.perf_counter()
+                    samples = render_batch(gaussians, teacher.sh_degree, batch, settings, rasterize)
+                    render_s += time.perf_counter() - t1
+                    renders += sum(2 + len(p.target_ids) for p in batch)
+                    for s in samples:
+                        enc.submit(s)
+        wall = time.perf_counter() - t0
+        mbytes = sum(f.stat().st_size for f in Path(tmp).rglob("*.tar")) / 1e6
+    return Timing(label, size, len(plans), renders, wall, render_s, enc.encode_s, enc.sink_s, enc.wait_s, mbytes)
+
+
+def encoder_scaling(teacher: Teacher, gaussians: dict, settings: BuildSettings, size: tuple[int, int],
+                    pairs: int) -> list[tuple[int, float]]:
+    """Encode the same rendered samples with 1, 2, ... ``settings.workers`` threads: (threads, pairs/s)."""
+    plans = plan_scene(teacher, "train", resolution=size)[:max(1, pairs)]
+    samples = render_batch(gaussians, teacher.sh_degree, plans, settings)
+    encode_sample(samples[0], settings.jpeg_quality)  # warm-up
+    out = []
+    for threads in sorted({1, *range(2, settings.workers + 1, 2), settings.workers}):
+        t0 = time.perf_counter()
+        with SampleEncoder(lambda k, m: None, threads, settings.jpeg_quality) as enc:
+            for s in samples:
+                enc.submit(s)
+        out.append((threads, len(samples) / (time.perf_counter() - t0)))
+    return out
+
+
+def projection(base: dict[tuple[int, int], Timing]) -> list[str]:
+    """Projected hours for the paper's training set from the base rows."""
+    lines, total = [], 0.0
+    for size, n_pairs in PAPER_TRAIN_PAIRS.items():
+        if size in base:
+            rate, how = base[size].pairs / base[size].wall_s, "measured"
+        else:
+            ref = min(base, key=lambda s: abs(math.log(s[0] * s[1] / (size[0] * size[1]))))
+            rate = base[ref].pairs / base[ref].wall_s * (ref[0] * ref[1]) / (size[0] * size[1])
+            how = f"scaled by pixel count from {ref[0]}x{ref[1]}"
+        hours = n_pairs / rate / 3600
+        total += hours
+        lines.append(f"| {size[0]}x{size[1]} | {n_pairs:,} | {rate:.3f} ({how}) | {hours:.2f} |")
+    lines.append(f"| **total** | {sum(PAPER_TRAIN_PAIRS.values()):,} | | **{total:.2f}** |")
+    return ["| size | pairs (x12 images) | pairs/s | hours |", "|---|---:|---|---:|"] + lines
+
+
+def _sizes(text: str) -> list[tuple[int, int]]:
+    return [tuple(int(v) for v in s.lower().split("x")) for s in text.split(",") if s.strip()]
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--gaussians", type=int, default=1_000_000, help="Gaussians in the synthetic room (default 1M)")
+    p.add_argument("--sh-degree", type=int, default=3, help="SH degree of the synthetic teacher (default 3)")
+    p.add_argument("--sizes", default="616x456,1752x1168", help="WxH render sizes, comma-separated (pixels)")
+    p.add_argument("--pairs", type=int, default=32, help="timed pairs per setting (12 renders each; default 32)")
+    p.add_argument("--frames", type=int, default=64, help="trajectory frames the pairs cycle through (default 64)")
+    p.add_argument("--batch-pairs", type=int, default=4, help="pairs per rasterisation call (default 4)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="encoder threads (default: CPU count)")
+    p.add_argument("--qualities", default="75,100", help="extra JPEG qualities timed at the first size (default 75,100)")
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")
+    p.add_argument("--gsplat", action="store_true", help="also time the pipeline rendering with gsplat (if importable)")
+
+
+def run(args) -> int:
+    sizes = _sizes(args.sizes)
+    settings = BuildSettings(teachers=Path("-"), out=Path("-"), device=args.device, workers=args.workers,
+                             batch_pairs=args.batch_pairs, progress=False)
+    teacher, gaussians = synthetic_teacher(args.gaussians, args.sh_degree, args.frames, sizes[0], args.device)
+    device = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"CPU ({torch.get_num_threads()} threads)"
+    print(f"bench build: {args.gaussians:,} Gaussians, SH {args.sh_degree}, {args.pairs} pairs per row, "
+          f"{args.batch_pairs} pairs per call, {args.workers} encoder threads, device {device}\n")
+    rows, base = [], {}
+    for size in sizes:
+        base[size] = time_pipeline("base (RGB, q92, no effects, no depth)", teacher, gaussians, settings, size, args.pairs)
+        rows.append(base[size])
+    first = sizes[0]
+    for q in (int(v) for v in args.qualities.split(",") if v.strip()):
+        rows.append(time_pipeline(f"JPEG quality {q}", teacher, gaussians, replace(settings, jpeg_quality=q), first, args.pairs))
+    rows.append(time_pipeline("+ left depth (RGB+ED, EXR)", teacher, gaussians, replace(settings, with_depth=True),
+                              first, args.pairs))
+    all_fx = CameraEffects.parse("noise,vignetting,exposure")
+    rows.append(time_pipeline("+ effects (noise, vignetting, exposure)", teacher, gaussians,
+                              replace(settings, effects=all_fx), first, args.pairs))
+    if args.gsplat:
+        if importlib.util.find_spec("gsplat") is None or not args.device.startswith("cuda"):
+            print("(--gsplat: gsplat is not importable or the device is not CUDA; skipped)\n")
+        else:
+            from gsplat import rasterization as gsplat_rasterization
+
+            for size in sizes:
+                rows.append(time_pipeline("gsplat renderer, base", teacher, gaussians, settings, size, args.pairs,
+                                          gsplat_rasterization))
+    print(HEADER)
+    print("\n".join(r.row() for r in rows))
+    print(f"\nEncoder threads at {first[0]}x{first[1]} (q{JPEG_QUALITY}, same rendered samples):\n")
+    print("| threads | pairs/s encoded |\n|---:|---:|")
+    for threads, rate in encoder_scaling(teacher, gaussians, settings, first, args.pairs):
+        print(f"| {threads} | {rate:.2f} |")
+    print(f"\nProjected time of the paper's training set on this device ({device}):\n")
+    print("\n".join(projection(base)))
+    return 0

@@ -1,0 +1,502 @@
+"""``scenesplat-stereo build``: teacher scenes -> SceneSplat-Stereo shards (SPEC sections 3-5).
+
+Orchestration only: teachers (discovery, PSNR filter) -> protocol (splits, sample plans) -> the Warp
+rasteriser (all cameras of several pairs per call) -> encoder threads -> shards.
+
+Work is cut into shards per teacher: the teachers of a split, in sorted scene-id order, each take
+ceil(samples / --samples-per-shard) consecutive shard numbers, so ``OUT/<split>/shard-<NNNNNN>.tar`` is
+fixed by the inputs alone and any worker (a local loop or a Ray task per teacher) can write any
+teacher's shards. A rerun keeps every shard that is finished (its done marker lists exactly the planned
+keys and its size matches) and redoes the rest; a teacher whose shards are all finished is not even
+loaded. Same inputs, same bytes: shards, markers, ``index.json`` and ``stats.json`` hold no timestamps.
+
+A teacher that cannot be rendered (unreadable ``.ply``, NaNs in it, a render error) is reported in the
+summary and skipped; the others go on, and the teacher's unfinished shard is removed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import warnings
+from argparse import ArgumentTypeError
+from collections import defaultdict
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from scenesplat_stereo import shards
+from scenesplat_stereo.cameras import viewmats_from_c2w
+from scenesplat_stereo.effects import CameraEffects
+from scenesplat_stereo.encode import SampleEncoder, SampleImages
+from scenesplat_stereo.gaussians import load_ply
+from scenesplat_stereo.protocol import (
+    JPEG_QUALITY,
+    MASK_ALPHA_THRESHOLD,
+    MIN_TEACHER_PSNR,
+    NUM_TARGETS,
+    VAL_SCENES,
+    SamplePlan,
+    filter_teachers,
+    plan_scene,
+    split_scenes,
+)
+from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.teachers import (
+    Discovery,
+    OrbitSpec,
+    Rejection,
+    Teacher,
+    discover_teachers,
+    resolve_trajectory,
+    summary_table,
+)
+
+SPLITS_OF_MODE = {"trainval": ("train", "val"), "test": ("test",)}
+BUILD_JSON = "build.json"
+EXIT_TEACHER_FAILED = 3  # exit status when some teachers failed at build time (the rest is complete)
+
+
+@dataclass(frozen=True)
+class BuildSettings:
+    """Everything a build needs. Units: ``resolution`` (W, H) pixels; ``baseline``, ``rho`` world units
+    (metres), None for the teacher's PSNR tier; ``min_psnr`` dB, None keeps every teacher; ``val_scenes``
+    {subset: k} or one k for every subset, None for the paper's ``VAL_SCENES``."""
+
+    teachers: Path
+    out: Path
+    split_mode: str = "trainval"
+    resolution: tuple[int, int] | None = None
+    baseline: float | None = None
+    rho: float | None = None
+    targets: int = NUM_TARGETS
+    val_scenes: dict[str, int] | int | None = None
+    min_psnr: float | None = MIN_TEACHER_PSNR
+    with_depth: bool = False
+    effects: CameraEffects | None = None
+    device: str = "cpu"
+    samples_per_shard: int = 64
+    workers: int = 2
+    backend: str = "local"
+    ray_address: str | None = "auto"
+    orbit: OrbitSpec | None = None
+    max_frames: int | None = None
+    batch_pairs: int = 4
+    jpeg_quality: int = JPEG_QUALITY
+    progress: bool = True
+
+    def fingerprint(self) -> dict:
+        """The settings that decide the output bytes (stored in ``OUT/build.json``)."""
+        keep = ("resolution", "baseline", "rho", "targets", "val_scenes", "min_psnr", "with_depth",
+                "samples_per_shard", "max_frames", "jpeg_quality")
+        doc = {k: getattr(self, k) for k in keep}
+        doc["resolution"] = list(self.resolution) if self.resolution else None
+        doc["teachers"] = str(Path(self.teachers).resolve())
+        doc["effects"] = asdict(self.effects) if self.effects else None
+        doc["orbit"] = asdict(self.orbit) if self.orbit else None
+        return json.loads(json.dumps(doc))
+
+
+@dataclass
+class TeacherJob:
+    """One teacher's work: its split and the shards still to write, each (number, planned keys)."""
+
+    teacher: Teacher
+    split: str
+    chunks: list[tuple[int, list[str]]]
+
+    @property
+    def pairs(self) -> int:
+        return sum(len(keys) for _, keys in self.chunks)
+
+
+@dataclass
+class TeacherResult:
+    scene_id: str
+    subset: str
+    split: str
+    pairs: int = 0
+    renders: int = 0
+    shards: int = 0
+    render_s: float = 0.0
+    encode_s: float = 0.0
+    write_s: float = 0.0
+    error: str | None = None
+    path: str = ""
+
+
+@dataclass
+class BuildReport:
+    """What a build did: teachers (found, dropped with reasons), work done and skipped, timings (s)."""
+
+    discovery: Discovery
+    dropped: list[Rejection] = field(default_factory=list)
+    planned: dict[str, dict[str, int]] = field(default_factory=dict)  # split -> teachers/pairs/shards
+    results: list[TeacherResult] = field(default_factory=list)
+    skipped_shards: int = 0
+    removed_stale: int = 0
+    wall_s: float = 0.0
+
+    @property
+    def failed(self) -> list[TeacherResult]:
+        return [r for r in self.results if r.error]
+
+
+def plan_teacher(teacher: Teacher, split: str, settings: BuildSettings) -> list[SamplePlan]:
+    """The samples of one teacher (protocol.plan_scene), capped at ``max_frames`` evenly spaced ones."""
+    plans = plan_scene(teacher, split, settings.baseline, settings.rho, settings.targets, settings.resolution)
+    cap = settings.max_frames
+    if cap is not None and len(plans) > cap:
+        plans = [plans[int(i)] for i in np.unique(np.linspace(0, len(plans) - 1, cap).round())]
+    return plans
+
+
+def _planned_keys(teacher: Teacher, split: str, settings: BuildSettings) -> list[str]:
+    """Sample keys without loading the .ply (orbit teachers: any centre gives the same frames)."""
+    if teacher.c2w is None:
+        teacher = resolve_trajectory(teacher, np.zeros((1, 3)))
+    return [p.key for p in plan_teacher(teacher, split, settings)]
+
+
+def render_batch(gaussians: dict, sh_degree: int, plans: list[SamplePlan], settings: BuildSettings,
+                 rasterize=rasterization) -> list[SampleImages]:
+    """Render the cameras of ``plans`` (left, right, targets each; one teacher, one image size) in ONE
+    ``rasterize`` call (our ``rasterization``, or gsplat's in ``bench build --gsplat``; antialiased, the
+    teacher's SH degree, black background) and return the samples as uint8 images (round(clip(x, 0, 1) *
+    255)), masks alpha >= ``MASK_ALPHA_THRESHOLD`` and, with depth, the left camera's expected depth
+    (world units)."""
+    p0 = plans[0]
+    width, height, ntarget = p0.width, p0.height, len(p0.target_ids)
+    per = 2 + ntarget
+    c2w = np.stack([np.concatenate([p.c2w_left[None], p.c2w_right[None], p.c2w_targets]) for p in plans])
+    dev = settings.device
+    viewmats = torch.from_numpy(viewmats_from_c2w(c2w.reshape(-1, 4, 4))).float().to(dev)
+    Ks_pair = torch.from_numpy(np.stack([p.K for p in plans])).float().to(dev)
+    with torch.no_grad():
+        colors, alphas, _ = rasterize(
+            **gaussians, viewmats=viewmats, Ks=Ks_pair.repeat_interleave(per, dim=0), width=width, height=height,
+            sh_degree=sh_degree, render_mode="RGB+ED" if settings.with_depth else "RGB", rasterize_mode="antialiased")
+        colors = colors.reshape(len(plans), per, height, width, -1)
+        rgb = colors[..., :3]
+        if settings.effects is not None:
+            stereo = settings.effects.apply(rgb[:, :2], [p.key for p in plans], Ks_pair)
+            rgb = torch.cat([stereo, rgb[:, 2:]], dim=1)
+        rgb8 = (rgb.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).cpu().numpy()
+        masks = (alphas.reshape(len(plans), per, height, width)[:, 2:] >= MASK_ALPHA_THRESHOLD).cpu().numpy()
+        depth = colors[:, 0, :, :, 3].cpu().numpy() if settings.with_depth else None
+    return [
+        SampleImages(key=p.key, left=rgb8[i, 0], right=rgb8[i, 1], targets=rgb8[i, 2:], masks=masks[i],
+                     target_ids=tuple(p.target_ids), meta=shards.sample_json(p),
+                     depth=None if depth is None else depth[i])
+        for i, p in enumerate(plans)
+    ]
+
+
+def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> TeacherResult:
+    """Render, encode and write the missing shards of one teacher. Never raises for a bad teacher: the
+    error is returned in the result, and no unfinished shard is left behind."""
+    t = job.teacher
+    result = TeacherResult(t.scene_id, t.subset, job.split, path=str(t.ply_path))
+    sink = shards.PlannedShards(settings.out, job.split, job.chunks)
+    encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality)
+    try:
+        scene = load_ply(t.ply_path, strict=True)
+        teacher = resolve_trajectory(t, scene.means) if t.c2w is None else t
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the driver already reported the planning warnings
+            by_key = {p.key: p for p in plan_teacher(teacher, job.split, settings)}
+        todo = [by_key[k] for _, keys in job.chunks for k in keys]
+        gaussians = scene.to_torch(settings.device)
+        with encoder:
+            for start in range(0, len(todo), settings.batch_pairs):
+                batch = todo[start:start + settings.batch_pairs]
+                t0 = time.perf_counter()
+                samples = render_batch(gaussians, scene.sh_degree, batch, settings)
+                result.render_s += time.perf_counter() - t0
+                renders = sum(2 + len(p.target_ids) for p in batch)
+                result.renders += renders
+                for sample in samples:
+                    encoder.submit(sample)
+                if on_pairs is not None:
+                    on_pairs(len(batch), renders)
+    except Exception as e:  # noqa: BLE001  (one bad teacher must not stop the others; reported)
+        sink.discard()
+        result.error = f"{type(e).__name__}: {e}"
+    result.encode_s, result.write_s = encoder.encode_s, encoder.sink_s
+    result.shards, result.pairs = sink.done, sink.pairs
+    return result
+
+
+def _run_local(jobs: list[TeacherJob], settings: BuildSettings, bar: tqdm) -> list[TeacherResult]:
+    results = []
+    for job in jobs:
+        bar.set_description(job.teacher.scene_id[:24])
+        results.append(build_teacher(job, settings, on_pairs=lambda n, r: _advance(bar, n, r)))
+    return results
+
+
+def _run_ray(jobs: list[TeacherJob], settings: BuildSettings, bar: tqdm) -> list[TeacherResult]:
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("--backend ray needs Ray: pip install 'stereogaussians[ray]'") from None
+    if not ray.is_initialized():
+        ray.init(address=settings.ray_address)
+    gpus = 1 if str(settings.device).startswith("cuda") else 0
+    task = ray.remote(num_cpus=1, num_gpus=gpus)(build_teacher)
+    pending = {task.remote(job, settings): job for job in jobs}
+    results = []
+    while pending:
+        done, _ = ray.wait(list(pending), num_returns=1)
+        job = pending.pop(done[0])
+        try:
+            results.append(ray.get(done[0]))
+        except Exception as e:  # noqa: BLE001  (a crashed task is reported like a bad teacher)
+            results.append(TeacherResult(job.teacher.scene_id, job.teacher.subset, job.split,
+                                         error=f"Ray task failed: {e}", path=str(job.teacher.ply_path)))
+        bar.set_description(job.teacher.scene_id[:24])
+        _advance(bar, job.pairs, results[-1].renders)
+    order = {(j.split, j.teacher.scene_id): i for i, j in enumerate(jobs)}
+    return sorted(results, key=lambda r: order[(r.split, r.scene_id)])
+
+
+def _advance(bar: tqdm, pairs: int, renders: int) -> None:
+    """Advance the bar by ``pairs`` (its rate is pairs/s) and show renders/s beside it."""
+    bar.renders = getattr(bar, "renders", 0) + renders
+    bar.update(pairs)
+    elapsed = bar.format_dict.get("elapsed") or 0.0
+    if elapsed > 0:
+        bar.set_postfix_str(f"{bar.renders / elapsed:.1f} renders/s", refresh=False)
+
+
+def _val_counts(settings: BuildSettings, subsets: set[str]) -> dict[str, int]:
+    if settings.val_scenes is None:
+        return {s: VAL_SCENES.get(s, 0) for s in subsets}
+    if isinstance(settings.val_scenes, int):
+        return {s: settings.val_scenes for s in subsets}
+    return dict(settings.val_scenes)
+
+
+def _check_fingerprint(settings: BuildSettings) -> None:
+    """Refuse to mix outputs of different settings in one OUT; record the settings otherwise."""
+    path = Path(settings.out) / BUILD_JSON
+    doc = json.loads(path.read_text()) if path.is_file() else {}
+    old, new = doc.get(settings.split_mode), settings.fingerprint()
+    if old is not None and old != new:
+        diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+        raise ValueError(f"{path}: OUT was built ({settings.split_mode}) with other settings ({', '.join(diff)} "
+                         "differ); use a new --out, or delete OUT to rebuild")
+    doc[settings.split_mode] = new
+    shards.atomic_write_bytes(path, (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())
+
+
+def plan_build(settings: BuildSettings) -> tuple[BuildReport, list[TeacherJob]]:
+    """Discovery, filter, splits and the shard layout; finished shards are left out of the jobs and
+    shards of an earlier layout that this one does not plan are removed (counted)."""
+    discovery = discover_teachers(settings.teachers, settings.orbit)
+    kept, dropped = filter_teachers(discovery.teachers, settings.min_psnr)
+    report = BuildReport(discovery, dropped)
+    if settings.split_mode == "test":
+        split_of = {t.scene_id: "test" for t in kept}
+    else:
+        by_subset: dict[str, list[str]] = defaultdict(list)
+        for t in kept:
+            by_subset[t.subset].append(t.scene_id)
+        try:
+            split_of = split_scenes(by_subset, _val_counts(settings, set(by_subset)))
+        except ValueError as e:
+            raise ValueError(f"{e} (set --val-scenes)") from None
+    jobs: list[TeacherJob] = []
+    for split in SPLITS_OF_MODE[settings.split_mode]:
+        number, planned, teachers, pairs = 0, set(), 0, 0
+        for t in sorted((t for t in kept if split_of[t.scene_id] == split), key=lambda t: t.scene_id):
+            keys = _planned_keys(t, split, settings)
+            chunks = [(number + i, keys[s:s + settings.samples_per_shard])
+                      for i, s in enumerate(range(0, len(keys), settings.samples_per_shard))]
+            number += len(chunks)
+            planned.update(n for n, _ in chunks)
+            teachers, pairs = teachers + 1, pairs + len(keys)
+            todo = []
+            for n, chunk_keys in chunks:
+                info = shards.read_done(settings.out, split, n)
+                if info is not None and info["keys"] == chunk_keys:
+                    report.skipped_shards += 1
+                else:
+                    todo.append((n, chunk_keys))
+            if todo:
+                jobs.append(TeacherJob(t, split, todo))
+        stale = shards.remove_unplanned(settings.out, split, planned)
+        if stale:
+            warnings.warn(f"{Path(settings.out) / split}: removed {stale} shards that this build does not plan "
+                          "(an earlier layout)", stacklevel=2)
+        report.removed_stale += stale
+        report.planned[split] = {"teachers": teachers, "pairs": pairs, "shards": number}
+    return report, jobs
+
+
+def build(settings: BuildSettings) -> BuildReport:
+    """Run a build (see the module docstring) and return its report; prints nothing but the progress bar."""
+    t_start = time.perf_counter()
+    if settings.split_mode not in SPLITS_OF_MODE:
+        raise ValueError(f"--split-mode must be one of {list(SPLITS_OF_MODE)}, got {settings.split_mode!r}")
+    if settings.samples_per_shard < 1 or settings.batch_pairs < 1 or settings.workers < 0:
+        raise ValueError("--samples-per-shard and --batch-pairs must be >= 1, --workers >= 0")
+    if str(settings.device).startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError("--device cuda: no CUDA device is available to torch")
+    if settings.backend not in ("local", "ray"):
+        raise ValueError(f"--backend must be 'local' or 'ray', got {settings.backend!r}")
+    Path(settings.out).mkdir(parents=True, exist_ok=True)
+    _check_fingerprint(settings)
+    report, jobs = plan_build(settings)
+    total = sum(j.pairs for j in jobs)
+    with tqdm(total=total, unit="pair", disable=not settings.progress, dynamic_ncols=True) as bar:
+        run = _run_ray if settings.backend == "ray" else _run_local
+        report.results = run(jobs, settings, bar)
+    for split in SPLITS_OF_MODE[settings.split_mode]:
+        shards.write_index(settings.out, split)
+    _write_stats(settings, report)
+    report.wall_s = time.perf_counter() - t_start
+    return report
+
+
+def _write_stats(settings: BuildSettings, report: BuildReport) -> None:
+    path = Path(settings.out) / shards.STATS_NAME
+    old = json.loads(path.read_text()).get("teachers", {}) if path.is_file() else {}
+    drops = report.discovery.rejected + report.dropped + _failed_as_rejections(report)
+    old[settings.split_mode] = {
+        "found": len(report.discovery.teachers) + len(report.discovery.rejected),
+        "kept": len(report.discovery.teachers) - len(report.dropped) - len(report.failed),
+        "dropped": [{"scene": d.scene_id, "subset": d.subset, "reason": d.reason} for d in drops],
+    }
+    shards.write_stats(settings.out, shards.collect_stats(settings.out) | {"teachers": old})
+
+
+def _failed_as_rejections(report: BuildReport) -> list[Rejection]:
+    return [Rejection(r.scene_id, Path(r.path), f"build failed: {r.error}", r.subset) for r in report.failed]
+
+
+def summary(report: BuildReport) -> str:
+    """The end-of-build table: teachers found/kept/dropped (with reasons), per split the planned
+    teachers, pairs and shards and this run's work, and the time split."""
+    lines = ["teachers:", summary_table(report.discovery, report.dropped + _failed_as_rejections(report)), ""]
+    rows = [("split", "teachers", "pairs", "shards", "rendered pairs", "renders", "shards written")]
+    for split, plan in report.planned.items():
+        done = [r for r in report.results if r.split == split]
+        rows.append((split, str(plan["teachers"]), str(plan["pairs"]), str(plan["shards"]),
+                     str(sum(r.pairs for r in done)), str(sum(r.renders for r in done)),
+                     str(sum(r.shards for r in done))))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines += ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) for r in rows]
+    pairs = sum(r.pairs for r in report.results)
+    renders = sum(r.renders for r in report.results)
+    render_s = sum(r.render_s for r in report.results)
+    rate = f"{pairs / report.wall_s:.2f} pairs/s, {renders / report.wall_s:.1f} renders/s" if report.wall_s else "-"
+    lines += [
+        "",
+        f"kept from an earlier run: {report.skipped_shards} shards; removed stale: {report.removed_stale}",
+        f"time: render {render_s:.1f} s, encode {sum(r.encode_s for r in report.results):.1f} worker-s, "
+        f"write {sum(r.write_s for r in report.results):.1f} s, wall {report.wall_s:.1f} s ({rate})",
+    ]
+    return "\n".join(lines)
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ArgumentTypeError(f"{text!r}: expected WxH, e.g. 616x456") from None
+    if w < 1 or h < 1:
+        raise ArgumentTypeError(f"{text!r}: width and height must be >= 1")
+    return w, h
+
+
+def _val_scenes(text: str) -> dict[str, int] | int:
+    try:
+        if "=" not in text:
+            return int(text)
+        return {k.strip(): int(v) for k, v in (item.split("=") for item in text.split(",") if item.strip())}
+    except ValueError:
+        raise ArgumentTypeError(f"{text!r}: expected 'Subset=k,...' or one integer") from None
+
+
+def _min_psnr(text: str) -> float | None:
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise ArgumentTypeError(f"{text!r}: expected a number (dB) or 'none'") from None
+
+
+def _checked(parse):
+    """An argparse type from a parser that raises ValueError (its message is shown to the user)."""
+    def convert(text: str):
+        try:
+            return parse(text)
+        except ValueError as e:
+            raise ArgumentTypeError(str(e)) from None
+    return convert
+
+
+def add_arguments(p) -> None:
+    """The ``build`` flags (units and conventions in the help)."""
+    p.add_argument("--teachers", type=Path, required=True,
+                   help="folder of teacher scenes (SceneSplat-7K/gsplat, INRIA or plain layout, detected per sub-folder)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (OUT/<split>/shard-NNNNNN.tar, index.json, stats.json)")
+    p.add_argument("--split-mode", choices=list(SPLITS_OF_MODE), default="trainval",
+                   help="trainval: train and val scene splits (seed 42), every frame for train, 5 pairs x 4 "
+                   "targets per val scene; test: 100 evenly spaced pairs x all targets per scene (default trainval)")
+    p.add_argument("--resolution", type=_resolution, default=None, metavar="WxH",
+                   help="render size in pixels (default: each teacher's native size; K is rescaled)")
+    p.add_argument("--baseline", type=float, default=None, help="stereo baseline B in world units (metres); default: PSNR tier")
+    p.add_argument("--rho", type=float, default=None, help="target radius rho in world units (metres); default: PSNR tier")
+    p.add_argument("--targets", type=int, default=NUM_TARGETS,
+                   help=f"targets per pair, the first of the {NUM_TARGETS} Fibonacci directions (val: of the first 4)")
+    p.add_argument("--val-scenes", type=_val_scenes, default=None, metavar="SUBSET=K,...|K",
+                   help="validation scenes per subset, e.g. 'ScanNetGS=30,ScanNetPPGS-V2=20' (the default; 0 for "
+                   "other subsets) or one integer for every subset")
+    p.add_argument("--min-psnr", type=_min_psnr, default=MIN_TEACHER_PSNR, metavar="DB|none",
+                   help=f"keep teachers with PSNR strictly above this (dB, default {MIN_TEACHER_PSNR}); 'none' keeps all, "
+                   "including teachers without a PSNR")
+    p.add_argument("--with-depth", action="store_true",
+                   help="also store the left camera's expected depth (world units along z) as float16 EXR <key>.left_depth.exr")
+    p.add_argument("--effects", type=_checked(lambda t: CameraEffects.parse(t) and t), default=None, metavar="LIST",
+                   help="camera effects on the left/right inputs only, comma-separated from noise,vignetting,exposure (default: none)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the per-sample effect parameters (default 0)")
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
+                   help="torch device for rendering: cpu or cuda (default: cuda when available)")
+    p.add_argument("--samples-per-shard", type=int, default=64, help="samples (pairs) per tar shard (default 64)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                   help="JPEG/PNG encoder threads per renderer (default: CPU count; 0 encodes inline)")
+    p.add_argument("--batch-pairs", type=int, default=4, help="pairs rendered per rasterisation call (12 cameras each)")
+    p.add_argument("--backend", choices=["local", "ray"], default="local",
+                   help="local: one process; ray: one task per teacher on an existing Ray cluster (pip extra [ray])")
+    p.add_argument("--ray-address", default="auto", help="ray.init address for --backend ray (default auto)")
+    p.add_argument("--orbit", type=_checked(OrbitSpec.parse), default=None, metavar="SPEC",
+                   help="trajectory for teachers without one: 'RADIUS' or 'radius=6,frames=60,elevation=20,size=616x456,"
+                   "fov=60,up=-y' (world units, degrees, pixels); the orbit circles the median of the Gaussian means, "
+                   "OpenCV cameras looking at it")
+    p.add_argument("--max-frames", type=int, default=None, help="at most this many evenly spaced pairs per teacher (quick runs)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args) -> int:
+    """CLI entry: build, print the summary; exit 0, or ``EXIT_TEACHER_FAILED`` if some teacher failed."""
+    settings = BuildSettings(
+        teachers=args.teachers, out=args.out, split_mode=args.split_mode, resolution=args.resolution,
+        baseline=args.baseline, rho=args.rho, targets=args.targets, val_scenes=args.val_scenes,
+        min_psnr=args.min_psnr, with_depth=args.with_depth, effects=CameraEffects.parse(args.effects, args.seed),
+        device=args.device, samples_per_shard=args.samples_per_shard, workers=args.workers,
+        backend=args.backend, ray_address=args.ray_address, orbit=args.orbit, max_frames=args.max_frames,
+        batch_pairs=args.batch_pairs, progress=not args.no_progress)
+    try:
+        report = build(settings)
+    except (OSError, ValueError, RuntimeError) as e:
+        print(f"scenesplat-stereo build: error: {e}")
+        return 2
+    print(summary(report))
+    return EXIT_TEACHER_FAILED if report.failed else 0

@@ -1,0 +1,189 @@
+"""encode.py: JPEG / PNG / EXR bytes through OpenImageIO, deterministic, and the ordered encoder pool."""
+
+from __future__ import annotations
+
+import os
+import random
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+import torch
+
+from scenesplat_stereo import encode
+from scenesplat_stereo.encode import (
+    SampleEncoder,
+    SampleImages,
+    decode_image,
+    encode_depth_exr,
+    encode_jpeg,
+    encode_mask_png,
+    encode_png,
+    to_uint8,
+)
+
+
+def smooth_image(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w] / 16.0
+    phase = rng.uniform(0, 6, 3)
+    return np.stack([0.5 + 0.4 * np.sin(x + phase[c] + 0.5 * y) for c in range(3)], -1)
+
+
+def test_to_uint8_rule_round_clip():
+    # Independent statement of the rule: round(clip(x, 0, 1) * 255), half to even like numpy and torch.
+    x = np.array([-0.2, 0.0, 0.5 / 255, 1.5 / 255, 0.5, 254.5 / 255, 1.0, 1.7], dtype=np.float32)
+    assert to_uint8(x).tolist() == [0, 0, 0, 2, 128, 254, 255, 255]
+    # build.py converts with torch on the render device: the same bytes for the same floats.
+    rng = np.random.default_rng(1)
+    y = np.concatenate([rng.uniform(-0.1, 1.1, 1000), np.arange(256) / 255.0, (np.arange(255) + 0.5) / 255]).astype(np.float32)
+    via_torch = (torch.from_numpy(y).clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+    assert np.array_equal(to_uint8(y), via_torch)
+    with pytest.raises(ValueError, match="NaN"):
+        to_uint8(np.array([0.1, np.nan]))
+    with pytest.raises(TypeError):
+        to_uint8(np.array([1, 2], dtype=np.int32))
+
+
+def test_jpeg_roundtrip_quality_and_markers():
+    img = smooth_image()
+    data = encode_jpeg(img)
+    assert data[:3] == b"\xff\xd8\xff" and data[-2:] == b"\xff\xd9"
+    dec = decode_image(data, "jpg")
+    assert dec.shape == (48, 64, 3) and dec.dtype == np.uint8
+    err92 = np.abs(dec.astype(float) - to_uint8(img)).mean()
+    assert err92 < 2.0
+    err30 = np.abs(decode_image(encode_jpeg(img, 30), ".jpg").astype(float) - to_uint8(img)).mean()
+    assert err30 > err92
+    assert encode_jpeg(img) == encode_jpeg(to_uint8(img))  # float in -> rounded once, same bytes
+    with pytest.raises(ValueError, match="quality"):
+        encode_jpeg(img, 0)
+    with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
+        encode_jpeg(img[..., 0])
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (24, 32), (7, 5)])
+def test_mask_png_exact(shape):
+    rng = np.random.default_rng(0)
+    mask = rng.random(shape) > 0.5
+    data = encode_mask_png(mask)
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    dec = decode_image(data, "png")
+    assert dec.shape == shape + (1,) and dec.dtype == np.uint8
+    assert np.array_equal(dec[..., 0], np.where(mask, 255, 0))
+    with pytest.raises(ValueError, match="bool"):
+        encode_mask_png(mask.astype(np.uint8))
+
+
+def test_png_rgb_exact():
+    img = (np.random.default_rng(2).random((9, 11, 3)) * 255).astype(np.uint8)
+    assert np.array_equal(decode_image(encode_png(img), "png"), img)
+
+
+def test_depth_exr_half_roundtrip_and_extremes():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.1, 20.0, (24, 32)).astype(np.float32)
+    depth[0, 0], depth[0, 1], depth[0, 2] = 0.0, 1e6, np.inf
+    dec = decode_image(encode_depth_exr(depth), "exr")
+    assert dec.shape == (24, 32, 1) and dec.dtype == np.float32
+    with np.errstate(over="ignore"):
+        want = depth.astype(np.float16).astype(np.float32)  # float16 storage, independent of OIIO
+    assert np.array_equal(dec[..., 0], want)
+    assert dec[0, 1, 0] == np.inf and dec[0, 0, 0] == 0.0
+    with pytest.raises(ValueError, match="NaN"):
+        encode_depth_exr(np.full((2, 2), np.nan))
+
+
+def test_bytes_are_deterministic_across_calls_threads_and_time():
+    img, mask = smooth_image(), smooth_image()[..., 0] > 0.5
+    depth = smooth_image()[..., 1].astype(np.float32) * 5
+    first = (encode_jpeg(img), encode_mask_png(mask), encode_depth_exr(depth))
+    time.sleep(1.1)  # OpenImageIO stamps EXR files with the wall clock unless told otherwise
+    with ThreadPoolExecutor(4) as ex:
+        again = list(ex.map(lambda _: (encode_jpeg(img), encode_mask_png(mask), encode_depth_exr(depth)), range(8)))
+    assert all(a == first for a in again)
+
+
+def test_decode_garbage_raises():
+    with pytest.raises(ValueError):
+        decode_image(b"not an image at all", "jpg")
+    with pytest.raises(ValueError):
+        decode_image(encode_jpeg(smooth_image())[:200], "jpg")
+
+
+def _sample(key: str, seed: int, targets: int = 3, depth: bool = False) -> SampleImages:
+    img = to_uint8(smooth_image(24, 32, seed))
+    return SampleImages(key=key, left=img, right=img[:, ::-1].copy(), targets=np.stack([img] * targets),
+                        masks=np.ones((targets, 24, 32), bool), target_ids=tuple(range(targets)),
+                        meta=b'{"k":1}', depth=np.ones((24, 32), np.float32) if depth else None)
+
+
+def test_encode_sample_members():
+    members = encode.encode_sample(_sample("a__000000", 0, targets=2, depth=True))
+    assert list(members) == ["left.jpg", "right.jpg", "left_depth.exr", "target_00.jpg", "mask_00.png",
+                             "target_01.jpg", "mask_01.png", "json"]
+    s = _sample("a__000000", 0, targets=2)
+    s.target_ids = (4, 7)
+    assert {"target_04.jpg", "mask_07.png"} <= set(encode.encode_sample(s))
+
+
+def test_sample_encoder_keeps_submission_order_whatever_the_timing(monkeypatch):
+    real = encode.encode_sample
+    rng = random.Random(0)
+    lock = threading.Lock()
+
+    def slow(sample, quality):
+        with lock:
+            delay = rng.uniform(0, 0.02)
+        time.sleep(delay)  # scrambles completion order between the threads
+        return real(sample, quality)
+
+    monkeypatch.setattr(encode, "encode_sample", slow)
+    got: list[tuple[str, dict]] = []
+    keys = [f"s__{i:06d}" for i in range(20)]
+    with SampleEncoder(lambda k, m: got.append((k, m)), workers=4, max_pending=6) as enc:
+        for i, k in enumerate(keys):
+            enc.submit(_sample(k, i))
+            assert enc._queue.qsize() <= 6  # bounded queue
+    assert [k for k, _ in got] == keys
+    inline: list[tuple[str, dict]] = []
+    with SampleEncoder(lambda k, m: inline.append((k, m)), workers=0) as enc:
+        for i, k in enumerate(keys):
+            enc.submit(_sample(k, i))
+    assert got == inline  # threads and inline give the same bytes
+    assert enc.encode_s > 0
+
+
+def test_sample_encoder_drops_pending_after_an_error():
+    got, gate = [], threading.Event()
+
+    def sink(key, members):
+        gate.wait()  # the writer is busy with the first sample while the producer fails
+        got.append(key)
+
+    threading.Timer(0.3, gate.set).start()
+    with pytest.raises(RuntimeError, match="boom"):
+        with SampleEncoder(sink, workers=2, max_pending=100) as enc:
+            for i in range(5):
+                enc.submit(_sample(f"s__{i:06d}", i))
+            raise RuntimeError("boom")
+    assert got == ["s__000000"]  # the sample being written finishes; the queued ones never reach the sink
+
+
+def test_sample_encoder_raises_sink_errors_in_the_producer():
+    def sink(key, members):
+        raise OSError(f"disk full writing {key}")
+
+    with pytest.raises(OSError, match="disk full writing s__000000"):
+        with SampleEncoder(sink, workers=2) as enc:
+            for i in range(50):
+                enc.submit(_sample(f"s__{i:06d}", i))
+
+
+def test_scratch_files_do_not_accumulate():
+    with ThreadPoolExecutor(3) as ex:
+        list(ex.map(lambda i: (encode_jpeg(smooth_image(seed=i)), decode_image(encode_mask_png(np.eye(4, dtype=bool)), "png")),
+                    range(9)))
+    assert os.listdir(encode._scratch_dir()) == []
