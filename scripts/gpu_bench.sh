@@ -2,7 +2,7 @@
 # Builds, checks and times everything on the lent GPU in one call (see docs/benchmarks.md).
 # Here, once:   bash /work/shared/tools/warp-gpu-kit .gpukit && pip download --no-deps -d .whl gsplat==1.5.3
 # Device call 1 (carry .gpukit/a):          bash .gpukit/a/stash.sh
-# Device call 2 (carry .gpukit/b, .whl and .devdata with guitar.ply): bash scripts/gpu_bench.sh [parity|profile|render|backward|build|all]
+# Device call 2 (carry .gpukit/b, .whl and .devdata with guitar.ply): bash scripts/gpu_bench.sh [parity|tests|profile|render|backward|build|all]
 set -uo pipefail
 what=${1:-all}
 out=${OUT:-/tmp/out}; mkdir -p "$out"
@@ -15,6 +15,9 @@ rc=0
 if [[ $what == parity || $what == all ]]; then
   python3 scripts/gpu_parity.py 2>&1 | tee "$out/parity.txt" || rc=1
 fi
+if [[ $what == tests || $what == all ]]; then
+  python3 -m pytest -q -p no:cacheprovider tests/test_raster_backward.py tests/test_raster_variants.py tests/test_build.py -k cuda 2>&1 | tee "$out/tests.txt" | tail -15 || rc=1
+fi
 if [[ $what == profile || $what == all ]]; then
   python3 scripts/gpu_profile.py 2>&1 | tee "$out/profile.txt" || rc=1
 fi
@@ -25,6 +28,6 @@ if [[ $what == backward || $what == all ]]; then
   python3 -m scenesplat_stereo.bench.render --device cuda --backward --out "$out/bench_render_backward.md" || rc=1
 fi
 if [[ $what == build || $what == all ]]; then
-  python3 -m scenesplat_stereo.cli bench build --device cuda --out "$out/bench_build.md" || rc=1
+  python3 -m scenesplat_stereo.cli bench build --device cuda --gsplat --out "$out/bench_build.md" || rc=1
 fi
 exit $rc

@@ -106,11 +106,12 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
 
-def _render_fn(impl, scene, viewmats, Ks, s: Setting, max_alpha: float):
+def _render_fn(impl, scene, viewmats, Ks, s: Setting, max_alpha: float, deterministic: bool = False):
     kw = dict(sh_degree=s.sh_degree, render_mode=s.render_mode, rasterize_mode=s.rasterize_mode,
               tile_size=s.tile_size)
     if impl is rasterization:
         kw["max_alpha"] = max_alpha
+        kw["deterministic"] = deterministic
     return lambda: impl(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
                         viewmats, Ks, s.width, s.height, **kw)
 
@@ -219,12 +220,13 @@ def sweeps(args, gs, reference) -> list[str]:
     return out
 
 
-def _fwd_bwd(impl, scenes, viewmats, Ks, s: Setting, device: str, max_alpha: float, repeats: int):
+def _fwd_bwd(impl, scenes, viewmats, Ks, s: Setting, device: str, max_alpha: float, repeats: int,
+             deterministic: bool = False):
     """Median time of forward + backward of sum(render^2) over all scenes, and the peak memory in MiB."""
     def step():
         for scene in scenes:
             leaves = {k: v.detach().requires_grad_(True) for k, v in scene.items()}
-            render = _render_fn(impl, leaves, viewmats, Ks, s, max_alpha)()[0]
+            render = _render_fn(impl, leaves, viewmats, Ks, s, max_alpha, deterministic)()[0]
             render.square().mean().backward()
     cuda = device.startswith("cuda")
     if cuda:
@@ -236,8 +238,9 @@ def _fwd_bwd(impl, scenes, viewmats, Ks, s: Setting, device: str, max_alpha: flo
 
 def backward_rows(args, gs) -> list[str]:
     device = args.device
-    out = ["| workload | ours fwd+bwd ms | gsplat fwd+bwd ms | ratio | ours peak MiB | gsplat peak MiB |",
-           "|---|---|---|---|---|---|"]
+    out = ["| workload | ours fwd+bwd ms | gsplat fwd+bwd ms | ratio | ours peak MiB | gsplat peak MiB | "
+           "ours deterministic ms | deterministic peak MiB |",
+           "|---|---|---|---|---|---|---|---|"]
     s = Setting(n=args.headline_n, width=args.width, height=args.height)
     workloads = [(f"random {s.n:,} SH3 {s.width}x{s.height}", [random_scene(s.n, 3, device)],
                   *identity_camera(s.width, s.height, device), s)]
@@ -256,12 +259,13 @@ def backward_rows(args, gs) -> list[str]:
                       model_scenes, vm4, Km.repeat(4, 1, 1), m))
     for name, scenes, viewmats, Ks, st in workloads:
         t, mem = _fwd_bwd(rasterization, scenes, viewmats, Ks, st, device, 0.999, args.repeats)
+        t_det, mem_det = _fwd_bwd(rasterization, scenes, viewmats, Ks, st, device, 0.999, args.repeats, True)
         t_gs = mem_gs = None
         if gs is not None:
             t_gs, mem_gs = _fwd_bwd(gs, scenes, viewmats, Ks, st, device, 0.999, args.repeats)
         ratio = None if t_gs is None else t / t_gs
         out.append(f"| {name} | {_fmt(t * 1e3, 2)} | {_fmt(t_gs and t_gs * 1e3, 2)} | {_fmt(ratio, 2)} | "
-                   f"{_fmt(mem, 0)} | {_fmt(mem_gs, 0)} |")
+                   f"{_fmt(mem, 0)} | {_fmt(mem_gs, 0)} | {_fmt(t_det * 1e3, 2)} | {_fmt(mem_det, 0)} |")
     return out
 
 
