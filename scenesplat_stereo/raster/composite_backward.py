@@ -18,11 +18,14 @@ forward kernel decide which splats were composited, so the walk retraces the for
 Gradients come out packed per (camera, Gaussian) as F = 6 + D floats:
 (d mean2d [2] pixels, d conic [3], d o [1], d colour [D]), see ``unpack_splat_grads``.
 
-Two reductions over pixels, one source for CPU and CUDA:
-- default: one thread per pixel, ``wp.atomic_add`` into the packed gradients (float atomics on CUDA add
-  in a run-dependent order, so the last bits can change between runs; Warp's CPU launches are one serial
-  loop, so on CPU this path is already bit-reproducible);
-- deterministic: one block per tile (or per group of at most ``DETERMINISTIC_BLOCK`` pixels of a tile)
+Three reductions over pixels (``reduction``), one source for CPU and CUDA:
+- "pixel" (default on the CPU): one thread per pixel, ``wp.atomic_add`` into the packed gradients. Warp's
+  CPU launches are one serial loop, so there this is contention-free and bit-reproducible;
+- "warp" (default on CUDA): blocks of one warp (``WARP_GROUP`` pixels of a tile) walk the list in lock
+  step; an entry that touches any of the warp's pixels is summed over the warp and added with one atomic
+  per warp instead of one per pixel (float atomics add in a run-dependent order, so the last bits of the
+  gradients can change between runs);
+- "rows" (``deterministic=True``): one block per tile (or per group of at most ``DETERMINISTIC_BLOCK`` pixels of a tile)
   walks the list in lock step; every entry's gradient is summed over the block's pixels with a
   cooperative block reduction (fixed order) and written, without atomics, to that entry's own row; rows
   are then summed per Gaussian in ascending entry order. Bit-reproducible; costs M x F x 4 bytes of rows
@@ -35,18 +38,19 @@ Two reductions over pixels, one source for CPU and CUDA:
 
 # No ``from __future__ import annotations`` here: Warp evaluates kernel annotations, and those naming the
 # per-D vector types of the kernel factory must be real objects, not strings.
-import contextlib
 import functools
 
 import torch
 import warp as wp
 
-from ._warp import ALPHA_MIN, on_device_of, to_wp, vector_type
+from ._warp import ALPHA_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
 
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
 # tiles are split into groups of this many pixels, each with its own row per list entry).
 DETERMINISTIC_BLOCK = 256
+# Pixels per block of the default CUDA reduction: one warp, so the block sums are warp-level.
+WARP_GROUP = 32
 # Leading packed slots before the D colour channels: d mean2d (2), d conic (3), d opacity (1).
 SPLAT_GRAD_SLOTS = 6
 
@@ -149,63 +153,78 @@ def _kernels(channels: int):
             wp.atomic_add(out_grads, gid, grad)
             i -= 1
 
-    @wp.kernel(enable_backward=False, module="unique")
-    def composite_backward_rows(
-        means2d: wp.array(dtype=wp.vec2),
-        conics: wp.array(dtype=wp.vec3),
-        colors: wp.array(dtype=vecD),
-        opacities: wp.array(dtype=float),
-        tile_ranges: wp.array2d(dtype=wp.int32),
-        flatten_ids: wp.array(dtype=wp.int32),
-        width: int,
-        height: int,
-        tile_size: int,
-        tiles_x: int,
-        tiles_per_camera: int,
-        max_alpha: float,
-        alphas: wp.array(dtype=float),
-        last_ids: wp.array(dtype=wp.int32),
-        v_render: wp.array(dtype=vecD),
-        v_alphas: wp.array(dtype=float),
-        groups: int,
-        group_size: int,
-        out_rows: wp.array(dtype=vecF),
-    ):
-        block, lane = wp.tid()
-        tile = block / groups
-        group = block - tile * groups
-        local = group * group_size + lane
-        c = tile / tiles_per_camera
-        t = tile - c * tiles_per_camera
-        ty = t / tiles_x
-        tx = t - ty * tiles_x
-        px = tx * tile_size + local % tile_size
-        py = ty * tile_size + local / tile_size
-        # Every lane takes part in the block reductions; lanes off the image or the tile stay idle.
-        last = int(-1)
-        pix = int(0)
-        if local < tile_size * tile_size and px < width and py < height:
-            pix = (c * height + py) * width + px
-            last = last_ids[pix]
-        T_final = 1.0 - alphas[pix]
-        T = T_final
-        S = vecD()
-        v_rgb = v_render[pix]
-        v_alpha = v_alphas[pix]
-        fx = float(px) + 0.5
-        fy = float(py) + 0.5
-        start = tile_ranges[tile, 0]
-        i = wp.tile_max(wp.tile(last))[0]
-        while i >= start:
-            grad = vecF()
-            if i <= last:
-                gid = flatten_ids[i]
-                T, S, grad = reverse_step(means2d[gid], conics[gid], opacities[gid], colors[gid], fx, fy,
-                                          max_alpha, T, T_final, S, v_rgb, v_alpha)
-            total = wp.tile_sum(wp.tile(grad, preserve_type=True))[0]
-            if lane == 0:
-                out_rows[i * groups + group] = total
-            i -= 1
+    def block_kernel(atomic: bool):
+        """Cooperative kernel: one block per group of pixels of a tile walks the list in lock step and
+        sums each entry's gradient over the block; ``atomic`` adds the sum to the Gaussian's gradient
+        (one atomic per block and entry instead of one per pixel), else writes it to the entry's row."""
+
+        @wp.kernel(enable_backward=False, module="unique")
+        def composite_backward_blocks(
+            means2d: wp.array(dtype=wp.vec2),
+            conics: wp.array(dtype=wp.vec3),
+            colors: wp.array(dtype=vecD),
+            opacities: wp.array(dtype=float),
+            tile_ranges: wp.array2d(dtype=wp.int32),
+            flatten_ids: wp.array(dtype=wp.int32),
+            width: int,
+            height: int,
+            tile_size: int,
+            tiles_x: int,
+            tiles_per_camera: int,
+            max_alpha: float,
+            alphas: wp.array(dtype=float),
+            last_ids: wp.array(dtype=wp.int32),
+            v_render: wp.array(dtype=vecD),
+            v_alphas: wp.array(dtype=float),
+            groups: int,
+            group_size: int,
+            out_rows: wp.array(dtype=vecF),
+        ):
+            block, lane = wp.tid()
+            tile = block / groups
+            group = block - tile * groups
+            local = group * group_size + lane
+            c = tile / tiles_per_camera
+            t = tile - c * tiles_per_camera
+            ty = t / tiles_x
+            tx = t - ty * tiles_x
+            px = tx * tile_size + local % tile_size
+            py = ty * tile_size + local / tile_size
+            # Every lane takes part in the block reductions; lanes off the image or the tile stay idle.
+            last = int(-1)
+            pix = int(0)
+            if local < tile_size * tile_size and px < width and py < height:
+                pix = (c * height + py) * width + px
+                last = last_ids[pix]
+            T_final = 1.0 - alphas[pix]
+            T = T_final
+            S = vecD()
+            v_rgb = v_render[pix]
+            v_alpha = v_alphas[pix]
+            fx = float(px) + 0.5
+            fy = float(py) + 0.5
+            start = tile_ranges[tile, 0]
+            i = wp.tile_max(wp.tile(last))[0]
+            while i >= start:
+                grad = vecF()
+                hit = int(0)
+                if i <= last:
+                    gid = flatten_ids[i]
+                    T, S, grad = reverse_step(means2d[gid], conics[gid], opacities[gid], colors[gid], fx, fy,
+                                              max_alpha, T, T_final, S, v_rgb, v_alpha)
+                    if wp.length_sq(grad) > 0.0:
+                        hit = 1
+                # A cheap integer reduction first: most entries touch none of a group's pixels.
+                if wp.tile_max(wp.tile(hit))[0] > 0:
+                    total = wp.tile_sum(wp.tile(grad, preserve_type=True))[0]
+                    if lane == 0:
+                        if wp.static(atomic):
+                            wp.atomic_add(out_rows, flatten_ids[i], total)
+                        else:
+                            out_rows[i * groups + group] = total
+                i -= 1
+
+        return composite_backward_blocks
 
     @wp.kernel(enable_backward=False, module="unique")
     def gather_rows(
@@ -223,21 +242,7 @@ def _kernels(channels: int):
                 acc = acc + rows[base + s]
         out_grads[gid] = acc
 
-    return composite_backward_atomic, composite_backward_rows, gather_rows
-
-
-@contextlib.contextmanager
-def _cpu_blocks(device: str):
-    """Warp runs CPU blocks of more than one thread (cooperative fibers) only when asked; ask for one launch."""
-    if device != "cpu":
-        yield
-        return
-    previous = wp.config.enable_cpu_blocks
-    wp.config.enable_cpu_blocks = True
-    try:
-        yield
-    finally:
-        wp.config.enable_cpu_blocks = previous
+    return composite_backward_atomic, block_kernel(True), block_kernel(False), gather_rows
 
 
 def composite_backward(
@@ -255,12 +260,14 @@ def composite_backward(
     v_render: torch.Tensor,
     v_alphas: torch.Tensor,
     deterministic: bool = False,
+    reduction: str | None = None,
 ) -> torch.Tensor:
     """Packed splat gradients [C, N, 6 + D] (see ``unpack_splat_grads``) of a compositing pass.
 
     Inputs are those of ``composite.composite_forward`` plus its outputs ``alphas`` [C,H,W,1] and
     ``last_ids`` [C,H,W], and the cotangents ``v_render`` [C,H,W,D], ``v_alphas`` [C,H,W,1].
-    ``deterministic=True`` gives bit-reproducible sums (see the module docstring for the cost).
+    ``deterministic=True`` gives bit-reproducible sums (see the module docstring for the cost);
+    ``reduction`` ("pixel", "warp", "rows") overrides the choice (tests run every one on the CPU).
     """
     C, N, D = colors.shape
     F = D + SPLAT_GRAD_SLOTS
@@ -268,7 +275,7 @@ def composite_backward(
     M = bins.flatten_ids.numel()
     if C == 0 or N == 0 or M == 0:
         return grads
-    atomic_kernel, rows_kernel, gather_kernel = _kernels(D)
+    atomic_kernel, warp_kernel, rows_kernel, gather_kernel = _kernels(D)
     vecD, vecF = vector_type(D), vector_type(F)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
     HW = C * height * width
@@ -280,15 +287,24 @@ def composite_backward(
         to_wp(v_alphas, None, (HW,)),
     ]
     with on_device_of(colors) as device:
-        if not deterministic:
+        if reduction is None:
+            reduction = "rows" if deterministic else "pixel" if device == "cpu" else "warp"
+        if reduction == "pixel":
             wp.launch(atomic_kernel, dim=C * tiles_per_camera * tile_size * tile_size, inputs=common,
                       outputs=[to_wp(grads, vecF, (C * N,))], device=device)
             return grads
         area = tile_size * tile_size
+        if reduction == "warp":
+            groups = -(-area // WARP_GROUP)
+            with cpu_blocks(device):
+                wp.launch_tiled(warp_kernel, dim=[C * tiles_per_camera * groups],
+                                inputs=common + [groups, WARP_GROUP], outputs=[to_wp(grads, vecF, (C * N,))],
+                                block_dim=WARP_GROUP, device=device)
+            return grads
         group_size = min(area, DETERMINISTIC_BLOCK)
         groups = -(-area // group_size)
         rows = torch.zeros(M * groups, F, device=colors.device, dtype=torch.float32)
-        with _cpu_blocks(device):
+        with cpu_blocks(device):
             wp.launch_tiled(rows_kernel, dim=[C * tiles_per_camera * groups],
                             inputs=common + [groups, group_size], outputs=[to_wp(rows, vecF)],
                             block_dim=group_size, device=device)
