@@ -44,6 +44,52 @@ def touch_alpha(splats: wp.array2d(dtype=float), i: int, fx: float, fy: float) -
 
 
 @functools.cache
+def _gather_kernel(channels: int):
+    vecD = vector_type(channels)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def gather(
+        flatten_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=vecD),
+        out_splats: wp.array2d(dtype=float),
+    ):
+        i = wp.tid()
+        g = flatten_ids[i]
+        m = means2d[g]
+        con = conics[g]
+        col = colors[g]
+        out_splats[i, 0] = m[0]
+        out_splats[i, 1] = m[1]
+        out_splats[i, 2] = con[0]
+        out_splats[i, 3] = con[1]
+        out_splats[i, 4] = con[2]
+        out_splats[i, 5] = opacities[g]
+        for k in range(channels):
+            out_splats[i, SPLAT_SLOTS + k] = col[k]
+
+    return gather
+
+
+def gather_splats(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
+                  flatten_ids: torch.Tensor) -> torch.Tensor:
+    """Depth-sorted splat rows [M, 6 + D] of the intersection list (see the module docstring), written in
+    one pass from the per-(camera, Gaussian) tensors [C, N, ...] (forward and backward both read these)."""
+    C, N, D = colors.shape
+    M = flatten_ids.numel()
+    splats = torch.empty(M, SPLAT_SLOTS + D, device=colors.device, dtype=torch.float32)
+    if M:
+        with on_device_of(colors) as device:
+            wp.launch(_gather_kernel(D), dim=M, device=device,
+                      inputs=[to_wp(flatten_ids), to_wp(means2d, wp.vec2, (C * N,)), to_wp(conics, wp.vec3, (C * N,)),
+                              to_wp(opacities, None, (C * N,)), to_wp(colors, vector_type(D), (C * N,))],
+                      outputs=[to_wp(splats)])
+    return splats
+
+
+@functools.cache
 def composite_kernel(channels: int, tile_size: int, cooperative: bool):
     """The compositing kernel for ``channels`` colour channels and ``tile_size`` square tiles."""
     vecD = vector_type(channels)
@@ -190,8 +236,7 @@ def composite_forward(
         cooperative = dev.type == "cuda" and tile_size * tile_size <= 1024
     vecD = vector_type(D)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
-    per_splat = torch.cat([means2d, conics, opacities[..., None], colors], dim=-1).reshape(C * N, SPLAT_SLOTS + D)
-    splats = per_splat.index_select(0, bins.flatten_ids)
+    splats = gather_splats(means2d, conics, colors, opacities, bins.flatten_ids)
     args = dict(
         inputs=[to_wp(splats), to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x, tiles_per_camera,
                 float(max_alpha)],

@@ -45,6 +45,7 @@ import warp as wp
 
 from ._warp import ALPHA_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
+from .composite import SPLAT_SLOTS, gather_splats
 
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
 # tiles are split into groups of this many pixels, each with its own row per list entry).
@@ -63,10 +64,8 @@ def _kernels(channels: int):
 
     @wp.func
     def reverse_step(
-        m: wp.vec2,
-        con: wp.vec3,
-        o: float,
-        col: vecD,
+        splats: wp.array2d(dtype=float),
+        i: int,
         fx: float,
         fy: float,
         max_alpha: float,
@@ -76,10 +75,16 @@ def _kernels(channels: int):
         v_rgb: vecD,
         v_alpha: float,
     ):
-        """Undo one list entry at pixel centre (fx, fy): (T in front of it, S updated, its gradient)."""
+        """Undo list entry i (row i of the depth-sorted splats) at pixel centre (fx, fy): (T in front of it,
+        S updated, its gradient)."""
         grad = vecF()
-        dx = m[0] - fx
-        dy = m[1] - fy
+        con = wp.vec3(splats[i, 2], splats[i, 3], splats[i, 4])
+        o = splats[i, 5]
+        col = vecD()
+        for k in range(channels):
+            col[k] = splats[i, SPLAT_SLOTS + k]
+        dx = splats[i, 0] - fx
+        dy = splats[i, 1] - fy
         sigma = 0.5 * (con[0] * dx * dx + con[2] * dy * dy) + con[1] * dx * dy
         if not (sigma >= 0.0):
             return T, S, grad
@@ -106,10 +111,7 @@ def _kernels(channels: int):
 
     @wp.kernel(enable_backward=False, module="unique")
     def composite_backward_atomic(
-        means2d: wp.array(dtype=wp.vec2),
-        conics: wp.array(dtype=wp.vec3),
-        colors: wp.array(dtype=vecD),
-        opacities: wp.array(dtype=float),
+        splats: wp.array2d(dtype=float),
         tile_ranges: wp.array2d(dtype=wp.int32),
         flatten_ids: wp.array(dtype=wp.int32),
         width: int,
@@ -147,10 +149,8 @@ def _kernels(channels: int):
         fy = float(py) + 0.5
         i = last_ids[pix]
         while i >= start:
-            gid = flatten_ids[i]
-            T, S, grad = reverse_step(means2d[gid], conics[gid], opacities[gid], colors[gid], fx, fy,
-                                      max_alpha, T, T_final, S, v_rgb, v_alpha)
-            wp.atomic_add(out_grads, gid, grad)
+            T, S, grad = reverse_step(splats, i, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
+            wp.atomic_add(out_grads, flatten_ids[i], grad)
             i -= 1
 
     def block_kernel(atomic: bool):
@@ -160,10 +160,7 @@ def _kernels(channels: int):
 
         @wp.kernel(enable_backward=False, module="unique")
         def composite_backward_blocks(
-            means2d: wp.array(dtype=wp.vec2),
-            conics: wp.array(dtype=wp.vec3),
-            colors: wp.array(dtype=vecD),
-            opacities: wp.array(dtype=float),
+            splats: wp.array2d(dtype=float),
             tile_ranges: wp.array2d(dtype=wp.int32),
             flatten_ids: wp.array(dtype=wp.int32),
             width: int,
@@ -209,9 +206,7 @@ def _kernels(channels: int):
                 grad = vecF()
                 hit = int(0)
                 if i <= last:
-                    gid = flatten_ids[i]
-                    T, S, grad = reverse_step(means2d[gid], conics[gid], opacities[gid], colors[gid], fx, fy,
-                                              max_alpha, T, T_final, S, v_rgb, v_alpha)
+                    T, S, grad = reverse_step(splats, i, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
                     if wp.length_sq(grad) > 0.0:
                         hit = 1
                 # A cheap integer reduction first: most entries touch none of a group's pixels.
@@ -279,9 +274,9 @@ def composite_backward(
     vecD, vecF = vector_type(D), vector_type(F)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
     HW = C * height * width
+    splats = gather_splats(means2d, conics, colors, opacities, bins.flatten_ids)
     common = [
-        to_wp(means2d, wp.vec2, (C * N,)), to_wp(conics, wp.vec3, (C * N,)), to_wp(colors, vecD, (C * N,)),
-        to_wp(opacities, None, (C * N,)), to_wp(bins.tile_ranges), to_wp(bins.flatten_ids), int(width),
+        to_wp(splats), to_wp(bins.tile_ranges), to_wp(bins.flatten_ids), int(width),
         int(height), int(tile_size), bins.tiles_x, tiles_per_camera, float(max_alpha),
         to_wp(alphas, None, (HW,)), to_wp(last_ids, None, (HW,)), to_wp(v_render, vecD, (HW,)),
         to_wp(v_alphas, None, (HW,)),
