@@ -30,13 +30,11 @@ import torch
 from tqdm import tqdm
 
 from scenesplat_stereo import shards
-from scenesplat_stereo.cameras import viewmats_from_c2w
 from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import SampleEncoder, SampleImages
+from scenesplat_stereo.encode import SampleEncoder
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.protocol import (
     JPEG_QUALITY,
-    MASK_ALPHA_THRESHOLD,
     MIN_TEACHER_PSNR,
     NUM_TARGETS,
     VAL_SCENES,
@@ -45,7 +43,7 @@ from scenesplat_stereo.protocol import (
     plan_scene,
     split_scenes,
 )
-from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.render_pairs import start_render, stream_samples
 from scenesplat_stereo.teachers import (
     Discovery,
     OrbitSpec,
@@ -162,40 +160,6 @@ def _planned_keys(teacher: Teacher, split: str, settings: BuildSettings) -> list
     return [p.key for p in plan_teacher(teacher, split, settings)]
 
 
-def render_batch(gaussians: dict, sh_degree: int, plans: list[SamplePlan], settings: BuildSettings,
-                 rasterize=rasterization) -> list[SampleImages]:
-    """Render the cameras of ``plans`` (left, right, targets each; one teacher, one image size) in ONE
-    ``rasterize`` call (our ``rasterization``, or gsplat's in ``bench build --gsplat``; antialiased, the
-    teacher's SH degree, black background) and return the samples as uint8 images (round(clip(x, 0, 1) *
-    255)), masks alpha >= ``MASK_ALPHA_THRESHOLD`` and, with depth, the left camera's expected depth
-    (world units)."""
-    p0 = plans[0]
-    width, height, ntarget = p0.width, p0.height, len(p0.target_ids)
-    per = 2 + ntarget
-    c2w = np.stack([np.concatenate([p.c2w_left[None], p.c2w_right[None], p.c2w_targets]) for p in plans])
-    dev = settings.device
-    viewmats = torch.from_numpy(viewmats_from_c2w(c2w.reshape(-1, 4, 4))).float().to(dev)
-    Ks_pair = torch.from_numpy(np.stack([p.K for p in plans])).float().to(dev)
-    with torch.no_grad():
-        colors, alphas, _ = rasterize(
-            **gaussians, viewmats=viewmats, Ks=Ks_pair.repeat_interleave(per, dim=0), width=width, height=height,
-            sh_degree=sh_degree, render_mode="RGB+ED" if settings.with_depth else "RGB", rasterize_mode="antialiased")
-        colors = colors.reshape(len(plans), per, height, width, -1)
-        rgb = colors[..., :3]
-        if settings.effects is not None:
-            stereo = settings.effects.apply(rgb[:, :2], [p.key for p in plans], Ks_pair)
-            rgb = torch.cat([stereo, rgb[:, 2:]], dim=1)
-        rgb8 = (rgb.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).cpu().numpy()
-        masks = (alphas.reshape(len(plans), per, height, width)[:, 2:] >= MASK_ALPHA_THRESHOLD).cpu().numpy()
-        depth = colors[:, 0, :, :, 3].cpu().numpy() if settings.with_depth else None
-    return [
-        SampleImages(key=p.key, left=rgb8[i, 0], right=rgb8[i, 1], targets=rgb8[i, 2:], masks=masks[i],
-                     target_ids=tuple(p.target_ids), meta=shards.sample_json(p),
-                     depth=None if depth is None else depth[i])
-        for i, p in enumerate(plans)
-    ]
-
-
 def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> TeacherResult:
     """Render, encode and write the missing shards of one teacher. Never raises for a bad teacher: the
     error is returned in the result, and no unfinished shard is left behind."""
@@ -211,11 +175,13 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
             by_key = {p.key: p for p in plan_teacher(teacher, job.split, settings)}
         todo = [by_key[k] for _, keys in job.chunks for k in keys]
         gaussians = scene.to_torch(settings.device)
+        batches = [todo[s:s + settings.batch_pairs] for s in range(0, len(todo), settings.batch_pairs)]
+        rendered = stream_samples(batches, lambda b: start_render(
+            gaussians, scene.sh_degree, b, settings.device, settings.with_depth, settings.effects))
         with encoder:
-            for start in range(0, len(todo), settings.batch_pairs):
-                batch = todo[start:start + settings.batch_pairs]
+            for batch in batches:
                 t0 = time.perf_counter()
-                samples = render_batch(gaussians, scene.sh_degree, batch, settings)
+                samples = next(rendered)
                 result.render_s += time.perf_counter() - t0
                 renders = sum(2 + len(p.target_ids) for p in batch)
                 result.renders += renders

@@ -3,6 +3,7 @@
 # Here, once:   bash /work/shared/tools/warp-gpu-kit .gpukit && pip download --no-deps -d .whl gsplat==1.5.3
 # Device call 1 (carry .gpukit/a):          bash .gpukit/a/stash.sh
 # Device call 2 (carry .gpukit/b, .whl and .devdata with guitar.ply): bash scripts/gpu_bench.sh [parity|tests|profile|render|backward|build|all]
+# (all = parity, tests, profile, backward (which includes the forward tables) and build)
 set -uo pipefail
 what=${1:-all}
 out=${OUT:-/tmp/out}; mkdir -p "$out"
@@ -21,10 +22,10 @@ fi
 if [[ $what == profile || $what == all ]]; then
   python3 scripts/gpu_profile.py 2>&1 | tee "$out/profile.txt" || rc=1
 fi
-if [[ $what == render || $what == all ]]; then
+if [[ $what == render ]]; then
   python3 -m scenesplat_stereo.bench.render --device cuda --out "$out/bench_render.md" || rc=1
 fi
-if [[ $what == backward || $what == all ]]; then
+if [[ $what == backward || $what == all ]]; then  # the forward tables, then forward + backward
   python3 -m scenesplat_stereo.bench.render --device cuda --backward --out "$out/bench_render_backward.md" || rc=1
 fi
 if [[ $what == build || $what == all ]]; then

@@ -30,10 +30,11 @@ def timed(fn, repeats: int = 20) -> float:
 
 
 def profile(name: str, scene: dict, viewmats, Ks, s: Setting) -> None:
+    """Time each forward stage alone on one batch of cameras, and the whole rasterization call."""
     W, H, ts = s.width, s.height, s.tile_size
     m, q, sc, o, col = (scene[k] for k in ("means", "quats", "scales", "opacities", "colors"))
     proj = project_gaussians(m, q, sc, o, viewmats, Ks, W, H, 0.01, 1e10, 0.3, True, ts)
-    campos = torch.linalg.inv(viewmats)[:, :3, 3]
+    campos = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]
     dirs = m[None] - campos[:, None]
     colors = eval_sh_colors(s.sh_degree, dirs, col, proj.radii)
     bins = bin_gaussians(proj, W, H, ts)
@@ -53,9 +54,23 @@ def profile(name: str, scene: dict, viewmats, Ks, s: Setting) -> None:
         print(f"  {k:32s} {v:7.3f} ms")
 
 
+def build_batch(width: int, height: int, cameras: int = 48):
+    """The dataset build's call: 4 pairs x 12 cameras around one reference (10 cm apart) in a 1M room."""
+    from scenesplat_stereo.bench.build import synthetic_teacher
+    from scenesplat_stereo.cameras import viewmats_from_c2w
+
+    teacher, gaussians = synthetic_teacher(1_000_000, 3, cameras, (width, height), "cuda")
+    viewmats = torch.tensor(viewmats_from_c2w(teacher.c2w), dtype=torch.float32, device="cuda")
+    Ks = torch.tensor(teacher.Ks, dtype=torch.float32, device="cuda")
+    return gaussians, viewmats, Ks
+
+
 def main() -> None:
     s = Setting(n=1_000_000, width=1280, height=720)
     profile("random 1M SH3 1280x720", random_scene(s.n, 3, "cuda"), *identity_camera(1280, 720, "cuda"), s)
+    for w, h in ((616, 456), (1752, 1168)):
+        profile(f"build batch: 48 cameras {w}x{h}, 1M-Gaussian room, SH3", *build_batch(w, h),
+                Setting(n=1_000_000, width=w, height=h, sh_degree=3))
     if GUITAR.exists():
         g, v, K = guitar_scene("cuda", 1280, 720)
         profile("guitar 1280x720", g, v, K, Setting(n=g["means"].shape[0], width=1280, height=720, sh_degree=0))

@@ -1,7 +1,7 @@
 """``scenesplat-stereo bench build``: what the dataset build costs in time.
 
 A synthetic teacher (``demo.make_room`` with ``--gaussians`` Gaussians, SH degree ``--sh-degree``) is
-rendered along ``demo.room_trajectory`` through the build's own pipeline (``build.render_batch``: all 12
+rendered along ``demo.room_trajectory`` through the build's own pipeline (``render_pairs.start_render``: all 12
 cameras of ``--batch-pairs`` pairs per rasterisation call -> encoder threads -> ``ShardWriter`` into a
 temporary folder). Per configuration, after one warm-up batch (kernel compilation), ``--pairs`` pairs are
 timed; the table reports pairs/s and renders/s of the whole pipeline (wall clock) and the split: render
@@ -30,13 +30,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.build import BuildSettings, render_batch
+from scenesplat_stereo.build import BuildSettings
 from scenesplat_stereo.cameras import intrinsics_matrix
 from scenesplat_stereo.demo import make_room, room_trajectory
 from scenesplat_stereo.effects import CameraEffects
 from scenesplat_stereo.encode import SampleEncoder, encode_sample
 from scenesplat_stereo.protocol import JPEG_QUALITY, plan_scene
 from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.render_pairs import start_render, stream_samples
 from scenesplat_stereo.shards import ShardWriter
 from scenesplat_stereo.teachers import Teacher
 
@@ -89,7 +90,11 @@ def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: Build
     """Warm up with one batch, then time ``pairs`` pairs through render -> encode -> write."""
     plans = plan_scene(teacher, "train", resolution=size)
     plans = (plans * math.ceil((pairs + settings.batch_pairs) / len(plans)))[:pairs + settings.batch_pairs]
-    render_batch(gaussians, teacher.sh_degree, plans[:settings.batch_pairs], settings, rasterize)
+    def render(batch):
+        return start_render(gaussians, teacher.sh_degree, batch, settings.device, settings.with_depth,
+                            settings.effects, rasterize)
+
+    render(plans[:settings.batch_pairs]).samples()
     plans = [replace(p, key=f"bench__{i:06d}") for i, p in enumerate(plans[settings.batch_pairs:])]
     sync = torch.cuda.synchronize if str(settings.device).startswith("cuda") else (lambda: None)
     with tempfile.TemporaryDirectory() as tmp:
@@ -97,10 +102,11 @@ def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: Build
         t0, render_s, renders = time.perf_counter(), 0.0, 0
         with ShardWriter(Path(tmp), "bench", len(plans)) as writer:
             with SampleEncoder(writer.add, settings.workers, settings.jpeg_quality) as enc:
-                for start in range(0, len(plans), settings.batch_pairs):
-                    batch = plans[start:start + settings.batch_pairs]
+                batches = [plans[s:s + settings.batch_pairs] for s in range(0, len(plans), settings.batch_pairs)]
+                rendered = stream_samples(batches, render)
+                for batch in batches:
                     t1 = time.perf_counter()
-                    samples = render_batch(gaussians, teacher.sh_degree, batch, settings, rasterize)
+                    samples = next(rendered)
                     render_s += time.perf_counter() - t1
                     renders += sum(2 + len(p.target_ids) for p in batch)
                     for s in samples:
@@ -114,7 +120,7 @@ def encoder_scaling(teacher: Teacher, gaussians: dict, settings: BuildSettings, 
                     pairs: int) -> list[tuple[int, float]]:
     """Encode the same rendered samples with 1, 2, ... ``settings.workers`` threads: (threads, pairs/s)."""
     plans = plan_scene(teacher, "train", resolution=size)[:max(1, pairs)]
-    samples = render_batch(gaussians, teacher.sh_degree, plans, settings)
+    samples = start_render(gaussians, teacher.sh_degree, plans, settings.device).samples()
     encode_sample(samples[0], settings.jpeg_quality)  # warm-up
     out = []
     for threads in sorted({1, *range(2, settings.workers + 1, 2), settings.workers}):
