@@ -1,11 +1,12 @@
 """``scenesplat-stereo bench build``: what the dataset build costs in time.
 
 A synthetic teacher (``demo.make_room`` with ``--gaussians`` Gaussians, SH degree ``--sh-degree``) is
-rendered along ``demo.room_trajectory`` through the build's own pipeline (``render_pairs.start_render``: all 12
-cameras of ``--batch-pairs`` pairs per rasterisation call -> encoder threads -> ``ShardWriter`` into a
-temporary folder). Per configuration, after one warm-up batch (kernel compilation), ``--pairs`` pairs are
-timed; the table reports pairs/s and renders/s of the whole pipeline (wall clock) and the split: render
-(rasterisation, uint8 conversion and the device-to-host copy, s), encode (summed over encoder threads,
+rendered along ``demo.room_trajectory`` through the build's own pipeline (``render_pairs``: all 12 cameras
+of ``--batch-pairs`` pairs per rasterisation call, host copies overlapped with the next call -> encoder
+threads -> ``ShardWriter`` into a temporary folder). Per configuration, after an untimed warm-up run of four batches through the whole
+pipeline (kernels, pinned host buffers, encoder threads), ``--pairs`` pairs are timed; the table
+reports pairs/s and renders/s of the whole pipeline (wall clock) and the split: render (waiting for the
+rasteriser and the device-to-host copy, s), encode (summed over encoder threads,
 worker-s), write (tar + marker, s), and how long the renderer waited for the encoders.
 
 Rows: the base setting at each ``--sizes`` entry; at the first size, JPEG quality ``--qualities``, then
@@ -35,7 +36,7 @@ from scenesplat_stereo.cameras import intrinsics_matrix
 from scenesplat_stereo.demo import make_room, room_trajectory
 from scenesplat_stereo.effects import CameraEffects
 from scenesplat_stereo.encode import SampleEncoder, encode_sample
-from scenesplat_stereo.protocol import JPEG_QUALITY, plan_scene
+from scenesplat_stereo.protocol import JPEG_QUALITY, SamplePlan, plan_scene
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.render_pairs import start_render, stream_samples
 from scenesplat_stereo.shards import ShardWriter
@@ -85,34 +86,41 @@ def synthetic_teacher(n: int, sh_degree: int, frames: int, size: tuple[int, int]
     return teacher, scene.to_torch(device)
 
 
+def _pipeline(plans: list[SamplePlan], render, settings: BuildSettings, folder: Path) -> tuple[float, float, int, object]:
+    """Run plans through render -> encode -> write into ``folder``: (wall s, render s, renders, encoder)."""
+    sync = torch.cuda.synchronize if str(settings.device).startswith("cuda") else (lambda: None)
+    sync()
+    t0, render_s, renders = time.perf_counter(), 0.0, 0
+    with ShardWriter(folder, "bench", len(plans)) as writer:
+        with SampleEncoder(writer.add, settings.workers, settings.jpeg_quality) as enc:
+            batches = [plans[s:s + settings.batch_pairs] for s in range(0, len(plans), settings.batch_pairs)]
+            rendered = stream_samples(batches, render)
+            for batch in batches:
+                t1 = time.perf_counter()
+                samples = next(rendered)
+                render_s += time.perf_counter() - t1
+                renders += sum(2 + len(p.target_ids) for p in batch)
+                for s in samples:
+                    enc.submit(s)
+    return time.perf_counter() - t0, render_s, renders, enc
+
+
 def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: BuildSettings, size: tuple[int, int],
                   pairs: int, rasterize=rasterization) -> Timing:
-    """Warm up with one batch, then time ``pairs`` pairs through render -> encode -> write."""
+    """Warm the whole pipeline up (kernels, pinned host buffers, encoder threads and scratch files at this
+    size: the first run at a new size is otherwise much slower), then time ``pairs`` pairs."""
     plans = plan_scene(teacher, "train", resolution=size)
-    plans = (plans * math.ceil((pairs + settings.batch_pairs) / len(plans)))[:pairs + settings.batch_pairs]
+    plans = (plans * math.ceil(pairs / len(plans)))[:pairs]
+    plans = [replace(p, key=f"bench__{i:06d}") for i, p in enumerate(plans)]
+
     def render(batch):
         return start_render(gaussians, teacher.sh_degree, batch, settings.device, settings.with_depth,
                             settings.effects, rasterize)
 
-    render(plans[:settings.batch_pairs]).samples()
-    plans = [replace(p, key=f"bench__{i:06d}") for i, p in enumerate(plans[settings.batch_pairs:])]
-    sync = torch.cuda.synchronize if str(settings.device).startswith("cuda") else (lambda: None)
     with tempfile.TemporaryDirectory() as tmp:
-        sync()
-        t0, render_s, renders = time.perf_counter(), 0.0, 0
-        with ShardWriter(Path(tmp), "bench", len(plans)) as writer:
-            with SampleEncoder(writer.add, settings.workers, settings.jpeg_quality) as enc:
-                batches = [plans[s:s + settings.batch_pairs] for s in range(0, len(plans), settings.batch_pairs)]
-                rendered = stream_samples(batches, render)
-                for batch in batches:
-                    t1 = time.perf_counter()
-                    samples = next(rendered)
-                    render_s += time.perf_counter() - t1
-                    renders += sum(2 + len(p.target_ids) for p in batch)
-                    for s in samples:
-                        enc.submit(s)
-        wall = time.perf_counter() - t0
-        mbytes = sum(f.stat().st_size for f in Path(tmp).rglob("*.tar")) / 1e6
+        _pipeline(plans[:4 * settings.batch_pairs], render, settings, Path(tmp) / "warm-up")
+        wall, render_s, renders, enc = _pipeline(plans, render, settings, Path(tmp) / "timed")
+        mbytes = sum(f.stat().st_size for f in (Path(tmp) / "timed").rglob("*.tar")) / 1e6
     return Timing(label, size, len(plans), renders, wall, render_s, enc.encode_s, enc.sink_s, enc.wait_s, mbytes)
 
 
