@@ -36,7 +36,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "size=WxH,fov=DEG,up=-y' (radius in world units; default %(default)s)")
     p.add_argument("--max-frames", type=int, default=None, help="render only the first N frames")
     p.add_argument("--resolution", default=None, help="WxH override (intrinsics rescaled)")
-    p.add_argument("--rasterize-mode", default="antialiased", choices=("classic", "antialiased"))
+    p.add_argument("--rasterize-mode", default="antialiased", choices=("classic", "antialiased"),
+                   help="antialiased (default, as the dataset) or classic 3DGS")
     p.add_argument("--alpha", action="store_true", help="also write alpha_<k>.png (8-bit opacity)")
     p.add_argument("--batch", type=int, default=4, help="cameras per rasterization call")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")

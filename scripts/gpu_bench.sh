@@ -1,6 +1,10 @@
 #!/usr/bin/env bash
 # Builds, checks and times everything on the lent GPU in one call (see docs/benchmarks.md).
-# Here, once:   bash /work/shared/tools/warp-gpu-kit .gpukit && pip download --no-deps -d .whl gsplat==1.5.3
+# Here, once (all three folders are git-ignored):
+#   bash ../shared/tools/warp-gpu-kit .gpukit
+#   pip download --no-deps -d .whl gsplat==1.5.3
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 -d .whl OpenImageIO
+#   mkdir -p .devdata && cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
 # Device call 1 (carry .gpukit/a):          bash .gpukit/a/stash.sh
 # Device call 2 (carry .gpukit/b, .whl and .devdata with guitar.ply): bash scripts/gpu_bench.sh [parity|tests|profile|render|backward|build|all]
 # (all = parity, tests, profile, backward (which includes the forward tables) and build)
@@ -29,6 +33,6 @@ if [[ $what == backward || $what == all ]]; then  # the forward tables, then for
   python3 -m scenesplat_stereo.bench.render --device cuda --backward --out "$out/bench_render_backward.md" || rc=1
 fi
 if [[ $what == build || $what == all ]]; then
-  python3 -m scenesplat_stereo.cli bench build --device cuda --gsplat --out "$out/bench_build.md" || rc=1
+  python3 -m scenesplat_stereo.cli bench build --device cuda --gsplat --pairs 64 2>&1 | tee "$out/bench_build.md" || rc=1
 fi
 exit $rc
