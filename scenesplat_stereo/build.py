@@ -17,7 +17,6 @@ summary and skipped; the others go on, and the teacher's unfinished shard is rem
 from __future__ import annotations
 
 import json
-import os
 import time
 import warnings
 from argparse import ArgumentTypeError
@@ -31,7 +30,7 @@ from tqdm import tqdm
 
 from scenesplat_stereo import shards
 from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import SampleEncoder
+from scenesplat_stereo.encode import SampleEncoder, default_encoder_threads
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.protocol import (
     JPEG_QUALITY,
@@ -436,8 +435,8 @@ def add_arguments(p) -> None:
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
                    help="torch device for rendering: cpu or cuda (default: cuda when available)")
     p.add_argument("--samples-per-shard", type=int, default=64, help="samples (pairs) per tar shard (default 64)")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                   help="JPEG/PNG encoder threads per renderer (default: CPU count; 0 encodes inline)")
+    p.add_argument("--workers", type=int, default=default_encoder_threads(),
+                   help="JPEG/PNG encoder threads per renderer (default: half the CPU cores; 0 encodes inline)")
     p.add_argument("--batch-pairs", type=int, default=4, help="pairs rendered per rasterisation call (12 cameras each)")
     p.add_argument("--backend", choices=["local", "ray"], default="local",
                    help="local: one process; ray: one task per teacher on an existing Ray cluster (pip extra [ray])")

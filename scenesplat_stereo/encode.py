@@ -231,6 +231,13 @@ def encode_sample(sample: SampleImages, quality: int = JPEG_QUALITY) -> dict[str
     return members
 
 
+def default_encoder_threads() -> int:
+    """Encoder threads by default: half the CPU cores (at least 1). Measured on a 16-core GPU host
+    (docs/benchmarks.md, bench build): JPEG throughput peaks at 8 threads and falls at 16, where the
+    encoders compete with the renderer's own thread and OpenImageIO's I/O for the cores."""
+    return max(1, (os.cpu_count() or 1) // 2)
+
+
 class SampleEncoder:
     """Encoder threads behind a bounded queue, and one writer thread that hands the results to
     ``sink(key, members)`` in submission order.

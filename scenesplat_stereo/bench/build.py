@@ -35,7 +35,7 @@ from scenesplat_stereo.build import BuildSettings
 from scenesplat_stereo.cameras import intrinsics_matrix
 from scenesplat_stereo.demo import make_room, room_trajectory
 from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import SampleEncoder, encode_sample
+from scenesplat_stereo.encode import SampleEncoder, default_encoder_threads, encode_sample
 from scenesplat_stereo.protocol import JPEG_QUALITY, SamplePlan, plan_scene
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.render_pairs import start_render, stream_samples
@@ -126,12 +126,13 @@ def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: Build
 
 def encoder_scaling(teacher: Teacher, gaussians: dict, settings: BuildSettings, size: tuple[int, int],
                     pairs: int) -> list[tuple[int, float]]:
-    """Encode the same rendered samples with 1, 2, ... ``settings.workers`` threads: (threads, pairs/s)."""
+    """Encode the same rendered samples with 1, 2, 4, ... up to all CPU cores: (threads, pairs/s)."""
     plans = plan_scene(teacher, "train", resolution=size)[:max(1, pairs)]
     samples = start_render(gaussians, teacher.sh_degree, plans, settings.device).samples()
     encode_sample(samples[0], settings.jpeg_quality)  # warm-up
     out = []
-    for threads in sorted({1, *range(2, settings.workers + 1, 2), settings.workers}):
+    cores = os.cpu_count() or 1
+    for threads in sorted({1, *range(2, cores + 1, 2), cores}):
         t0 = time.perf_counter()
         with SampleEncoder(lambda k, m: None, threads, settings.jpeg_quality) as enc:
             for s in samples:
@@ -168,7 +169,8 @@ def add_arguments(p) -> None:
     p.add_argument("--pairs", type=int, default=32, help="timed pairs per setting (12 renders each; default 32)")
     p.add_argument("--frames", type=int, default=64, help="trajectory frames the pairs cycle through (default 64)")
     p.add_argument("--batch-pairs", type=int, default=4, help="pairs per rasterisation call (default 4)")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="encoder threads (default: CPU count)")
+    p.add_argument("--workers", type=int, default=default_encoder_threads(),
+                   help="encoder threads (default: half the CPU cores)")
     p.add_argument("--qualities", default="75,100", help="extra JPEG qualities timed at the first size (default 75,100)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")
     p.add_argument("--gsplat", action="store_true", help="also time the pipeline rendering with gsplat (if importable)")
