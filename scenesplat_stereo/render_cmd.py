@@ -25,6 +25,7 @@ from scenesplat_stereo.cameras import viewmats_from_c2w
 from scenesplat_stereo.encode import to_uint8
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.render_pairs import tile_size_for
 from scenesplat_stereo.teachers import OrbitSpec, Teacher, discover_teachers, resolve_trajectory
 
 
@@ -94,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
             img, alpha, _ = rasterization(
                 g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], viewmats[i:i + args.batch],
                 Ks_t[i:i + args.batch], width, height, sh_degree=scene.sh_degree,
-                rasterize_mode=args.rasterize_mode,
+                rasterize_mode=args.rasterize_mode, tile_size=tile_size_for(args.device),
             )
             for k in range(img.shape[0]):
                 _write_png(args.out / f"frame_{i + k:04d}.png", to_uint8(img[k].cpu().numpy()))

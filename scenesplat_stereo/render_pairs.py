@@ -25,6 +25,13 @@ from scenesplat_stereo.raster import rasterization
 _copy_streams: dict[torch.device, torch.cuda.Stream] = {}
 
 
+def tile_size_for(device: str) -> int:
+    """Tile edge for rendering on ``device``: the image does not depend on it, the time does. Warp runs
+    CPU kernels serially, so shorter per-tile lists win there (8 px: 3.4x faster than 16 at 320x180,
+    docs/benchmarks.md); on CUDA 16 px (gsplat's default) keeps 256-thread blocks."""
+    return 8 if str(device) == "cpu" else 16
+
+
 @dataclass
 class RenderedBatch:
     """A rendered batch on its way to host memory; ``samples()`` waits for the copy and unpacks it."""
@@ -83,7 +90,8 @@ def start_render(gaussians: dict, sh_degree: int, plans: list[SamplePlan], devic
     with torch.no_grad():
         colors, alphas, _ = rasterize(
             **gaussians, viewmats=viewmats, Ks=Ks_pair.repeat_interleave(per, dim=0), width=width, height=height,
-            sh_degree=sh_degree, render_mode="RGB+ED" if with_depth else "RGB", rasterize_mode="antialiased")
+            sh_degree=sh_degree, render_mode="RGB+ED" if with_depth else "RGB", rasterize_mode="antialiased",
+            tile_size=tile_size_for(device))
         colors = colors.reshape(len(plans), per, height, width, -1)
         rgb = colors[..., :3]
         if effects is not None:
