@@ -5,14 +5,14 @@ sign convention. The kernel is compiled per degree: a degree-0 scene never reads
 touches its DC coefficient. Culled (camera, Gaussian) pairs (radii (0, 0)) get colour 0 and no work.
 """
 
-from __future__ import annotations
-
+# No ``from __future__ import annotations``: Warp evaluates the annotations of the per-degree basis
+# function, whose return type is created in its factory.
 import functools
 
 import torch
 import warp as wp
 
-from ._warp import on_device_of, to_wp
+from ._warp import on_device_of, to_wp, vector_type
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -28,17 +28,52 @@ def num_sh_bases(degree: int) -> int:
     return (degree + 1) ** 2
 
 
-@wp.func
-def sh_basis_1(d: wp.vec3) -> wp.vec3:
-    """Degree-1 basis values (Y_1^-1, Y_1^0, Y_1^1) at unit direction d."""
-    return wp.vec3(-SH_C1 * d[1], SH_C1 * d[2], -SH_C1 * d[0])
+@functools.cache
+def sh_basis_func(degree: int):
+    """A Warp function: the K = (degree+1)^2 real SH basis values Y_k(v) at unit direction v (a vector
+    of length K; degree 0 never reads v)."""
+    vecK = vector_type(num_sh_bases(degree))
+    C2_0, C2_1, C2_2, C2_3, C2_4 = SH_C2
+    C3_0, C3_1, C3_2, C3_3, C3_4, C3_5, C3_6 = SH_C3
+
+    @wp.func
+    def sh_basis(v: wp.vec3) -> vecK:
+        b = vecK()
+        b[0] = SH_C0
+        if wp.static(degree >= 1):
+            x = v[0]
+            y = v[1]
+            z = v[2]
+            b[1] = -SH_C1 * y
+            b[2] = SH_C1 * z
+            b[3] = -SH_C1 * x
+            if wp.static(degree >= 2):
+                xx = x * x
+                yy = y * y
+                zz = z * z
+                b[4] = C2_0 * x * y
+                b[5] = C2_1 * y * z
+                b[6] = C2_2 * (2.0 * zz - xx - yy)
+                b[7] = C2_3 * x * z
+                b[8] = C2_4 * (xx - yy)
+                if wp.static(degree >= 3):
+                    b[9] = C3_0 * y * (3.0 * xx - yy)
+                    b[10] = C3_1 * x * y * z
+                    b[11] = C3_2 * y * (4.0 * zz - xx - yy)
+                    b[12] = C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+                    b[13] = C3_4 * x * (4.0 * zz - xx - yy)
+                    b[14] = C3_5 * z * (xx - yy)
+                    b[15] = C3_6 * x * (xx - 3.0 * yy)
+        return b
+
+    return sh_basis
 
 
 @functools.cache
 def sh_kernel(degree: int):
     """Per (camera, Gaussian) colour kernel, compiled per SH degree."""
-    C2_0, C2_1, C2_2, C2_3, C2_4 = SH_C2
-    C3_0, C3_1, C3_2, C3_3, C3_4, C3_5, C3_6 = SH_C3
+    sh_basis = sh_basis_func(degree)
+    K = num_sh_bases(degree)
 
     @wp.kernel(enable_backward=False, module="unique")
     def eval_sh(
@@ -52,40 +87,16 @@ def sh_kernel(degree: int):
         if r[0] <= 0 and r[1] <= 0:
             out_colors[c, g] = wp.vec3(0.0, 0.0, 0.0)
             return
-        rgb = SH_C0 * coeffs[g, 0]
+        v = wp.vec3(0.0, 0.0, 0.0)
         if wp.static(degree >= 1):
-            v = dirs[c, g]
-            n = wp.length(v)
+            d = dirs[c, g]
+            n = wp.length(d)
             if n > 0.0:
-                v = v / n
-            x = v[0]
-            y = v[1]
-            z = v[2]
-            b1 = sh_basis_1(v)
-            rgb = rgb + b1[0] * coeffs[g, 1] + b1[1] * coeffs[g, 2] + b1[2] * coeffs[g, 3]
-            if wp.static(degree >= 2):
-                xx = x * x
-                yy = y * y
-                zz = z * z
-                rgb = (
-                    rgb
-                    + (C2_0 * x * y) * coeffs[g, 4]
-                    + (C2_1 * y * z) * coeffs[g, 5]
-                    + (C2_2 * (2.0 * zz - xx - yy)) * coeffs[g, 6]
-                    + (C2_3 * x * z) * coeffs[g, 7]
-                    + (C2_4 * (xx - yy)) * coeffs[g, 8]
-                )
-                if wp.static(degree >= 3):
-                    rgb = (
-                        rgb
-                        + (C3_0 * y * (3.0 * xx - yy)) * coeffs[g, 9]
-                        + (C3_1 * x * y * z) * coeffs[g, 10]
-                        + (C3_2 * y * (4.0 * zz - xx - yy)) * coeffs[g, 11]
-                        + (C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * coeffs[g, 12]
-                        + (C3_4 * x * (4.0 * zz - xx - yy)) * coeffs[g, 13]
-                        + (C3_5 * z * (xx - yy)) * coeffs[g, 14]
-                        + (C3_6 * x * (xx - 3.0 * yy)) * coeffs[g, 15]
-                    )
+                v = d / n
+        basis = sh_basis(v)
+        rgb = wp.vec3(0.0, 0.0, 0.0)
+        for k in range(K):
+            rgb = rgb + basis[k] * coeffs[g, k]
         out_colors[c, g] = wp.vec3(
             wp.max(rgb[0] + 0.5, 0.0), wp.max(rgb[1] + 0.5, 0.0), wp.max(rgb[2] + 0.5, 0.0)
         )

@@ -16,7 +16,7 @@ import torch
 import warp as wp
 
 from ._warp import on_device_of, to_wp
-from .sh import SH_C0, SH_C1, SH_C2, SH_C3, sh_basis_1
+from .sh import SH_C1, SH_C2, SH_C3, num_sh_bases, sh_basis_func
 
 
 @functools.cache
@@ -24,6 +24,8 @@ def sh_backward_kernel(degree: int):
     """Per-Gaussian SH backward kernel, compiled per SH degree."""
     C2_0, C2_1, C2_2, C2_3, C2_4 = SH_C2
     C3_0, C3_1, C3_2, C3_3, C3_4, C3_5, C3_6 = SH_C3
+    sh_basis = sh_basis_func(degree)
+    K = num_sh_bases(degree)
 
     @wp.kernel(enable_backward=False, module="unique")
     def sh_backward(
@@ -40,7 +42,6 @@ def sh_backward_kernel(degree: int):
             if r[0] <= 0 and r[1] <= 0:
                 continue
             # Forward colour (before the clamp) to find the channels where max(., 0) passes gradient.
-            rgb = SH_C0 * coeffs[g, 0]
             v = wp.vec3(0.0, 0.0, 0.0)
             n = float(0.0)
             if wp.static(degree >= 1):
@@ -48,46 +49,19 @@ def sh_backward_kernel(degree: int):
                 n = wp.length(v)
                 if n > 0.0:
                     v = v / n
-                b1 = sh_basis_1(v)
-                rgb = rgb + b1[0] * coeffs[g, 1] + b1[1] * coeffs[g, 2] + b1[2] * coeffs[g, 3]
-                if wp.static(degree >= 2):
-                    x = v[0]
-                    y = v[1]
-                    z = v[2]
-                    xx = x * x
-                    yy = y * y
-                    zz = z * z
-                    rgb = (
-                        rgb
-                        + (C2_0 * x * y) * coeffs[g, 4]
-                        + (C2_1 * y * z) * coeffs[g, 5]
-                        + (C2_2 * (2.0 * zz - xx - yy)) * coeffs[g, 6]
-                        + (C2_3 * x * z) * coeffs[g, 7]
-                        + (C2_4 * (xx - yy)) * coeffs[g, 8]
-                    )
-                    if wp.static(degree >= 3):
-                        rgb = (
-                            rgb
-                            + (C3_0 * y * (3.0 * xx - yy)) * coeffs[g, 9]
-                            + (C3_1 * x * y * z) * coeffs[g, 10]
-                            + (C3_2 * y * (4.0 * zz - xx - yy)) * coeffs[g, 11]
-                            + (C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * coeffs[g, 12]
-                            + (C3_4 * x * (4.0 * zz - xx - yy)) * coeffs[g, 13]
-                            + (C3_5 * z * (xx - yy)) * coeffs[g, 14]
-                            + (C3_6 * x * (xx - 3.0 * yy)) * coeffs[g, 15]
-                        )
+            basis = sh_basis(v)
+            rgb = wp.vec3(0.0, 0.0, 0.0)
+            for k in range(K):
+                rgb = rgb + basis[k] * coeffs[g, k]
             vc = v_colors[c, g]
             vc = wp.vec3(
                 wp.where(rgb[0] + 0.5 >= 0.0, vc[0], 0.0),
                 wp.where(rgb[1] + 0.5 >= 0.0, vc[1], 0.0),
                 wp.where(rgb[2] + 0.5 >= 0.0, vc[2], 0.0),
             )
-            out_v_coeffs[g, 0] += SH_C0 * vc
+            for k in range(K):
+                out_v_coeffs[g, k] += basis[k] * vc
             if wp.static(degree >= 1):
-                b1 = sh_basis_1(v)
-                out_v_coeffs[g, 1] += b1[0] * vc
-                out_v_coeffs[g, 2] += b1[1] * vc
-                out_v_coeffs[g, 3] += b1[2] * vc
                 # d rgb / d v, contracted with vc: sum_k (coeff_k . vc) grad Y_k(v)
                 w1 = wp.dot(coeffs[g, 1], vc)
                 w2 = wp.dot(coeffs[g, 2], vc)
@@ -100,11 +74,6 @@ def sh_backward_kernel(degree: int):
                     xx = x * x
                     yy = y * y
                     zz = z * z
-                    out_v_coeffs[g, 4] += (C2_0 * x * y) * vc
-                    out_v_coeffs[g, 5] += (C2_1 * y * z) * vc
-                    out_v_coeffs[g, 6] += (C2_2 * (2.0 * zz - xx - yy)) * vc
-                    out_v_coeffs[g, 7] += (C2_3 * x * z) * vc
-                    out_v_coeffs[g, 8] += (C2_4 * (xx - yy)) * vc
                     w4 = wp.dot(coeffs[g, 4], vc)
                     w5 = wp.dot(coeffs[g, 5], vc)
                     w6 = wp.dot(coeffs[g, 6], vc)
@@ -116,13 +85,6 @@ def sh_backward_kernel(degree: int):
                     v_v += w7 * C2_3 * wp.vec3(z, 0.0, x)
                     v_v += w8 * C2_4 * wp.vec3(2.0 * x, -2.0 * y, 0.0)
                     if wp.static(degree >= 3):
-                        out_v_coeffs[g, 9] += (C3_0 * y * (3.0 * xx - yy)) * vc
-                        out_v_coeffs[g, 10] += (C3_1 * x * y * z) * vc
-                        out_v_coeffs[g, 11] += (C3_2 * y * (4.0 * zz - xx - yy)) * vc
-                        out_v_coeffs[g, 12] += (C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * vc
-                        out_v_coeffs[g, 13] += (C3_4 * x * (4.0 * zz - xx - yy)) * vc
-                        out_v_coeffs[g, 14] += (C3_5 * z * (xx - yy)) * vc
-                        out_v_coeffs[g, 15] += (C3_6 * x * (xx - 3.0 * yy)) * vc
                         w9 = wp.dot(coeffs[g, 9], vc)
                         w10 = wp.dot(coeffs[g, 10], vc)
                         w11 = wp.dot(coeffs[g, 11], vc)
