@@ -3,10 +3,10 @@
 A synthetic teacher (``demo.make_room`` with ``--gaussians`` Gaussians, SH degree ``--sh-degree``) is
 rendered along ``demo.room_trajectory`` through the build's own pipeline (``render_pairs``: all 12 cameras
 of ``--batch-pairs`` pairs per rasterisation call, host copies overlapped with the next call -> encoder
-threads -> ``ShardWriter`` into a temporary folder). Per configuration, after an untimed warm-up run of four batches through the whole
-pipeline (kernels, pinned host buffers, encoder threads), ``--pairs`` pairs are timed; the table
-reports pairs/s and renders/s of the whole pipeline (wall clock) and the split: render (waiting for the
-rasteriser and the device-to-host copy, s), encode (summed over encoder threads,
+threads -> ``ShardWriter`` into a temporary folder). Per configuration, after an untimed warm-up run of
+the same pairs through the whole pipeline (kernels, pinned host buffers, encoder threads), ``--pairs``
+pairs are timed; the table reports pairs/s and renders/s of the whole pipeline (wall clock) and the split:
+render (waiting for the rasteriser and the device-to-host copy, s), encode (summed over encoder threads,
 worker-s), write (tar + marker, s), and how long the renderer waited for the encoders.
 
 Rows: the base setting at each ``--sizes`` entry; at the first size, JPEG quality ``--qualities``, then
@@ -118,7 +118,9 @@ def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: Build
                             settings.effects, rasterize)
 
     with tempfile.TemporaryDirectory() as tmp:
-        _pipeline(plans[:4 * settings.batch_pairs], render, settings, Path(tmp) / "warm-up")
+        # As many pairs as the timed run: the pinned host buffers of samples still queued for the encoders
+        # are allocated (slowly, cudaHostAlloc) until torch's host cache holds enough of them.
+        _pipeline(plans, render, settings, Path(tmp) / "warm-up")
         wall, render_s, renders, enc = _pipeline(plans, render, settings, Path(tmp) / "timed")
         mbytes = sum(f.stat().st_size for f in (Path(tmp) / "timed").rglob("*.tar")) / 1e6
     return Timing(label, size, len(plans), renders, wall, render_s, enc.encode_s, enc.sink_s, enc.wait_s, mbytes)

@@ -24,6 +24,11 @@ import warp as wp
 from ._warp import ALPHA_MIN, T_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
 
+# CUDA compile options of the compositing kernels (forward and backward alike, so both make the same
+# touch / stop decisions): fast math turns exp into the hardware approximation gsplat uses (__expf);
+# measured in docs/benchmarks.md. CPU builds ignore it.
+COMPOSITE_OPTIONS = {"fast_math": True}
+
 # Leading slots of a splat row: mean2d (2, pixels), conic (3), effective opacity (1); then D colours.
 SPLAT_SLOTS = 6
 
@@ -103,7 +108,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
             acc[k] = acc[k] + w * rows[i, SPLAT_SLOTS + k]
         return acc
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_per_pixel(
         splats: wp.array2d(dtype=float),
         tile_ranges: wp.array2d(dtype=wp.int32),
@@ -146,7 +151,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
         out_alphas[pix] = 1.0 - T
         out_last[pix] = last
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_cooperative(
         splats: wp.array2d(dtype=float),
         tile_ranges: wp.array2d(dtype=wp.int32),

@@ -45,7 +45,7 @@ import warp as wp
 
 from ._warp import ALPHA_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
-from .composite import SPLAT_SLOTS, gather_splats
+from .composite import COMPOSITE_OPTIONS, SPLAT_SLOTS, gather_splats
 
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
 # tiles are split into groups of this many pixels, each with its own row per list entry).
@@ -109,7 +109,7 @@ def _kernels(channels: int):
             grad[5] = v_a * wp.exp(-sigma)
         return T, S, grad
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_backward_atomic(
         splats: wp.array2d(dtype=float),
         tile_ranges: wp.array2d(dtype=wp.int32),
@@ -158,7 +158,7 @@ def _kernels(channels: int):
         sums each entry's gradient over the block; ``atomic`` adds the sum to the Gaussian's gradient
         (one atomic per block and entry instead of one per pixel), else writes it to the entry's row."""
 
-        @wp.kernel(enable_backward=False, module="unique")
+        @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
         def composite_backward_blocks(
             splats: wp.array2d(dtype=float),
             tile_ranges: wp.array2d(dtype=wp.int32),
