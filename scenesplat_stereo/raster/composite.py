@@ -34,6 +34,15 @@ SPLAT_SLOTS = 6
 
 
 @wp.func
+def tile_pixel(tile: int, local: int, tile_size: int, tiles_x: int, tiles_per_camera: int):
+    """(camera, px, py) of pixel ``local`` (row-major within the tile) of tile ``tile`` (camera-major
+    global tile index); px, py may lie past the image edge for edge tiles."""
+    c = tile / tiles_per_camera
+    t = tile - c * tiles_per_camera
+    return c, (t % tiles_x) * tile_size + local % tile_size, (t / tiles_x) * tile_size + local / tile_size
+
+
+@wp.func
 def touch_alpha(splats: wp.array2d(dtype=float), i: int, fx: float, fy: float) -> float:
     """o exp(-sigma) of row i at pixel centre (fx, fy) when the splat touches the pixel (sigma >= 0 and
     o exp(-sigma) >= 1/255, SPEC step 6), else 0."""
@@ -123,11 +132,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
     ):
         tid = wp.tid()
         tile = tid / block  # camera * tiles_per_camera + tile index
-        lane = tid - tile * block
-        c = tile / tiles_per_camera
-        t = tile - c * tiles_per_camera
-        px = (t % tiles_x) * tile_size + lane % tile_size
-        py = (t / tiles_x) * tile_size + lane / tile_size
+        c, px, py = tile_pixel(tile, tid - tile * block, tile_size, tiles_x, tiles_per_camera)
         if px >= width or py >= height:
             return
         fx = float(px) + 0.5
@@ -165,10 +170,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
         out_last: wp.array(dtype=wp.int32),
     ):
         tile, lane = wp.tid()
-        c = tile / tiles_per_camera
-        t = tile - c * tiles_per_camera
-        px = (t % tiles_x) * tile_size + lane % tile_size
-        py = (t / tiles_x) * tile_size + lane / tile_size
+        c, px, py = tile_pixel(tile, lane, tile_size, tiles_x, tiles_per_camera)
         fx = float(px) + 0.5
         fy = float(py) + 0.5
         done = int(0)

@@ -45,7 +45,7 @@ import warp as wp
 
 from ._warp import ALPHA_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
-from .composite import COMPOSITE_OPTIONS, SPLAT_SLOTS, gather_splats
+from .composite import COMPOSITE_OPTIONS, SPLAT_SLOTS, gather_splats, tile_pixel
 
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
 # tiles are split into groups of this many pixels, each with its own row per list entry).
@@ -129,13 +129,7 @@ def _kernels(channels: int):
         tid = wp.tid()
         tile_area = tile_size * tile_size
         tile = tid / tile_area
-        local = tid - tile * tile_area
-        c = tile / tiles_per_camera
-        t = tile - c * tiles_per_camera
-        ty = t / tiles_x
-        tx = t - ty * tiles_x
-        px = tx * tile_size + local % tile_size
-        py = ty * tile_size + local / tile_size
+        c, px, py = tile_pixel(tile, tid - tile * tile_area, tile_size, tiles_x, tiles_per_camera)
         if px >= width or py >= height:
             return
         pix = (c * height + py) * width + px
@@ -181,12 +175,7 @@ def _kernels(channels: int):
             tile = block / groups
             group = block - tile * groups
             local = group * group_size + lane
-            c = tile / tiles_per_camera
-            t = tile - c * tiles_per_camera
-            ty = t / tiles_x
-            tx = t - ty * tiles_x
-            px = tx * tile_size + local % tile_size
-            py = ty * tile_size + local / tile_size
+            c, px, py = tile_pixel(tile, local, tile_size, tiles_x, tiles_per_camera)
             # Every lane takes part in the block reductions; lanes off the image or the tile stay idle.
             last = int(-1)
             pix = int(0)
