@@ -58,14 +58,25 @@ SPLAT_GRAD_SLOTS = 6
 
 @functools.cache
 def _kernels(channels: int):
-    """(pixel-parallel atomic kernel, deterministic block kernel, row-gather kernel) for D channels."""
+    """(per-pixel atomic kernel, block kernel factory (atomic?, group size), row-gather kernel) for D channels."""
     vecD = vector_type(channels)
     vecF = vector_type(channels + SPLAT_GRAD_SLOTS)
 
     @wp.func
+    def array_row(splats: wp.array2d(dtype=float), i: int):
+        """Row i of the depth-sorted splats: (mean2d, conic, opacity, colour)."""
+        col = vecD()
+        for k in range(channels):
+            col[k] = splats[i, SPLAT_SLOTS + k]
+        return (wp.vec2(splats[i, 0], splats[i, 1]), wp.vec3(splats[i, 2], splats[i, 3], splats[i, 4]),
+                splats[i, 5], col)
+
+    @wp.func
     def reverse_step(
-        splats: wp.array2d(dtype=float),
-        i: int,
+        m: wp.vec2,
+        con: wp.vec3,
+        o: float,
+        col: vecD,
         fx: float,
         fy: float,
         max_alpha: float,
@@ -75,16 +86,11 @@ def _kernels(channels: int):
         v_rgb: vecD,
         v_alpha: float,
     ):
-        """Undo list entry i (row i of the depth-sorted splats) at pixel centre (fx, fy): (T in front of it,
-        S updated, its gradient)."""
+        """Undo one list entry (mean2d m, conic, opacity o, colour) at pixel centre (fx, fy): (T in front of
+        it, S updated, its gradient)."""
         grad = vecF()
-        con = wp.vec3(splats[i, 2], splats[i, 3], splats[i, 4])
-        o = splats[i, 5]
-        col = vecD()
-        for k in range(channels):
-            col[k] = splats[i, SPLAT_SLOTS + k]
-        dx = splats[i, 0] - fx
-        dy = splats[i, 1] - fy
+        dx = m[0] - fx
+        dy = m[1] - fy
         sigma = 0.5 * (con[0] * dx * dx + con[2] * dy * dy) + con[1] * dx * dy
         if not (sigma >= 0.0):
             return T, S, grad
@@ -143,14 +149,19 @@ def _kernels(channels: int):
         fy = float(py) + 0.5
         i = last_ids[pix]
         while i >= start:
-            T, S, grad = reverse_step(splats, i, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
+            m, con, o, col = array_row(splats, i)
+            T, S, grad = reverse_step(m, con, o, col, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
             wp.atomic_add(out_grads, flatten_ids[i], grad)
             i -= 1
 
-    def block_kernel(atomic: bool):
-        """Cooperative kernel: one block per group of pixels of a tile walks the list in lock step and
-        sums each entry's gradient over the block; ``atomic`` adds the sum to the Gaussian's gradient
-        (one atomic per block and entry instead of one per pixel), else writes it to the entry's row."""
+    row = SPLAT_SLOTS + channels
+
+    @functools.cache
+    def block_kernel(atomic: bool, group: int):
+        """Cooperative kernel: one block per ``group`` pixels of a tile walks the list in lock step, batches
+        of ``group`` rows copied to shared memory, and sums each entry's gradient over the block;
+        ``atomic`` adds the sum to the Gaussian's gradient (one atomic per block and entry instead of one
+        per pixel), else writes it to the entry's row."""
 
         @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
         def composite_backward_blocks(
@@ -168,13 +179,12 @@ def _kernels(channels: int):
             v_render: wp.array(dtype=vecD),
             v_alphas: wp.array(dtype=float),
             groups: int,
-            group_size: int,
             out_rows: wp.array(dtype=vecF),
         ):
             block, lane = wp.tid()
             tile = block / groups
-            group = block - tile * groups
-            local = group * group_size + lane
+            block_group = block - tile * groups
+            local = block_group * group + lane
             c, px, py = tile_pixel(tile, local, tile_size, tiles_x, tiles_per_camera)
             # Every lane takes part in the block reductions; lanes off the image or the tile stay idle.
             last = int(-1)
@@ -192,21 +202,30 @@ def _kernels(channels: int):
             start = tile_ranges[tile, 0]
             i = wp.tile_max(wp.tile(last))[0]
             while i >= start:
-                grad = vecF()
-                hit = int(0)
-                if i <= last:
-                    T, S, grad = reverse_step(splats, i, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
-                    if wp.length_sq(grad) > 0.0:
-                        hit = 1
-                # A cheap integer reduction first: most entries touch none of a group's pixels.
-                if wp.tile_max(wp.tile(hit))[0] > 0:
-                    total = wp.tile_sum(wp.tile(grad, preserve_type=True))[0]
-                    if lane == 0:
-                        if wp.static(atomic):
-                            wp.atomic_add(out_rows, flatten_ids[i], total)
-                        else:
-                            out_rows[i * groups + group] = total
-                i -= 1
+                base = wp.max(start, i - (group - 1))
+                batch = wp.tile_load(splats, shape=(group, row), offset=(base, 0), storage="shared")
+                while i >= base:
+                    grad = vecF()
+                    hit = int(0)
+                    if i <= last:
+                        r = i - base
+                        col = vecD()
+                        for k in range(channels):
+                            col[k] = batch[r, SPLAT_SLOTS + k]
+                        T, S, grad = reverse_step(wp.vec2(batch[r, 0], batch[r, 1]),
+                                                  wp.vec3(batch[r, 2], batch[r, 3], batch[r, 4]), batch[r, 5],
+                                                  col, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
+                        if wp.length_sq(grad) > 0.0:
+                            hit = 1
+                    # A cheap integer reduction first: most entries touch none of a group's pixels.
+                    if wp.tile_max(wp.tile(hit))[0] > 0:
+                        total = wp.tile_sum(wp.tile(grad, preserve_type=True))[0]
+                        if lane == 0:
+                            if wp.static(atomic):
+                                wp.atomic_add(out_rows, flatten_ids[i], total)
+                            else:
+                                out_rows[i * groups + block_group] = total
+                    i -= 1
 
         return composite_backward_blocks
 
@@ -226,7 +245,7 @@ def _kernels(channels: int):
                 acc = acc + rows[base + s]
         out_grads[gid] = acc
 
-    return composite_backward_atomic, block_kernel(True), block_kernel(False), gather_rows
+    return composite_backward_atomic, block_kernel, gather_rows
 
 
 def composite_backward(
@@ -259,7 +278,7 @@ def composite_backward(
     M = bins.flatten_ids.numel()
     if C == 0 or N == 0 or M == 0:
         return grads
-    atomic_kernel, warp_kernel, rows_kernel, gather_kernel = _kernels(D)
+    atomic_kernel, block_kernel, gather_kernel = _kernels(D)
     vecD, vecF = vector_type(D), vector_type(F)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
     HW = C * height * width
@@ -281,16 +300,16 @@ def composite_backward(
         if reduction == "warp":
             groups = -(-area // WARP_GROUP)
             with cpu_blocks(device):
-                wp.launch_tiled(warp_kernel, dim=[C * tiles_per_camera * groups],
-                                inputs=common + [groups, WARP_GROUP], outputs=[to_wp(grads, vecF, (C * N,))],
+                wp.launch_tiled(block_kernel(True, WARP_GROUP), dim=[C * tiles_per_camera * groups],
+                                inputs=common + [groups], outputs=[to_wp(grads, vecF, (C * N,))],
                                 block_dim=WARP_GROUP, device=device)
             return grads
         group_size = min(area, DETERMINISTIC_BLOCK)
         groups = -(-area // group_size)
         rows = torch.zeros(M * groups, F, device=colors.device, dtype=torch.float32)
         with cpu_blocks(device):
-            wp.launch_tiled(rows_kernel, dim=[C * tiles_per_camera * groups],
-                            inputs=common + [groups, group_size], outputs=[to_wp(rows, vecF)],
+            wp.launch_tiled(block_kernel(False, group_size), dim=[C * tiles_per_camera * groups],
+                            inputs=common + [groups], outputs=[to_wp(rows, vecF)],
                             block_dim=group_size, device=device)
         ids = bins.flatten_ids.long()
         order = torch.sort(ids, stable=True).indices.to(torch.int32)
