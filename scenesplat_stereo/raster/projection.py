@@ -51,6 +51,20 @@ def quat_to_rotation(q: wp.vec4) -> wp.mat33:
     )
 
 
+@wp.func
+def tangent_limits(K: wp.mat33, width: float, height: float) -> wp.vec4:
+    """Clamp range of tx/z and ty/z (SPEC step 3): (-low x, high x, -low y, high y) = the field of view
+    widened by 0.15 W / fx (0.15 H / fy) on each side, for intrinsics K at width x height pixels."""
+    fx = K[0, 0]
+    fy = K[1, 1]
+    return wp.vec4(
+        K[0, 2] / fx + JACOBIAN_CLAMP_MARGIN * width / fx,
+        (width - K[0, 2]) / fx + JACOBIAN_CLAMP_MARGIN * width / fx,
+        K[1, 2] / fy + JACOBIAN_CLAMP_MARGIN * height / fy,
+        (height - K[1, 2]) / fy + JACOBIAN_CLAMP_MARGIN * height / fy,
+    )
+
+
 @functools.cache
 def projection_kernel(antialiased: bool):
     """The projection kernel, compiled per rasterize mode."""
@@ -117,13 +131,10 @@ def projection_kernel(antialiased: bool):
         cy = K[1, 2]
         fw = float(width)
         fh = float(height)
-        lim_x_pos = (fw - cx) / fx + JACOBIAN_CLAMP_MARGIN * fw / fx
-        lim_x_neg = cx / fx + JACOBIAN_CLAMP_MARGIN * fw / fx
-        lim_y_pos = (fh - cy) / fy + JACOBIAN_CLAMP_MARGIN * fh / fy
-        lim_y_neg = cy / fy + JACOBIAN_CLAMP_MARGIN * fh / fy
+        lim = tangent_limits(K, fw, fh)
         z = p[2]
-        tx = z * wp.clamp(p[0] / z, -lim_x_neg, lim_x_pos)
-        ty = z * wp.clamp(p[1] / z, -lim_y_neg, lim_y_pos)
+        tx = z * wp.clamp(p[0] / z, -lim[0], lim[1])
+        ty = z * wp.clamp(p[1] / z, -lim[2], lim[3])
         J0 = wp.vec3(fx / z, 0.0, -fx * tx / (z * z))
         J1 = wp.vec3(0.0, fy / z, -fy * ty / (z * z))
         cJ0 = cov_cam * J0

@@ -28,7 +28,7 @@ import torch
 import warp as wp
 
 from ._warp import on_device_of, to_wp
-from .projection import JACOBIAN_CLAMP_MARGIN, quat_to_rotation
+from .projection import quat_to_rotation, tangent_limits
 
 
 @wp.func
@@ -113,10 +113,11 @@ def projection_backward_kernel(antialiased: bool):
             K = Ks[c]
             fx = K[0, 0]
             fy = K[1, 1]
-            lim_x_pos = (fw - K[0, 2]) / fx + JACOBIAN_CLAMP_MARGIN * fw / fx
-            lim_x_neg = K[0, 2] / fx + JACOBIAN_CLAMP_MARGIN * fw / fx
-            lim_y_pos = (fh - K[1, 2]) / fy + JACOBIAN_CLAMP_MARGIN * fh / fy
-            lim_y_neg = K[1, 2] / fy + JACOBIAN_CLAMP_MARGIN * fh / fy
+            lim = tangent_limits(K, fw, fh)
+            lim_x_neg = lim[0]
+            lim_x_pos = lim[1]
+            lim_y_neg = lim[2]
+            lim_y_pos = lim[3]
             z = p[2]
             ux = p[0] / z
             uy = p[1] / z
