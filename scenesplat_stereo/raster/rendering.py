@@ -118,8 +118,8 @@ def rasterization(
                 # camera centre = -R^T t for a rigid world-to-camera [R t]
                 campos = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]
                 dirs = means[None, :, :] - campos[:, None, :]
-            else:  # degree 0 never reads directions
-                dirs = means.new_zeros(C, N, 3)
+            else:  # degree 0 never reads directions: a placeholder, not a [C, N, 3] tensor
+                dirs = means.new_zeros(1, 1, 3)
             channels.append(autograd.sh_colors(sh_degree, dirs, colors, proj.radii))
         else:
             channels.append(colors[None].expand(C, N, colors.shape[1]))
