@@ -65,6 +65,29 @@ def tangent_limits(K: wp.mat33, width: float, height: float) -> wp.vec4:
     )
 
 
+@wp.func
+def view_rotation(V: wp.mat44) -> wp.mat33:
+    """The rotation block of a world-to-camera matrix."""
+    return wp.mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
+
+
+@wp.func
+def clamped_jacobian(p: wp.vec3, K: wp.mat33, width: float, height: float):
+    """Rows (J0, J1) of the projection Jacobian at camera-space p with tx/z, ty/z clamped (SPEC step 3)."""
+    lim = tangent_limits(K, width, height)
+    z = p[2]
+    tx = z * wp.clamp(p[0] / z, -lim[0], lim[1])
+    ty = z * wp.clamp(p[1] / z, -lim[2], lim[3])
+    return (wp.vec3(K[0, 0] / z, 0.0, -K[0, 0] * tx / (z * z)),
+            wp.vec3(0.0, K[1, 1] / z, -K[1, 1] * ty / (z * z)))
+
+
+@wp.func
+def screen_covariance(cov_cam: wp.mat33, J0: wp.vec3, J1: wp.vec3) -> wp.vec3:
+    """(a, b, d) of Sigma2d = J Sigma_cam J^T = [[a, b], [b, d]] (before the low-pass filter)."""
+    return wp.vec3(wp.dot(J0, cov_cam * J0), wp.dot(J0, cov_cam * J1), wp.dot(J1, cov_cam * J1))
+
+
 @functools.cache
 def projection_kernel(antialiased: bool):
     """The projection kernel, compiled per rasterize mode."""
@@ -119,8 +142,7 @@ def projection_kernel(antialiased: bool):
         R = quat_to_rotation(q / qn)
         s = scales[g]
         M = R * wp.diag(s)
-        Rv = wp.mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
-        W = Rv * M
+        W = view_rotation(V) * M
         cov_cam = W * wp.transpose(W)
 
         # Step 3: Jacobian at the clamped camera-space position.
@@ -131,17 +153,12 @@ def projection_kernel(antialiased: bool):
         cy = K[1, 2]
         fw = float(width)
         fh = float(height)
-        lim = tangent_limits(K, fw, fh)
         z = p[2]
-        tx = z * wp.clamp(p[0] / z, -lim[0], lim[1])
-        ty = z * wp.clamp(p[1] / z, -lim[2], lim[3])
-        J0 = wp.vec3(fx / z, 0.0, -fx * tx / (z * z))
-        J1 = wp.vec3(0.0, fy / z, -fy * ty / (z * z))
-        cJ0 = cov_cam * J0
-        cJ1 = cov_cam * J1
-        a = wp.dot(J0, cJ0)
-        b = wp.dot(J0, cJ1)
-        d = wp.dot(J1, cJ1)
+        J0, J1 = clamped_jacobian(p, K, fw, fh)
+        sig = screen_covariance(cov_cam, J0, J1)
+        a = sig[0]
+        b = sig[1]
+        d = sig[2]
 
         # Step 4: low-pass filter and antialiasing compensation.
         det_orig = a * d - b * b

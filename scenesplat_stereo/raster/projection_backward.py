@@ -28,7 +28,7 @@ import torch
 import warp as wp
 
 from ._warp import on_device_of, to_wp
-from .projection import quat_to_rotation, tangent_limits
+from .projection import clamped_jacobian, quat_to_rotation, screen_covariance, tangent_limits, view_rotation
 
 
 @wp.func
@@ -106,7 +106,7 @@ def projection_backward_kernel(antialiased: bool):
                                              and vc[2] == 0.0 and v_z == 0.0 and v_o == 0.0):
                 continue
             V = viewmats[c]
-            Rv = wp.mat33(V[0, 0], V[0, 1], V[0, 2], V[1, 0], V[1, 1], V[1, 2], V[2, 0], V[2, 1], V[2, 2])
+            Rv = view_rotation(V)
             p = Rv * mean + wp.vec3(V[0, 3], V[1, 3], V[2, 3])
             W = Rv * M
             cov_cam = W * wp.transpose(W)
@@ -123,13 +123,11 @@ def projection_backward_kernel(antialiased: bool):
             uy = p[1] / z
             tx = z * wp.clamp(ux, -lim_x_neg, lim_x_pos)
             ty = z * wp.clamp(uy, -lim_y_neg, lim_y_pos)
-            J0 = wp.vec3(fx / z, 0.0, -fx * tx / (z * z))
-            J1 = wp.vec3(0.0, fy / z, -fy * ty / (z * z))
-            cJ0 = cov_cam * J0
-            cJ1 = cov_cam * J1
-            a = wp.dot(J0, cJ0)
-            b = wp.dot(J0, cJ1)
-            d = wp.dot(J1, cJ1)
+            J0, J1 = clamped_jacobian(p, K, fw, fh)
+            sig = screen_covariance(cov_cam, J0, J1)
+            a = sig[0]
+            b = sig[1]
+            d = sig[2]
             det_orig = a * d - b * b
             ap = a + eps2d
             dp = d + eps2d
@@ -157,6 +155,8 @@ def projection_backward_kernel(antialiased: bool):
                 v_a * wp.outer(J0, J0) + (0.5 * v_b) * (wp.outer(J0, J1) + wp.outer(J1, J0))
                 + v_d * wp.outer(J1, J1)
             )
+            cJ0 = cov_cam * J0
+            cJ1 = cov_cam * J1
             v_J0 = 2.0 * v_a * cJ0 + v_b * cJ1
             v_J1 = 2.0 * v_d * cJ1 + v_b * cJ0
 
