@@ -1,0 +1,119 @@
+"""``sgmodel ablate``: the paper's Table 4 on your data, with one shared schedule.
+
+Trains the default model and each switch of Table 4 (blocks A, C and D; block B, another encoder, is
+``--encoder`` on a whole run), evaluates each best checkpoint on the validation split, adds the two
+baselines without learned prediction as extra rows, and writes ``OUT/table.md`` in the Table 4 layout.
+Every variant lives in ``OUT/<variant>/`` (``run/`` from ``sgmodel train``, ``eval/`` from ``sgmodel eval``),
+so an interrupted ablation resumes where it stopped: finished evaluations are read back, runs resume.
+
+Padding variants are multiples of the default padding P (paper: 0, 32 and 64 pixels beside P = 16 at
+S = 256, i.e. 0, 2P and 4P), so a smaller preset keeps the paper's proportions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import time
+from pathlib import Path
+
+from scenesplat_stereo.shards import atomic_write_bytes
+
+from . import evaluate
+from .config import ModelParams, TrainParams
+from .train import train
+
+
+def variants(base: ModelParams) -> list[tuple[str, str, ModelParams]]:
+    """(block, name, params) of every Table 4 row we train; the first is the shared default."""
+
+    def edit(**changes) -> ModelParams:
+        p = copy.deepcopy(base)
+        for path, value in changes.items():
+            obj, *rest = path.split("__")
+            if rest:
+                setattr(getattr(p, obj), rest[0], value)
+            else:
+                setattr(p, obj, value)
+        return p
+
+    P = base.padding
+    return [
+        ("", "Shared default", copy.deepcopy(base)),
+        ("(A) Input conditioning", "Without descriptor", edit(descriptor=False)),
+        ("(A) Input conditioning", "Without RGB-D conditioning", edit(rgbd=False)),
+        ("(C) Gaussian prediction design", "Without back layer", edit(composer__back_layer=False)),
+        ("(C) Gaussian prediction design", "Hard edge mask", edit(composer__edge_mask="hard")),
+        ("(C) Gaussian prediction design", "Soft edge mask", edit(composer__edge_mask="soft")),
+        ("(C) Gaussian prediction design", "Without composer", edit(composer__composer=False)),
+        ("(D) FoV padding per side", "without padding", edit(padding=0)),
+        ("(D) FoV padding per side", f"{2 * P} pixels", edit(padding=2 * P)),
+        ("(D) FoV padding per side", f"{4 * P} pixels", edit(padding=4 * P)),
+    ]
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in name.lower()).strip("-")
+
+
+def _evaluated(folder: Path, make_method, data: Path, device: str, lpips_vgg: str | None, progress: bool) -> dict:
+    done = folder / "metrics.json"
+    if done.exists():
+        return json.loads(done.read_text())
+    return evaluate.evaluate(make_method(), data, "val", folder, device, lpips_vgg, progress=progress)
+
+
+def ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, device: str, lpips_vgg: str | None,
+           only: list[str] | None = None, progress: bool = True) -> str:
+    """Train and evaluate every variant (or those whose names contain one of ``only``); returns table.md."""
+    t0 = time.perf_counter()
+    rows = []
+    for block, name, params in variants(base):
+        if only and not any(o.lower() in name.lower() for o in only):
+            continue
+        folder = out / _slug(name)
+        print(f"== {name} ==", flush=True)
+        train(params, copy.deepcopy(schedule), data, folder / "run", device, lpips_vgg, progress)
+        result = _evaluated(folder / "eval", lambda: evaluate.checkpoint_method(
+            folder / "run" / "checkpoints" / "best.pt", device, params.encoder.weights), data, device, lpips_vgg,
+            progress)
+        rows.append((block, name, result))
+    for method in evaluate.METHODS:
+        result = _evaluated(out / f"baseline-{method}", lambda: evaluate.baseline_method(
+            method, base.encoder.name, base.encoder.weights, base.resolution, device), data, device, lpips_vgg,
+            progress)
+        rows.append(("Baselines without learned prediction", method, result))
+    text = table(rows, schedule, base, device, time.perf_counter() - t0)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out / "table.md", text.encode())
+    return text
+
+
+def table(rows: list[tuple[str, str, dict]], schedule: TrainParams, base: ModelParams, device: str,
+          wall_s: float) -> str:
+    """Markdown in the Table 4 layout: blocks of variants, PSNR / SSIM / LPIPS (full and valid pixels)."""
+    lines = [f"Validation split; schedule: {schedule.steps} steps, batch {schedule.batch_size}, {schedule.targets} "
+             f"targets, lr {schedule.lr}; {base.resolution}x{base.resolution}, P = {base.padding}, encoder "
+             f"{base.encoder.name}; device {device}; this run {wall_s / 60:.1f} min (finished parts read back).", "",
+             "| Variant | PSNR ↑ | SSIM ↑ | LPIPS ↓ | PSNR (valid) ↑ | SSIM (valid) ↑ |", "|---|---|---|---|---|---|"]
+    current = None
+    for block, name, result in rows:
+        if block != current and block:
+            lines.append(f"| **{block}** | | | | | |")
+        current = block
+        m = result["mean"]
+        lpips = f"{m['lpips']:.4f}" if "lpips" in m else "n/a"
+        label = f"**{name}**" if not block else name
+        lines.append(f"| {label} | {m['psnr']:.3f} | {m['ssim']:.4f} | {lpips} | {m['psnr_masked']:.3f} | "
+                     f"{m['ssim_masked']:.4f} |")
+    return "\n".join(lines) + "\n"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=Path, required=True, help="dataset folder written by `scenesplat-stereo build`")
+    p.add_argument("--out", type=Path, required=True, help="ablation folder (a sub-folder per variant; resumes)")
+    p.add_argument("--only", nargs="+", help="only the variants whose names contain one of these words")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    p.add_argument("--lpips-vgg", help="VGG16 ImageNet weights (default: torch's hub cache, else 1 - SSIM)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -1,0 +1,91 @@
+"""``sgmodel bench encoders``: each encoder's time and disparity error — what accuracy costs in time.
+
+On a dataset built with ``scenesplat-stereo build --with-depth`` (the left depth is rendered from the
+teacher), for every validation pair at S x S: the encoder's time per pair (median over batches, after a
+warm-up batch, synchronised on CUDA) and its disparity error against the true disparity d* = fx B / z
+over pixels with a rendered depth: end-point error (mean |d - d*|, pixels), the share of pixels off by
+more than 3 px and 5% (KITTI's D1), and the mean relative error of the depth clip(fx B / d, 0.1, 10)
+that the model anchors its Gaussians on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from scenesplat_stereo.shards import atomic_write_bytes
+
+from ..data import make_loader
+from ..encoders import create_encoder
+from ..geometry import depth_from_disparity
+from ..train import to_device
+
+
+def disparity_errors(disparity: torch.Tensor, depth: torch.Tensor, fx: torch.Tensor, baseline: torch.Tensor
+                     ) -> tuple[float, float, float, int]:
+    """(sum of |d - d*|, count of D1 outliers, sum of |z - z*| / z*, valid pixels) over depth > 0."""
+    valid = depth > 0
+    scale = (fx * baseline).view(-1, 1, 1, 1)
+    truth = scale / depth.clamp_min(1e-6)
+    err = (disparity - truth).abs()
+    d1 = (err > 3) & (err > 0.05 * truth)
+    z = depth_from_disparity(disparity, fx, baseline)
+    rel = (z - depth).abs() / depth.clamp_min(1e-6)
+    return err[valid].sum().item(), d1[valid].sum().item(), rel[valid].sum().item(), int(valid.sum().item())
+
+
+def bench_encoder(name: str, loader, device: torch.device, weights: str | None) -> dict:
+    encoder = create_encoder(name, weights=weights, device=str(device))
+    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
+    times, epe, d1, rel, n, pairs = [], 0.0, 0.0, 0.0, 0, 0
+    for i, batch in enumerate(loader):
+        if "depth" not in batch:
+            raise ValueError("the dataset has no left_depth.exr: build it with `scenesplat-stereo build --with-depth`")
+        batch = to_device(batch, device)
+        sync()
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            disparity = encoder(batch["left"], batch["right"]).disparity.float()
+        sync()
+        if i > 0 or len(loader) == 1:
+            times.append((time.perf_counter() - t0) / batch["left"].shape[0])
+        e, o, r, k = disparity_errors(disparity, batch["depth"], batch["K"][:, 0, 0], batch["baseline"])
+        epe, d1, rel, n, pairs = epe + e, d1 + o, rel + r, n + k, pairs + batch["left"].shape[0]
+    if n == 0:
+        raise ValueError("no pixel with a rendered depth in the split")
+    return {"encoder": name, "ms_per_pair": statistics.median(times) * 1e3, "epe": epe / n, "d1": 100 * d1 / n,
+            "depth_rel": 100 * rel / n, "pairs": pairs}
+
+
+def run(args: argparse.Namespace) -> int:
+    device = torch.device(args.device)
+    rows = []
+    for name in args.encoders:
+        loader = make_loader(args.data, args.split, args.batch_size, args.resolution, None, 0, 0, 0, 1, train=False)
+        rows.append(bench_encoder(name, loader, device, args.encoder_weights if name == args.encoders[0] else None))
+    dev = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    lines = [f"Encoders on {args.data} ({args.split} split, {rows[0]['pairs']} pairs at "
+             f"{args.resolution}x{args.resolution}, batch {args.batch_size}) on {dev}.", "",
+             "| encoder | ms / pair | EPE (px) | D1 (%) | depth rel. error (%) |", "|---|---|---|---|---|"]
+    lines += [f"| {r['encoder']} | {r['ms_per_pair']:.1f} | {r['epe']:.2f} | {r['d1']:.1f} | {r['depth_rel']:.1f} |"
+              for r in rows]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        atomic_write_bytes(Path(args.out), text.encode())
+    return 0
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=Path, required=True, help="a dataset built with --with-depth")
+    p.add_argument("--split", choices=("train", "val", "test"), default="val", help="split (default val)")
+    p.add_argument("--encoders", nargs="+", default=["psmnet-kitti", "sgbm"], help="encoders to compare")
+    p.add_argument("--encoder-weights", help="local weights of the first encoder (default: the fetched cache)")
+    p.add_argument("--resolution", type=int, default=256, help="S (default 256)")
+    p.add_argument("--batch-size", type=int, default=4, help="pairs per batch (default 4)")
+    p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
+    p.add_argument("--out", type=Path, help="also write the markdown table here")

@@ -1,0 +1,57 @@
+"""The checkpoint file format: one owner for writing and reading ``RUN/checkpoints/*.pt``.
+
+A checkpoint is a plain ``torch.save`` dict (PyTorch convention; load with ``weights_only=True``):
+
+- ``format``: ``CHECKPOINT_FORMAT``; ``model_params``: ``ModelParams.to_dict()`` (rebuilds the model);
+- ``model``: the trainable ``state_dict`` (decoder + predictor; never the frozen encoder);
+- ``encoder``: {name, sha256} of the frozen encoder it was trained with, for the record;
+- ``train_params``, ``step`` (optimiser steps done), ``best_val_psnr``, ``best_step``;
+- ``optimizer``, ``scheduler``: their ``state_dict``s; ``rng``: torch/CUDA generator states
+  (so a resumed run continues exactly; the data order is a function of (seed, step)).
+
+Writes are atomic (a temporary file renamed over the old one), so an interrupted save never leaves a
+half-written ``last.pt``.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from scenesplat_stereo.shards import atomic_write_bytes
+
+CHECKPOINT_FORMAT = "sgmodel-checkpoint-v1"
+REQUIRED = ("format", "model_params", "model", "step")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, unreadable or not ours; the message names the file."""
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Atomically write ``state`` (with ``format`` added) to ``path``."""
+    buf = io.BytesIO()
+    torch.save({"format": CHECKPOINT_FORMAT, **state}, buf)
+    atomic_write_bytes(Path(path), buf.getvalue())
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Read and check a checkpoint; CheckpointError naming the file and the field otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # torch raises many types for a corrupt or foreign file
+        raise CheckpointError(f"{path}: not a readable PyTorch checkpoint ({type(e).__name__}: {e})") from None
+    if not isinstance(ckpt, dict):
+        raise CheckpointError(f"{path}: expected a dict, found {type(ckpt).__name__}")
+    missing = [k for k in REQUIRED if k not in ckpt]
+    if missing:
+        raise CheckpointError(f"{path}: missing fields {missing} (not written by `sgmodel train`?)")
+    if ckpt["format"] != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: format {ckpt['format']!r}, this version reads {CHECKPOINT_FORMAT!r}")
+    return ckpt

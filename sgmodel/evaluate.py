@@ -1,0 +1,186 @@
+"""``sgmodel eval``: render every stored target of a split and measure it as the paper does.
+
+Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned prediction
+(``--method naive-gs|forward-splat``, sgmodel.baselines) on any encoder's disparity. Metrics (SPEC
+section 7, sgmodel.metrics): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
+when the VGG16 weights are available; each over the full image and over the valid mask.
+
+Writes REPORT/ (atomically, after every input is checked): ``metrics.json`` (means, target count, encoder,
+method or checkpoint, split), ``targets.csv`` (one row per target), ``scenes.md`` (a table per scene), and
+``sheet.png`` (the worst and the best targets by PSNR: target | render).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from scenesplat_stereo.shards import atomic_write_bytes
+
+from . import baselines, metrics
+from .data import make_loader
+from .encoders import create_encoder
+from .geometry import depth_from_disparity
+from .lpips import create_lpips
+from .model import load_predictor
+from .render import render_views
+from .sheets import target_sheet
+from .train import to_device
+
+METHODS = ("naive-gs", "forward-splat")
+METRICS = ("psnr", "ssim", "lpips")
+SHEET_TARGETS = 4  # worst and best targets shown in sheet.png
+
+
+@dataclass
+class Method:
+    """What renders a batch's targets: name, encoder name, resolution S, and ``render(batch) -> [B,T,3,S,S]``."""
+
+    name: str
+    encoder: str
+    resolution: int
+    render: object
+
+
+def checkpoint_method(checkpoint: Path, device: str, encoder_weights: str | None) -> Method:
+    predictor = load_predictor(checkpoint, device, encoder_weights=encoder_weights)
+
+    def render(batch: dict) -> torch.Tensor:
+        gaussians, _ = predictor.predict(batch["left"], batch["right"], batch["K"], batch["baseline"])
+        S = batch["targets"].shape[-1]
+        return render_views(gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
+
+    return Method(f"checkpoint {checkpoint}", predictor.model.encoder.name, predictor.resolution, render)
+
+
+def baseline_method(name: str, encoder_name: str, weights: str | None, resolution: int, device: str) -> Method:
+    encoder = create_encoder(encoder_name, weights=weights, device=device)
+
+    @torch.no_grad()
+    def render(batch: dict) -> torch.Tensor:
+        z = depth_from_disparity(encoder(batch["left"], batch["right"]).disparity.float(), batch["K"][:, 0, 0],
+                                 batch["baseline"])
+        S = batch["targets"].shape[-1]
+        if name == "naive-gs":
+            g = baselines.naive_gaussians(batch["left"], z, batch["K"])
+            return render_views(g, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
+        return baselines.forward_splat(batch["left"], z, batch["K"], batch["target_viewmats"], batch["target_Ks"],
+                                       S, S)[0]
+
+    return Method(name, encoder_name, resolution, render)
+
+
+def measure(method: Method, loader, device: str, lpips_net, progress: bool = True) -> tuple[list[dict], list[dict]]:
+    """Per-target rows, and the worst and best targets' images for the sheet."""
+    rows, kept = [], []
+    bar = tqdm(loader, disable=not progress, unit="pair", desc=f"eval {method.name}")
+    for batch in bar:
+        batch = to_device(batch, device)
+        renders = method.render(batch).float().clamp(0, 1)
+        B, T = renders.shape[:2]
+        pred, gt, mask = renders.flatten(0, 1), batch["targets"].flatten(0, 1), batch["masks"].flatten(0, 1)
+        values = {"psnr": metrics.psnr(pred, gt), "ssim": metrics.ssim(pred, gt),
+                  "psnr_masked": metrics.psnr(pred, gt, mask), "ssim_masked": metrics.ssim(pred, gt, mask)}
+        if lpips_net is not None:
+            values["lpips"] = metrics.lpips(lpips_net, pred, gt)
+            values["lpips_masked"] = metrics.lpips(lpips_net, pred, gt, mask)
+        valid = mask.float().flatten(1).mean(1)
+        for i in range(B * T):
+            b, t = divmod(i, T)
+            row = {"key": batch["keys"][b], "scene": batch["scenes"][b], "target": int(batch["target_ids"][b, t]),
+                   "valid_fraction": round(valid[i].item(), 6)}
+            row.update({k: v[i].item() for k, v in values.items()})
+            rows.append(row)
+            kept.append({"psnr": row["psnr"], "target": gt[i].cpu(), "render": pred[i].cpu(),
+                         "caption": f"{row['key']} target {row['target']}: {row['psnr']:.2f} dB"})
+        kept = sorted(kept, key=lambda e: e["psnr"])
+        kept = kept[:SHEET_TARGETS] + kept[-SHEET_TARGETS:] if len(kept) > 2 * SHEET_TARGETS else kept
+        bar.set_postfix(psnr=f"{sum(r['psnr'] for r in rows) / len(rows):.2f}")
+    if not rows:
+        raise ValueError("the split has no targets to evaluate")
+    return rows, kept
+
+
+def summarise(rows: list[dict]) -> dict:
+    keys = [k for k in rows[0] if k not in ("key", "scene", "target")]
+    return {k: sum(r[k] for r in rows) / len(rows) for k in keys}
+
+
+def scene_table(rows: list[dict]) -> str:
+    from scenesplat_stereo.tables import markdown_table
+
+    scenes = sorted({r["scene"] for r in rows})
+    cols = [k for k in ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "lpips_masked") if k in rows[0]]
+    body = []
+    for s in scenes + ["all"]:
+        sel = [r for r in rows if s == "all" or r["scene"] == s]
+        mean = summarise(sel)
+        body.append([s, len(sel)] + [f"{mean[c]:.4f}" if "psnr" not in c else f"{mean[c]:.2f}" for c in cols])
+    return markdown_table(["scene", "targets"] + cols, body)
+
+
+def _csv(rows: list[dict]) -> bytes:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue().encode()
+
+
+def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpips_vgg: str | None,
+             batch_size: int = 4, progress: bool = True) -> dict:
+    """Run the evaluation and write the report; returns metrics.json's content."""
+    loader = make_loader(data, split, batch_size, method.resolution, None, 0, 0, 0, 1, train=False)
+    lpips_net = create_lpips(lpips_vgg, device)
+    rows, kept = measure(method, loader, device, lpips_net, progress)
+    result = {"method": method.name, "encoder": method.encoder, "split": split, "data": str(Path(data).resolve()),
+              "resolution": method.resolution, "targets": len(rows),
+              "lpips": "LPIPS-VGG v0.1" if lpips_net is not None else "not computed (no VGG16 ImageNet weights)",
+              "mean": summarise(rows)}
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out / "metrics.json", (json.dumps(result, indent=2) + "\n").encode())
+    atomic_write_bytes(out / "targets.csv", _csv(rows))
+    atomic_write_bytes(out / "scenes.md", (scene_table(rows) + "\n").encode())
+    atomic_write_bytes(out / "sheet.png", target_sheet(kept))
+    return result
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=Path, required=True, help="dataset folder written by `scenesplat-stereo build`")
+    p.add_argument("--split", choices=("val", "test"), default="val", help="split to evaluate (default val)")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--checkpoint", type=Path, help="a checkpoint written by `sgmodel train` (best.pt)")
+    which.add_argument("--method", choices=METHODS, help="a baseline without learned prediction")
+    p.add_argument("--encoder", default="psmnet-kitti", help="encoder of a baseline (default psmnet-kitti)")
+    p.add_argument("--encoder-weights", help="local weights file of the encoder (default: the fetched cache)")
+    p.add_argument("--resolution", type=int, default=256, help="S for a baseline (a checkpoint uses its own)")
+    p.add_argument("--out", type=Path, required=True, help="report folder")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    p.add_argument("--batch-size", type=int, default=4, help="pairs per batch (default 4)")
+    p.add_argument("--lpips-vgg", help="VGG16 ImageNet weights for LPIPS (default: torch's hub cache)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace, device: str) -> int:
+    if args.out.exists() and not args.out.is_dir():
+        raise ValueError(f"--out {args.out}: exists and is not a folder")
+    if args.batch_size < 1:
+        raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
+    method = checkpoint_method(args.checkpoint, device, args.encoder_weights) if args.checkpoint else \
+        baseline_method(args.method, args.encoder, args.encoder_weights, args.resolution, device)
+    result = evaluate(method, args.data, args.split, args.out, device, args.lpips_vgg, args.batch_size,
+                      not args.no_progress)
+    print(scene_table_from(args.out))
+    print(f"{result['targets']} targets; report in {args.out}")
+    return 0
+
+
+def scene_table_from(out: Path) -> str:
+    return (out / "scenes.md").read_text()

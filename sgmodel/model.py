@@ -1,0 +1,155 @@
+"""StereoGaussians: frozen stereo encoder -> DPT decoder -> canvas -> Gaussian predictor -> composer.
+
+``create_model(params)`` builds the model from ``ModelParams`` (ml-sharp's ``create_predictor`` style);
+``load_predictor(checkpoint)`` rebuilds a trained one for ``eval`` and ``predict``. The encoder is frozen
+and kept outside the module tree on purpose: it is never in ``parameters()``, ``state_dict()``, the
+optimiser, DDP's gradient buckets or a checkpoint (SPEC section 7); ``model.to(device)`` moves it too.
+
+Everything is in the left camera's frame, OpenCV axes, metres; images [B,3,H,W] in [0,1]; K in pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from . import canvas
+from .composer import compose
+from .config import ModelParams
+from .decoder import DPTDecoder
+from .encoders import StereoEncoder, create_encoder
+from .geometry import depth_from_disparity
+from .predictor import GaussianPredictor
+
+
+@dataclass
+class Prediction:
+    """One forward pass. gaussians: the composer's dict (means [B,N,3], quats [B,N,4] wxyz, scales [B,N,3],
+    opacities [B,N], sh [B,N,9,3]); depth z [B,1,H,W] metres and disparity [B,1,H,W] pixels at the input
+    size; canvas_K [B,3,3]; front/back [B,37,Hc,Wc] and dz [B,1,Hc,Wc] are the predictor's raw outputs (back
+    and dz are None without a back layer)."""
+
+    gaussians: dict[str, torch.Tensor]
+    depth: torch.Tensor
+    disparity: torch.Tensor
+    canvas_K: torch.Tensor
+    front: torch.Tensor
+    back: torch.Tensor | None
+    dz: torch.Tensor | None
+
+
+def check_inputs(left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> None:
+    """ValueError naming the input for anything the model cannot use."""
+    if left.ndim != 4 or left.shape[1] != 3 or left.shape != right.shape:
+        raise ValueError(f"left and right must both be [B, 3, H, W]; got {tuple(left.shape)} and {tuple(right.shape)}")
+    B, _, H, W = left.shape
+    if min(H, W) < 16:
+        raise ValueError(f"images of {W}x{H} pixels are too small: both sides must be >= 16")
+    if K.shape != (B, 3, 3) or not torch.isfinite(K).all() or (K[:, 0, 0] <= 0).any() or (K[:, 1, 1] <= 0).any():
+        raise ValueError("K must be [B, 3, 3], finite, with positive focal lengths")
+    if baseline.shape != (B,) or not torch.isfinite(baseline).all() or (baseline <= 0).any():
+        raise ValueError(f"baseline must be [B] finite and > 0 metres, got {baseline.tolist()}")
+
+
+class StereoGaussians(nn.Module):
+    """The trainable decoder and predictor around a frozen encoder (attribute ``encoder``)."""
+
+    def __init__(self, params: ModelParams, encoder: StereoEncoder) -> None:
+        super().__init__()
+        params.validate()
+        self.params = params
+        self.__dict__["encoder"] = encoder  # frozen: deliberately not a registered submodule
+        use_phi = params.descriptor
+        self.decoder = DPTDecoder(encoder.feature_channels, encoder.feature_scales, params.decoder.channels,
+                                  params.decoder.groups, params.rgbd, params.decoder.rgbd_scales) if use_phi else None
+        self.predictor = GaussianPredictor(params.predictor, params.decoder.channels if use_phi else 0, params.rgbd,
+                                           params.composer.back_layer)
+
+    def _apply(self, fn, recurse=True):  # .to()/.cuda()/.float() move the frozen encoder as well
+        self.encoder._apply(fn)
+        return super()._apply(fn, recurse)
+
+    @torch.no_grad()
+    def encode(self, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Frozen encoder: disparity [B,1,H,W] float32 and features; bf16 autocast on CUDA when enabled."""
+        enabled = left.is_cuda and torch.is_autocast_enabled("cuda")
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=enabled):
+            out = self.encoder(left, right)
+        disparity = out.disparity.float()
+        if not torch.isfinite(disparity).all():
+            bad = (~torch.isfinite(disparity)).flatten(1).any(1).nonzero().flatten().tolist()
+            raise ValueError(f"encoder {self.encoder.name!r} returned non-finite disparity for batch items {bad}")
+        return disparity, [f.detach() for f in out.features]
+
+    def layers(self, left: torch.Tensor, z: torch.Tensor, features: list[torch.Tensor], K: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, canvas.Canvas]:
+        """Decoder at the input size, then the canvas, then the predictor: (front, back, dz, canvas)."""
+        P = self.params.padding
+        phi = canvas.extend(self.decoder(features, left, z), P) if self.decoder is not None else None
+        c = canvas.Canvas(rgb=canvas.extend(left, P), depth=canvas.extend(z, P), K=canvas.canvas_intrinsics(K, P))
+        front, back, dz = self.predictor(c.rgb, c.depth, phi)
+        return front, back, dz, c
+
+    def compose(self, front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | None, c: canvas.Canvas,
+                baseline: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The composer in float32 (the predictor may run in bf16)."""
+        if back is None:  # front layer only: the composer ignores back and dz
+            back, dz = front, c.depth
+        p = self.params.composer
+        return compose(front.float(), back.float(), dz.float(), c.depth, c.rgb.float(), c.K, baseline,
+                       back_layer=p.back_layer, edge_mask=p.edge_mask, composer=p.composer)
+
+    def forward(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> Prediction:
+        """left/right [B,3,H,W] in [0,1], K [B,3,3] pixels, baseline [B] metres -> Prediction."""
+        check_inputs(left, right, K, baseline)
+        disparity, features = self.encode(left, right)
+        z = depth_from_disparity(disparity, K[:, 0, 0], baseline)
+        front, back, dz, c = self.layers(left, z, features, K)
+        return Prediction(self.compose(front, back, dz, c, baseline), z, disparity, c.K, front, back, dz)
+
+
+def create_model(params: ModelParams, device: str | torch.device = "cpu", encoder: StereoEncoder | None = None
+                 ) -> StereoGaussians:
+    """Build the model; the encoder comes from the registry (``params.encoder``) unless one is given."""
+    params.validate()
+    if encoder is None:
+        e = params.encoder
+        encoder = create_encoder(e.name, weights=e.weights, repo=e.repo, device=str(device))
+    return StereoGaussians(params, encoder).to(device)
+
+
+class Predictor:
+    """A trained model ready for inference: ``predict(left, right, K, baseline) -> (gaussians, depth)``."""
+
+    def __init__(self, model: StereoGaussians) -> None:
+        self.model = model.eval()
+
+    @property
+    def resolution(self) -> int:
+        return self.model.params.resolution
+
+    @torch.no_grad()
+    def predict(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor
+                ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        out = self.model(left, right, K, baseline)
+        return out.gaussians, out.depth
+
+
+def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", encoder_weights: str | None = None,
+                   encoder_repo: str | None = None) -> Predictor:
+    """Rebuild a model from a checkpoint written by ``sgmodel train`` (its ModelParams travel inside it);
+    the frozen encoder is rebuilt from the registry (weights from the cache or ``encoder_weights``)."""
+    from .checkpoint import load_checkpoint
+
+    ckpt = load_checkpoint(checkpoint)
+    params = ModelParams.from_dict(ckpt["model_params"])
+    if encoder_weights is not None:
+        params.encoder.weights = encoder_weights
+    if encoder_repo is not None:
+        params.encoder.repo = encoder_repo
+    model = create_model(params, device)
+    model.load_state_dict(ckpt["model"])
+    return Predictor(model)

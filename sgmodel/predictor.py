@@ -1,0 +1,87 @@
+"""The Gaussian predictor H on the canvas (paper eq. 2, appendix A "Dense predictor and canvas").
+
+A shared regressor (conv3x3 -> GELU -> conv3x3) maps [RGB~, z~, Phi~] to h (C channels). Three branches
+read [h, RGB~, Phi~], each conv3x3 -> GroupNorm -> GELU -> conv3x3: front (37 channels), back (37) and
+dz (1). All convolutions pad by replication. Ablations drop inputs: ``descriptor=False`` removes Phi~,
+``rgbd=False`` removes RGB~ and z~ (the composer still uses them as anchors).
+
+Output channels of the front/back branches (SPEC section 7), named in ``CHANNELS``; the final convs
+start at exactly zero for scale, SH and the whole dz branch, and small and non-zero for opacity, offset
+and quaternion (ml-sharp's zero-initialised heads, with the paper's exception).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .config import PredictorParams
+
+# channel ranges of a 37-channel layer output (SPEC section 7 "Branch channels")
+CHANNELS = {
+    "opacity": slice(0, 1),  # opacity residual delta_alpha (logit space)
+    "offset": slice(1, 3),  # image-plane offset logits (u, v)
+    "scale": slice(3, 6),  # scale residuals delta_s (x, y, z)
+    "quat": slice(6, 10),  # quaternion residual delta_q (w, x, y, z)
+    "sh": slice(10, 37),  # degree-2 SH residuals, coefficient-major: channel 10 + 3k + c
+}
+LAYER_CHANNELS = 37
+ZERO_INIT = ("scale", "sh")  # exactly zero at initialisation (appendix A)
+
+
+def _conv3(cin: int, cout: int) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, 3, padding=1, padding_mode="replicate")
+
+
+class Branch(nn.Sequential):
+    """conv3x3 -> GroupNorm -> GELU -> conv3x3."""
+
+    def __init__(self, cin: int, hidden: int, cout: int, groups: int) -> None:
+        super().__init__(_conv3(cin, hidden), nn.GroupNorm(groups, hidden), nn.GELU(), _conv3(hidden, cout))
+
+    @property
+    def final(self) -> nn.Conv2d:
+        return self[-1]
+
+
+class GaussianPredictor(nn.Module):
+    """(front [B,37,Hc,Wc], back [B,37,Hc,Wc], dz [B,1,Hc,Wc]) = H([RGB~, z~, Phi~])."""
+
+    def __init__(self, params: PredictorParams, descriptor_channels: int, rgbd: bool, back_layer: bool = True) -> None:
+        super().__init__()
+        self.rgbd = rgbd
+        self.use_descriptor = descriptor_channels > 0
+        if not rgbd and not self.use_descriptor:
+            raise ValueError("the predictor needs RGB-D or the descriptor as input")
+        C = params.channels
+        cin = (4 if rgbd else 0) + descriptor_channels
+        branch_in = C + (3 if rgbd else 0) + descriptor_channels
+        self.regressor = nn.Sequential(_conv3(cin, C), nn.GELU(), _conv3(C, C))
+        self.front = Branch(branch_in, C, LAYER_CHANNELS, params.groups)
+        # without a back layer there is nothing to predict for it: no back or dz branch at all
+        self.back = Branch(branch_in, C, LAYER_CHANNELS, params.groups) if back_layer else None
+        self.dz = Branch(branch_in, C, 1, params.groups) if back_layer else None
+        self._init_layer_head(self.front.final, params.init_std)
+        if back_layer:
+            self._init_layer_head(self.back.final, params.init_std)
+            nn.init.zeros_(self.dz.final.weight)
+            nn.init.zeros_(self.dz.final.bias)
+
+    @staticmethod
+    def _init_layer_head(conv: nn.Conv2d, std: float) -> None:
+        with torch.no_grad():
+            nn.init.normal_(conv.weight, std=std)
+            nn.init.zeros_(conv.bias)
+            for name in ZERO_INIT:
+                conv.weight[CHANNELS[name]] = 0.0
+
+    def forward(self, rgb: torch.Tensor, z: torch.Tensor, phi: torch.Tensor | None
+                ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """Canvas inputs rgb [B,3,Hc,Wc] in [0,1], z [B,1,Hc,Wc] metres, phi [B,C,Hc,Wc] or None.
+        back and dz are None without a back layer."""
+        inputs = ([rgb, z] if self.rgbd else []) + ([phi] if self.use_descriptor else [])
+        h = self.regressor(torch.cat(inputs, dim=1))
+        shared = torch.cat([h] + ([rgb] if self.rgbd else []) + ([phi] if self.use_descriptor else []), dim=1)
+        if self.back is None:
+            return self.front(shared), None, None
+        return self.front(shared), self.back(shared), self.dz(shared)

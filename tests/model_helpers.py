@@ -1,0 +1,53 @@
+"""Small stand-ins for the model tests: an encoder with features at two scales and a synthetic batch."""
+
+from __future__ import annotations
+
+import torch
+
+from sgmodel.encoders import EncoderOutput, StereoEncoder
+
+
+class StandInEncoder(StereoEncoder):
+    """Frozen, deterministic: disparity from a fixed plane, features = fixed random projections of the
+    left image at scales 2 and 4 (so the decoder sees real feature maps)."""
+
+    name = "stand-in"
+    feature_channels = (6, 8)
+    feature_scales = (2, 4)
+    weights_sha256 = None
+
+    def __init__(self, disparity: float = 8.0) -> None:
+        super().__init__()
+        g = torch.Generator().manual_seed(0)
+        self.proj2 = torch.nn.Conv2d(3, 6, 1)
+        self.proj4 = torch.nn.Conv2d(3, 8, 1)
+        with torch.no_grad():
+            for conv in (self.proj2, self.proj4):
+                conv.weight.copy_(torch.randn(conv.weight.shape, generator=g))
+                conv.bias.zero_()
+        self.disparity = disparity
+        self.freeze()
+
+    def forward(self, left: torch.Tensor, right: torch.Tensor) -> EncoderOutput:
+        B, _, H, W = left.shape
+        d = torch.full((B, 1, H, W), self.disparity, device=left.device)
+        f2 = self.proj2(torch.nn.functional.avg_pool2d(left, 2, ceil_mode=True))
+        f4 = self.proj4(torch.nn.functional.avg_pool2d(left, 4, ceil_mode=True))
+        return EncoderOutput(disparity=d, features=[f2, f4])
+
+
+def textured_batch(B: int = 2, T: int = 2, S: int = 32, seed: int = 0) -> dict:
+    """Pairs of a textured fronto-parallel plane with targets that are the left image itself, seen from
+    slightly shifted cameras (the model must learn to reproduce them)."""
+    g = torch.Generator().manual_seed(seed)
+    low = torch.rand(B, 3, S // 4, S // 4, generator=g)
+    left = torch.nn.functional.interpolate(low, size=(S, S), mode="bilinear", align_corners=False)
+    f = S * 1.0
+    K = torch.tensor([[f, 0, S / 2], [0, f, S / 2], [0, 0, 1.0]]).expand(B, 3, 3).clone()
+    view = torch.eye(4).expand(B, T, 4, 4).clone()
+    view[..., 0, 3] = torch.linspace(-0.02, 0.02, T)
+    return {"left": left, "right": left.roll(-2, dims=-1), "K": K, "baseline": torch.full((B,), 0.1),
+            "targets": left[:, None].expand(B, T, 3, S, S).clone(),
+            "masks": torch.ones(B, T, 1, S, S, dtype=torch.bool), "target_viewmats": view,
+            "target_Ks": K[:, None].expand(B, T, 3, 3).clone(), "target_ids": torch.arange(T).expand(B, T),
+            "keys": [f"s{i}" for i in range(B)], "scenes": ["plane"] * B}
