@@ -31,7 +31,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -236,8 +236,7 @@ def sample_images(sel: VariantSelection, ref: Reference):
     """The ``encode.SampleImages`` of one stored reference pair (at least one target; images read from the
     IRS folder)."""
     from scenesplat_stereo.encode import SampleImages
-    from scenesplat_stereo.protocol import SamplePlan, sample_key
-    from scenesplat_stereo.shards import sample_json
+    from scenesplat_stereo.protocol import SampleMeta, SamplePlan, sample_key
 
     frames, w, h = sel.poses["frames"], sel.poses["width"], sel.poses["height"]
     f = frames[ref.index]
@@ -249,13 +248,12 @@ def sample_images(sel: VariantSelection, ref: Reference):
                       target_ids=tuple(range(len(targets))), K=np.array(sel.poses["K"]), width=w, height=h,
                       baseline=float(sel.poses["baseline"]), rho=max((t.distance for t in ref.targets), default=0.0),
                       teacher_psnr=None, split=sel.split)
-    meta = json.loads(sample_json(plan))
-    meta["target_frames"] = [t["frame"] for t in targets]
-    meta["target_coverage"] = [t.coverage for t in ref.targets]
+    meta = replace(SampleMeta.from_plan(plan), target_frames=tuple(t["frame"] for t in targets),
+                   target_coverage=tuple(t.coverage for t in ref.targets))
     return SampleImages(key=key, left=read_rgb(sel.source / f["left"]), right=read_rgb(sel.source / f["right"]),
                         targets=np.stack([read_rgb(sel.source / t["left"]) for t in targets]),
                         masks=np.ones((len(targets), h, w), dtype=bool), target_ids=plan.target_ids,
-                        meta=json.dumps(meta, separators=(",", ":")).encode())
+                        meta=meta.to_json())
 
 
 def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANTS,

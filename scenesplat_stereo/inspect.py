@@ -27,10 +27,8 @@ from tqdm import tqdm
 from scenesplat_stereo import shards
 from scenesplat_stereo.cameras import fibonacci_directions, rigid_error, translation
 from scenesplat_stereo.encode import decode_image, encode_png
-from scenesplat_stereo.protocol import NUM_TARGETS, tier_for_psnr
+from scenesplat_stereo.protocol import NUM_TARGETS, SampleMeta, SampleMetaError, sample_key, tier_for_psnr
 
-REQUIRED_FIELDS = ("scene", "subset", "frame", "width", "height", "K", "baseline", "rho", "teacher_psnr",
-                   "c2w_left", "targets")
 POSE_TOLERANCE = 1e-6  # world units / unitless, for poses stored as float64 JSON
 THUMB_WIDTH = 128  # pixels, contact-sheet thumbnails
 
@@ -51,55 +49,48 @@ class InspectReport:
         return not self.problems
 
 
-def check_sample(key: str, members: dict[str, bytes], decode: bool) -> tuple[dict | None, list[str], list[str]]:
-    """(JSON, problems, notes) of one sample; ``decode`` also decodes and checks every image."""
+def check_sample(key: str, members: dict[str, bytes], decode: bool) -> tuple[SampleMeta | None, list[str], list[str]]:
+    """(record, problems, notes) of one sample; ``decode`` also decodes and checks every image."""
     problems, notes = [], []
+    if "json" not in members:
+        return None, [f"{key}: json member missing"], notes
     try:
-        meta = json.loads(members["json"])
-    except (KeyError, ValueError) as e:
-        return None, [f"{key}: json member missing or unreadable ({type(e).__name__})"], notes
-    missing = [f for f in REQUIRED_FIELDS if f not in meta]
-    if missing:
-        return None, [f"{key}.json: missing fields {missing}"], notes
-    ids = meta.get("target_ids", list(range(len(meta["targets"]))))
+        meta = SampleMeta.from_json(members["json"], f"{key}.json")
+    except SampleMetaError as e:
+        return None, [str(e)], notes
+    ids = list(meta.target_ids)
     expected = {"json", "left.jpg", "right.jpg"} | {f"target_{j:02d}.jpg" for j in ids} | {f"mask_{j:02d}.png" for j in ids}
     have = set(members) - {"left_depth.exr"}
     if expected - have:
         problems.append(f"{key}: missing members {sorted(expected - have)}")
     if have - expected:
         problems.append(f"{key}: unexpected members {sorted(have - expected)}")
-    if key != f"{meta['scene']}__{int(meta['frame']):06d}":
+    if key != meta.key or key != sample_key(meta.scene, meta.frame):
         problems.append(f"{key}.json: scene/frame do not match the key")
-    problems += _check_poses(key, meta, ids)
-    if meta["teacher_psnr"] is not None and meta["teacher_psnr"] > 30.0:
-        tier = tier_for_psnr(meta["teacher_psnr"])
-        if (meta["baseline"], meta["rho"]) != (tier.baseline, tier.rho):
-            notes.append(f"{meta['scene']}: B={meta['baseline']}, rho={meta['rho']} differ from the tier of "
-                         f"{meta['teacher_psnr']} dB (B={tier.baseline}, rho={tier.rho})")
+    problems += _check_poses(key, meta)
+    if meta.teacher_psnr is not None and meta.teacher_psnr > 30.0:
+        tier = tier_for_psnr(meta.teacher_psnr)
+        if (meta.baseline, meta.rho) != (tier.baseline, tier.rho):
+            notes.append(f"{meta.scene}: B={meta.baseline}, rho={meta.rho} differ from the tier of "
+                         f"{meta.teacher_psnr} dB (B={tier.baseline}, rho={tier.rho})")
     if decode:
-        problems += _check_images(key, members, meta, ids)
+        problems += _check_images(key, members, meta)
     return meta, problems, notes
 
 
-def _check_poses(key: str, meta: dict, ids: list[int]) -> list[str]:
-    try:
-        K = np.array(meta["K"], dtype=np.float64)
-        left = np.array(meta["c2w_left"], dtype=np.float64)
-        targets = np.array(meta["targets"], dtype=np.float64).reshape(-1, 4, 4)
-    except (TypeError, ValueError):
-        return [f"{key}.json: K, c2w_left or targets is not a numeric matrix"]
+def _check_poses(key: str, meta: SampleMeta) -> list[str]:
+    K, left, targets, ids = meta.K, meta.c2w_left, meta.targets, list(meta.target_ids)
     problems = []
-    if K.shape != (3, 3) or not (K[0, 0] > 0 and K[1, 1] > 0) or not np.allclose(K[2], (0, 0, 1)):
+    if not np.allclose(K[2], (0, 0, 1)):
         problems.append(f"{key}.json: K is not a pinhole matrix with positive focal lengths")
-    if left.shape != (4, 4) or rigid_error(left) > POSE_TOLERANCE:
+    if rigid_error(left) > POSE_TOLERANCE:
         return problems + [f"{key}.json: c2w_left is not a rigid 4x4 transform"]
-    if len(targets) != len(ids) or not all(0 <= j < NUM_TARGETS for j in ids) or len(set(ids)) != len(ids):
+    if not all(0 <= j < NUM_TARGETS for j in ids):
         return problems + [f"{key}.json: {len(targets)} targets for target_ids {ids}"]
-    B, rho = float(meta["baseline"]), float(meta["rho"])
+    B, rho = meta.baseline, meta.rho
     scale = max(1.0, float(np.abs(left[:3, 3]).max()))
-    if "c2w_right" in meta:
-        right = np.array(meta["c2w_right"], dtype=np.float64)
-        if np.abs(right - left @ translation(np.array([B, 0.0, 0.0]))).max() > POSE_TOLERANCE * scale:
+    if meta.c2w_right is not None:
+        if np.abs(meta.c2w_right - left @ translation(np.array([B, 0.0, 0.0]))).max() > POSE_TOLERANCE * scale:
             problems.append(f"{key}.json: c2w_right is not c2w_left Trans(B={B}, 0, 0)")
     want = left[None] @ translation(rho * fibonacci_directions(NUM_TARGETS)[ids])
     bad = np.abs(targets - want).max(axis=(1, 2)) > POSE_TOLERANCE * scale
@@ -108,8 +99,8 @@ def _check_poses(key: str, meta: dict, ids: list[int]) -> list[str]:
     return problems
 
 
-def _check_images(key: str, members: dict[str, bytes], meta: dict, ids: list[int]) -> list[str]:
-    problems, size = [], (int(meta["height"]), int(meta["width"]))
+def _check_images(key: str, members: dict[str, bytes], meta: SampleMeta) -> list[str]:
+    problems, size, ids = [], (meta.height, meta.width), meta.target_ids
     for name in ["left.jpg", "right.jpg"] + [f"target_{j:02d}.jpg" for j in ids] + [f"mask_{j:02d}.png" for j in ids] \
             + (["left_depth.exr"] if "left_depth.exr" in members else []):
         if name not in members:
@@ -161,13 +152,13 @@ def inspect_dataset(out: Path, contact_sheet: Path | None = None, sheet_samples:
                     depth_in.add("left_depth.exr" in members)
                     if meta is None:
                         continue
-                    acc = scenes.setdefault((meta["subset"], split, meta["scene"]),
-                                            {"psnr": meta["teacher_psnr"], "pairs": 0, "targets": 0})
+                    acc = scenes.setdefault((meta.subset, split, meta.scene),
+                                            {"psnr": meta.teacher_psnr, "pairs": 0, "targets": 0})
                     acc["pairs"] += 1
-                    acc["targets"] += len(meta["targets"])
-                    if len(sheet) < sheet_samples and meta["scene"] not in sheet_scenes:
+                    acc["targets"] += meta.num_targets
+                    if len(sheet) < sheet_samples and meta.scene not in sheet_scenes:
                         sheet.append((f"{split}/{key}", members))
-                        sheet_scenes.add(meta["scene"])
+                        sheet_scenes.add(meta.scene)
             except Exception as e:  # noqa: BLE001  (any unreadable tar is a failed check, named)
                 report.problems.append(f"{path}: unreadable tar ({type(e).__name__}: {e})")
             if keys != entry["keys"]:
@@ -228,9 +219,9 @@ def _contact_sheet(samples: list[tuple[str, dict[str, bytes]]]) -> np.ndarray:
     """Rows of [label | left | right | targets] over [ | | | masks] thumbnails, uint8 [H, W, 3]."""
     rows = []
     for label, members in samples:
-        meta = json.loads(members["json"])
-        ids = meta.get("target_ids", list(range(len(meta["targets"]))))
-        th = max(1, round(THUMB_WIDTH * meta["height"] / meta["width"]))
+        meta = SampleMeta.from_json(members["json"], f"{label}.json")
+        ids = meta.target_ids
+        th = max(1, round(THUMB_WIDTH * meta.height / meta.width))
 
         def thumb(name: str) -> np.ndarray:
             if name not in members:
@@ -245,7 +236,7 @@ def _contact_sheet(samples: list[tuple[str, dict[str, bytes]]]) -> np.ndarray:
         band = np.concatenate([np.concatenate(top, 1), np.concatenate(bottom, 1)], 0)
         head = np.full((18, band.shape[1], 3), 255, np.uint8)
         names = ["left", "right"] + [f"target {j}" for j in ids]
-        text = f"{label}  ({meta['width']}x{meta['height']}, B={meta['baseline']}, rho={meta['rho']})"
+        text = f"{label}  ({meta.width}x{meta.height}, B={meta.baseline}, rho={meta.rho})"
         cv2.putText(head, text, (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
         for i, name in enumerate(names):
             cv2.putText(band, name, (i * THUMB_WIDTH + 3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 0), 1, cv2.LINE_AA)

@@ -16,10 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from scenesplat_stereo import shards
 from scenesplat_stereo.cameras import viewmats_from_c2w
 from scenesplat_stereo.encode import SampleImages
-from scenesplat_stereo.protocol import MASK_ALPHA_THRESHOLD, SamplePlan
+from scenesplat_stereo.protocol import MASK_ALPHA_THRESHOLD, SampleMeta, SamplePlan
 from scenesplat_stereo.raster import rasterization
 
 _copy_streams: dict[torch.device, torch.cuda.Stream] = {}
@@ -49,7 +48,7 @@ class RenderedBatch:
         depth = None if self.depth is None else self.depth.numpy()
         return [
             SampleImages(key=p.key, left=rgb8[i, 0], right=rgb8[i, 1], targets=rgb8[i, 2:], masks=masks[i],
-                         target_ids=tuple(p.target_ids), meta=shards.sample_json(p),
+                         target_ids=tuple(p.target_ids), meta=SampleMeta.from_plan(p).to_json(),
                          depth=None if depth is None else depth[i])
             for i, p in enumerate(self.plans)
         ]

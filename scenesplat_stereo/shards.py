@@ -94,40 +94,6 @@ def remove_shard(root: Path, split: str, number: int) -> None:
         path.unlink(missing_ok=True)
 
 
-def sample_json(plan: Any) -> bytes:
-    """The ``<key>.json`` member of a sample (SPEC section 5) from a ``protocol.SamplePlan``.
-
-    Fields: ``key``, ``scene``, ``subset``, ``frame`` (index into the teacher's trajectory), ``width``,
-    ``height`` (pixels), ``K`` (3x3, pixels), ``baseline`` and ``rho`` (world units, metres),
-    ``teacher_psnr`` (dB or null), ``c2w_left``, ``c2w_right`` (4x4), ``target_ids`` (the Fibonacci
-    direction index j of each stored target), ``targets`` (4x4 c2w of each target, same order as the
-    files), ``camera_convention`` ("opencv": x right, y down, z forward).
-    """
-
-    def mat(a: np.ndarray) -> list:
-        return np.asarray(a, dtype=np.float64).tolist()
-
-    psnr = plan.teacher_psnr
-    doc = {
-        "key": plan.key,
-        "scene": plan.scene,
-        "subset": plan.subset,
-        "frame": int(plan.frame),
-        "width": int(plan.width),
-        "height": int(plan.height),
-        "K": mat(plan.K),
-        "baseline": float(plan.baseline),
-        "rho": float(plan.rho),
-        "teacher_psnr": None if psnr is None else float(psnr),
-        "c2w_left": mat(plan.c2w_left),
-        "c2w_right": mat(plan.c2w_right),
-        "target_ids": [int(j) for j in plan.target_ids],
-        "targets": mat(plan.c2w_targets),
-        "camera_convention": "opencv",
-    }
-    return json.dumps(doc, separators=(",", ":")).encode()
-
-
 class ShardWriter:
     """Writes samples into ``root/<split>/shard-<NNNNNN>.tar``, ``samples_per_shard`` per shard, numbered
     from ``first_shard``. Use as a context manager; ``add(key, members)`` takes member suffixes

@@ -33,3 +33,29 @@ def guitar_ply(shared_data: Path) -> Path:
 def guitar_compressed_ply(shared_data: Path) -> Path:
     """The same guitar in the PlayCanvas/SuperSplat compressed layout (the source of ``guitar_ply``)."""
     return _require(shared_data / GUITAR_DIR / "guitar.compressed.ply")
+
+
+#: The demo dataset of ``demo_dataset``: 3 procedural rooms at 96x72, 6 frames each, one validation scene.
+DEMO_SCENES, DEMO_FRAMES, DEMO_SIZE = 3, 6, (96, 72)
+DEMO_SAMPLES_PER_SHARD = 4
+
+
+@pytest.fixture(scope="session")
+def demo_dataset(tmp_path_factory) -> Path:
+    """A tiny SceneSplat-Stereo build of the demo teachers (built once per test session, on the CPU):
+    ``train`` 2 scenes x 6 pairs x 10 targets in 4 shards (4 + 2 samples per scene), ``val`` 1 scene x 5
+    pairs x 4 targets in 2 shards, 96x72 images, ``left_depth.exr`` in every sample. Returns the output
+    folder (``<out>/<split>/index.json``, shards, ``stats.json``). Read-only: copy it to damage it."""
+    from scenesplat_stereo.build import BuildSettings, build
+    from scenesplat_stereo.demo import write_demo_teachers
+
+    base = tmp_path_factory.mktemp("demo_dataset")
+    teachers, out = base / "teachers", base / "shards"
+    write_demo_teachers(teachers, n_scenes=DEMO_SCENES, n_frames=DEMO_FRAMES, width=DEMO_SIZE[0],
+                        height=DEMO_SIZE[1], num_gaussians=2000, progress=False)
+    report = build(BuildSettings(teachers=teachers, out=out, val_scenes=1, with_depth=True,
+                                 samples_per_shard=DEMO_SAMPLES_PER_SHARD, workers=1, batch_pairs=6,
+                                 progress=False))
+    if report.failed:
+        raise RuntimeError(f"demo dataset build failed: {[r.error for r in report.failed]}")
+    return out

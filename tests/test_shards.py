@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 from scenesplat_stereo import shards
-from scenesplat_stereo.protocol import SamplePlan
-from scenesplat_stereo.shards import ShardWriter, iter_shard, sample_json
+from scenesplat_stereo.shards import ShardWriter, iter_shard
 
 
 def members_of(i: int, scene: str = "sc", subset: str = "ScanNetGS", psnr: float | None = 33.0, targets: int = 2) -> dict:
@@ -139,22 +138,6 @@ def test_index_and_stats(tmp_path):
                               "val": {"scenes": 2, "pairs": 2, "targets": 8}}
     shards.write_stats(tmp_path, stats)
     assert json.loads((tmp_path / "stats.json").read_text()) == stats
-
-
-def test_sample_json_has_the_spec_fields():
-    c2w = np.eye(4)
-    c2w[:3, 3] = (1.0, 2.0, 3.0)
-    plan = SamplePlan(scene="s0", subset="ScanNetGS", frame=7, key="s0__000007", c2w_left=c2w,
-                      c2w_right=c2w + 0.5, c2w_targets=np.stack([c2w] * 3), target_ids=(0, 1, 2),
-                      K=np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]]), width=64, height=48,
-                      baseline=0.05, rho=0.1, teacher_psnr=31.5)
-    doc = json.loads(sample_json(plan))
-    for f in ("scene", "subset", "frame", "width", "height", "K", "baseline", "rho", "teacher_psnr", "c2w_left", "targets"):
-        assert f in doc
-    assert doc["frame"] == 7 and doc["width"] == 64 and doc["K"][0][2] == 32
-    assert doc["c2w_left"][0][3] == 1.0 and len(doc["targets"]) == 3 and doc["target_ids"] == [0, 1, 2]
-    assert doc["teacher_psnr"] == 31.5 and doc["camera_convention"] == "opencv"
-    assert sample_json(plan) == sample_json(plan)
 
 
 def test_planned_shards_follow_the_plan_and_discard(tmp_path):

@@ -1,0 +1,283 @@
+"""Shards (SPEC section 5) -> training and validation batches (SPEC section 7, the Batch contract of
+/work/contracts.md).
+
+One sample: the ``<key>.json`` record (``protocol.SampleMeta``), the left/right JPEGs, each stored target's
+JPEG and mask PNG, and ``left_depth.exr`` when present, decoded through OpenImageIO and brought to S x S by
+``square_crop.SquareCrop`` (K moved with it). Targets: training draws ``targets`` (T = 4) of the stored
+ones uniformly without replacement; validation keeps all stored targets in stored order (or the first
+``targets`` when a number is given). ``target_viewmats`` = inverse(c2w_target) @ c2w_left maps points in
+the left camera's frame (OpenCV, metres) into each target camera.
+
+Streaming (``ShardStream``, a ``torch.utils.data.IterableDataset``): the order of samples is planned by
+``sample_order`` from ``index.json`` and the shards are read sequentially with ``shards.iter_shard``.
+
+Reproducible training order. The batch of global step k on a rank is a pure function of (seed, k) for a
+fixed (batch_size, num_workers, world_size, shuffle_buffer, dataset): the DataLoader gives batch k to worker
+k % workers; each worker's stream of samples is a pure function of (seed, epoch, stream) (see
+``sample_order``), epochs are skipped by arithmetic on ``index.json`` counts and positions inside an epoch
+by planning, and the targets of slot i of step k are drawn with ``numpy.random.default_rng([seed, rank, k,
+i])``. A run resumed at step k builds its loader with ``start_step=k`` and sees exactly the batches k, k+1,
+... of the uninterrupted run (``sample_order.resume_worker``).
+
+Bad input raises ``DataError`` naming the file (and the JSON field, through ``SampleMetaError``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
+
+from scenesplat_stereo.encode import decode_image
+from scenesplat_stereo.protocol import SampleMeta, SampleMetaError
+from scenesplat_stereo.shards import INDEX_NAME, iter_shard
+from sgmodel import sample_order
+from sgmodel.square_crop import ImageTooSmall, SquareCrop
+
+TRAIN_TARGETS = 4  # targets drawn per pair in training (paper section 4, SPEC section 7)
+RESOLUTION = 256  # S (paper section 4, SPEC section 7)
+SHUFFLE_BUFFER = 64  # samples held by each training stream's shuffle buffer (not from the paper)
+DEPTH_MEMBER = "left_depth.exr"
+
+
+class DataError(ValueError):
+    """A data folder, index, shard or sample that cannot be read into batches; names the file/field."""
+
+
+@dataclass(frozen=True)
+class Shard:
+    """One shard of a split: its path and the keys ``index.json`` lists for it, in file order."""
+
+    path: Path
+    keys: tuple[str, ...]
+
+
+def read_split(root: Path, split: str) -> list[Shard]:
+    """The shards of ``root/<split>`` from its ``index.json``; DataError for a missing folder, index or
+    shard, a malformed index, a shard without samples, or an empty split."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DataError(f"{root}: data folder does not exist")
+    folder = root / split
+    if not folder.is_dir():
+        present = sorted(p.name for p in root.iterdir() if (p / INDEX_NAME).is_file())
+        raise DataError(f"{folder}: split {split!r} does not exist (splits here: {present or 'none'})")
+    index_path = folder / INDEX_NAME
+    try:
+        index = json.loads(index_path.read_text())
+        entries = [(e["name"], e["keys"], e["num_samples"]) for e in index["shards"]]
+    except FileNotFoundError:
+        raise DataError(f"{index_path}: missing (not a built split)") from None
+    except (ValueError, KeyError, TypeError) as e:
+        raise DataError(f"{index_path}: malformed ({type(e).__name__}: {e})") from None
+    out = []
+    for name, keys, count in entries:
+        path = folder / str(name)
+        if not path.is_file():
+            raise DataError(f"{path}: listed in {index_path} but missing")
+        if not isinstance(keys, list) or not keys or len(keys) != count:
+            raise DataError(f"{index_path}: shard {name}: 'keys' must list its {count} samples (got {keys!r:.80})")
+        out.append(Shard(path, tuple(str(k) for k in keys)))
+    if not out:
+        raise DataError(f"{index_path}: split {split!r} is empty (no shards)")
+    return out
+
+
+def _decode(members: dict[str, bytes], name: str, source: str, shape: tuple[int, ...]) -> np.ndarray:
+    if name not in members:
+        raise DataError(f"{source}.{name}: member missing")
+    try:
+        img = decode_image(members[name], name.rsplit(".", 1)[1])
+    except ValueError as e:
+        raise DataError(f"{source}.{name}: {e}") from None
+    if img.shape != shape:
+        raise DataError(f"{source}.{name}: decoded shape {img.shape}, the sample's JSON (width, height) says {shape}")
+    return img
+
+
+def _chw(image: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))
+
+
+def load_sample(key: str, members: dict[str, bytes], source: str, size: int, targets: int | None = None,
+                rng: np.random.Generator | None = None) -> dict:
+    """One sample as tensors at ``size`` x ``size`` (the Batch fields without the batch axis).
+
+    ``source`` names the shard (errors say ``<source>:<key>.<member>``). Targets: with ``rng``,
+    ``targets`` of the stored ones drawn uniformly without replacement (``rng.choice``); without, the
+    first ``targets`` in stored order (None: all).
+    """
+    where = f"{source}:{key}"
+    if "json" not in members:
+        raise DataError(f"{where}.json: member missing")
+    try:
+        meta = SampleMeta.from_json(members["json"], f"{where}.json")
+    except SampleMetaError as e:
+        raise DataError(str(e)) from None
+    if meta.key != key:
+        raise DataError(f"{where}.json: field 'key' is {meta.key!r}, the tar member says {key!r}")
+    count = meta.num_targets if targets is None else targets
+    if count > meta.num_targets:
+        raise DataError(f"{where}.json: field 'targets': {meta.num_targets} stored, {count} asked for")
+    pick = rng.choice(meta.num_targets, count, replace=False) if rng is not None else np.arange(count)
+    try:
+        crop = SquareCrop.plan(meta.width, meta.height, size)
+    except ImageTooSmall as e:
+        raise DataError(f"{where}.json: fields 'width', 'height': {e}") from None
+    hw = (meta.height, meta.width)
+
+    def rgb(name: str) -> torch.Tensor:
+        return _chw(crop.image(_decode(members, name, where, hw + (3,)).astype(np.float32) / 255.0))
+
+    ids = [meta.target_ids[i] for i in pick]
+    targets = torch.stack([rgb(f"target_{j:02d}.jpg") for j in ids])
+    masks = torch.stack([_chw(crop.nearest(_decode(members, f"mask_{j:02d}.png", where, hw + (1,))) >= 128)
+                         for j in ids])
+    K = crop.intrinsics(meta.K)
+    viewmats = np.linalg.inv(meta.targets[pick]) @ meta.c2w_left
+    out = {
+        "left": rgb("left.jpg"), "right": rgb("right.jpg"),
+        "K": torch.from_numpy(K).float(), "baseline": torch.tensor(meta.baseline, dtype=torch.float32),
+        "targets": targets, "masks": masks,
+        "target_viewmats": torch.from_numpy(viewmats).float(),
+        "target_Ks": torch.from_numpy(np.repeat(K[None], len(ids), axis=0)).float(),
+        "target_ids": torch.tensor(ids, dtype=torch.int64), "key": key, "scene": meta.scene,
+    }
+    if DEPTH_MEMBER in members:
+        depth = _decode(members, DEPTH_MEMBER, where, hw + (1,)).astype(np.float32)
+        if not (np.isfinite(depth).all() and (depth >= 0).all()):
+            raise DataError(f"{where}.{DEPTH_MEMBER}: non-finite or negative depth")
+        out["depth"] = _chw(crop.nearest(depth))
+    return out
+
+
+def collate(samples: list[dict]) -> dict:
+    """Stack samples into the Batch dict (``keys``/``scenes`` as lists; ``depth`` only when every sample
+    has it). DataError when the samples disagree in target count or in having depth."""
+    if not samples:
+        raise DataError("collate: no samples")
+    keys = [s["key"] for s in samples]
+    counts = {s["targets"].shape[0] for s in samples}
+    if len(counts) > 1:
+        raise DataError(f"samples {keys} have different numbers of targets {sorted(counts)}; "
+                        "a batch needs the same T (give `targets`)")
+    with_depth = ["depth" in s for s in samples]
+    if any(with_depth) and not all(with_depth):
+        raise DataError(f"samples {keys}: {DEPTH_MEMBER} in some but not all")
+    tensors = ["left", "right", "K", "baseline", "targets", "masks", "target_viewmats", "target_Ks", "target_ids"]
+    batch = {name: torch.stack([s[name] for s in samples]) for name in tensors + (["depth"] if all(with_depth) else [])}
+    batch["keys"], batch["scenes"] = keys, [s["scene"] for s in samples]
+    return batch
+
+
+class ShardStream(IterableDataset):
+    """Samples of ``root/<split>`` for one DDP rank (see the module docstring for order and resume).
+
+    ``train``: endless, shuffled, ``targets`` (int) drawn per sample; else finite, deterministic, all
+    stored targets (``targets`` None) or the first ``targets``. ``batch_size`` must be the DataLoader's
+    (it numbers the steps that seed the target draws); ``start_step`` resumes a training run.
+    """
+
+    def __init__(self, root: Path, split: str, resolution: int = RESOLUTION, targets: int | None = TRAIN_TARGETS,
+                 seed: int = 0, train: bool = True, batch_size: int = 1, rank: int = 0, world_size: int = 1,
+                 shuffle_buffer: int = SHUFFLE_BUFFER, start_step: int = 0) -> None:
+        super().__init__()
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank {rank} not in 0..{world_size - 1}")
+        if train and (targets is None or targets < 1):
+            raise ValueError(f"training needs a number of targets >= 1, got {targets}")
+        if batch_size < 1 or resolution < 1 or start_step < 0:
+            raise ValueError(f"batch_size {batch_size}, resolution {resolution}, start_step {start_step}")
+        self.shards = read_split(root, split)
+        self.counts = [len(s.keys) for s in self.shards]
+        self.resolution, self.targets, self.seed, self.train = resolution, targets, seed, train
+        self.batch_size, self.rank, self.world_size = batch_size, rank, world_size
+        self.shuffle_buffer, self.start_step = shuffle_buffer, start_step
+
+    def __len__(self) -> int:
+        """Samples in the split (all ranks together)."""
+        return sum(self.counts)
+
+    def _worker(self) -> tuple[int, int]:
+        info = get_worker_info()
+        return (0, 1) if info is None else (info.id, info.num_workers)
+
+    def __iter__(self) -> Iterator[dict]:
+        worker, workers = self._worker()
+        streams = self.world_size * workers
+        if not self.train:
+            items = sample_order.validation_items(self.counts, self.rank * workers + worker, streams)
+            for key, members, source in self._read(items, list(range(len(items))), 0):
+                yield load_sample(key, members, source, self.resolution, self.targets)
+            return
+        if sum(self.counts) < streams:
+            raise DataError(f"{self.shards[0].path.parent}: {sum(self.counts)} training samples cannot feed "
+                            f"{streams} loader streams (world_size x num_workers); use fewer workers")
+        virtual, first_batch = sample_order.resume_worker(self.start_step, worker, workers)
+        stream = self.rank * workers + virtual
+        position = skip = first_batch * self.batch_size  # samples of this stream already consumed
+        epoch = 0
+        while True:
+            items, emit = sample_order.train_epoch(self.counts, self.seed, epoch, stream, streams, self.shuffle_buffer)
+            if skip >= len(emit):
+                skip -= len(emit)
+                epoch += 1
+                continue
+            for key, members, source in self._read(items, emit, skip):
+                batch, slot = divmod(position, self.batch_size)
+                rng = np.random.default_rng([self.seed, self.rank, batch * workers + virtual, slot])
+                yield load_sample(key, members, source, self.resolution, self.targets, rng)
+                position += 1
+            skip, epoch = 0, epoch + 1
+
+    def _read(self, items: list[sample_order.Item], emit: list[int], start: int
+              ) -> Iterator[tuple[str, dict[str, bytes], str]]:
+        """Yield (key, members, shard name) for ``items[emit[start:]]``, reading shards in item order
+        and holding only what the emission order has not reached yet."""
+        wanted = {items[q]: q for q in emit[start:]}
+        held: dict[int, tuple] = {}
+        nxt = start
+        by_shard: dict[int, list[int]] = {}
+        for s, i in items:
+            by_shard.setdefault(s, []).append(i)
+        for s, indices in by_shard.items():
+            if not any((s, i) in wanted for i in indices):
+                continue
+            shard, i = self.shards[s], -1
+            for i, (key, members) in enumerate(iter_shard(shard.path)):
+                if i >= len(shard.keys) or key != shard.keys[i]:
+                    listed = shard.keys[i] if i < len(shard.keys) else "nothing more"
+                    raise DataError(f"{shard.path}: sample {i} is {key!r}, index.json lists {listed!r}")
+                q = wanted.get((s, i))
+                if q is not None:
+                    held[q] = (key, members, str(shard.path))
+                while nxt < len(emit) and emit[nxt] in held:
+                    yield held.pop(emit[nxt])
+                    nxt += 1
+            if i + 1 < len(shard.keys):
+                raise DataError(f"{shard.path}: {i + 1} samples, index.json lists {len(shard.keys)}")
+        if nxt != len(emit):
+            raise DataError(f"{self.shards[0].path.parent}: samples listed in index.json were not found")
+
+
+def _init_worker(_: int) -> None:
+    cv2.setNumThreads(1)  # one resize thread per loader worker; the workers are the parallelism
+
+
+def make_loader(root: Path, split: str, batch_size: int, resolution: int = RESOLUTION,
+                targets: int | None = TRAIN_TARGETS, seed: int = 0, num_workers: int = 0, rank: int = 0,
+                world_size: int = 1, train: bool = True, start_step: int = 0,
+                shuffle_buffer: int = SHUFFLE_BUFFER) -> DataLoader:
+    """A DataLoader of Batch dicts over ``root/<split>`` for one rank: endless and reproducible from
+    (seed, step) when ``train``, else one pass over this rank's share of the samples (validation: pass
+    ``targets=None`` for all stored targets)."""
+    dataset = ShardStream(root, split, resolution, targets, seed, train, batch_size, rank, world_size,
+                          shuffle_buffer, start_step)
+    return DataLoader(dataset, batch_size=batch_size, collate_fn=collate, num_workers=num_workers,
+                      worker_init_fn=_init_worker if num_workers > 0 else None)
