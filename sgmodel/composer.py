@@ -121,8 +121,8 @@ def scales(depth: torch.Tensor, delta_s: torch.Tensor, K: torch.Tensor, cap: tor
 
     Composer: clip(s0 phi(min(delta_s, cap)), S_MIN, S_MAX), s0 = KAPPA z_l / sqrt(fx fy); ``cap`` is None
     (no cap), a number (every pixel) or a [B,1,Hc,Wc] tensor (+inf where uncapped).
-    Without composer: clip(s0 exp(delta_s), S_MIN, S_MAX), ``cap`` ignored; evaluated as
-    exp(clip(ln s0 + delta_s, ln S_MIN, ln S_MAX)), the same value with finite gradients for huge residuals."""
+    Without composer: clip(s0 exp(delta_s), S_MIN, S_MAX), ``cap`` ignored; the exponent ln s0 + delta_s is
+    first limited to one unit beyond [ln S_MIN, ln S_MAX] (same value, finite gradients for huge residuals)."""
     B, _, H, W = depth.shape
     s0 = KAPPA * depth / torch.sqrt(K[:, 0, 0] * K[:, 1, 1]).view(-1, 1, 1, 1)
     if composer:
@@ -130,7 +130,8 @@ def scales(depth: torch.Tensor, delta_s: torch.Tensor, K: torch.Tensor, cap: tor
             delta_s = torch.minimum(delta_s, torch.as_tensor(cap, dtype=delta_s.dtype, device=delta_s.device))
         s = (s0 * phi(delta_s)).clamp(S_MIN, S_MAX)
     else:
-        s = torch.exp((torch.log(s0) + delta_s).clamp(math.log(S_MIN), math.log(S_MAX)))
+        log_s = (torch.log(s0) + delta_s).clamp(math.log(S_MIN) - 1.0, math.log(S_MAX) + 1.0)  # exp stays finite
+        s = torch.exp(log_s).clamp(S_MIN, S_MAX)
     return s.permute(0, 2, 3, 1).reshape(B, H * W, 3)
 
 
