@@ -90,15 +90,13 @@ def edge_band(z: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> torch
 
 def edge_gate(band: torch.Tensor, edge_mask: str, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Back-layer opacity multiplier in ``dtype`` from the edge band M (appendix A "Edge-mask variants"):
-    "hard" gives M, "soft" gives SOFT_BETA + (1 - SOFT_BETA) M, "none" gives 1 everywhere."""
+    "hard" gives M, "soft" gives SOFT_BETA + (1 - SOFT_BETA) M ("none" has no gate)."""
     m = band.to(dtype)
     if edge_mask == "hard":
         return m
     if edge_mask == "soft":
         return SOFT_BETA + (1.0 - SOFT_BETA) * m
-    if edge_mask == "none":
-        return torch.ones_like(m)
-    raise ValueError(f"edge_mask must be one of {EDGE_MASKS}, got {edge_mask!r}")
+    raise ValueError(f"edge_gate: edge_mask must be 'hard' or 'soft', got {edge_mask!r}")
 
 
 def means(depth: torch.Tensor, offset_logits: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
@@ -137,7 +135,8 @@ def scales(depth: torch.Tensor, delta_s: torch.Tensor, K: torch.Tensor, cap: tor
 
 def quats(delta_q: torch.Tensor, composer: bool = True) -> torch.Tensor:
     """Unit quaternions [B,Hc*Wc,4] wxyz: normalise((1,0,0,0) + R_QUAT delta_q) with the composer,
-    normalise(delta_q) without; a vector of norm below 1e-12 gives the identity (1,0,0,0)."""
+    normalise(delta_q) without; a vector of norm below 1e-12 gives the identity (1,0,0,0). (The paper writes
+    q_id = (0,0,0,1) in xyzw order; it is the same identity rotation.)"""
     B, _, H, W = delta_q.shape
     q = delta_q.permute(0, 2, 3, 1).reshape(B, H * W, 4)
     identity = torch.zeros_like(q)
@@ -206,7 +205,7 @@ def compose(front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | N
       "soft": back-layer opacity times SOFT_BETA + (1 - SOFT_BETA) M (appendix A "Edge-mask variants").
       M is :func:`edge_band`. Needs the back layer.
     - ``composer=False`` ("without composer"): the branch outputs become the attributes through plain
-      activations, with no residual bases and no bounds beyond the scale clip:
+      activations, with no residual bases, no phi and no scale caps:
       centres as with the composer (front depth z~, back depth maxpool_9x9(z~) + softplus(dz), offsets
       sigmoid(o) - 1/2, so the centres stay depth-anchored);
       scale = clip(s0 exp(delta_s), S_MIN, S_MAX) with s0 = KAPPA z_l / sqrt(fx fy) kept for metric units
@@ -231,7 +230,7 @@ def compose(front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | N
         _check("dz", dz, (B, 1, H, W))
 
     K, baseline = K.to(front.dtype), baseline.to(front.dtype)
-    band = edge_band(z, K, baseline) if (composer or edge_mask != "none") else None
+    band = edge_band(z, K, baseline) if (composer or edge_mask != "none") else None  # caps and/or gates
     if composer:
         front_cap = torch.where(band, scale_cap(S_CAP_FRONT_EDGE), float("inf")).to(front.dtype)
         back_cap = scale_cap(S_CAP_BACK)

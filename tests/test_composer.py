@@ -55,7 +55,8 @@ def ref_back_depth(z: np.ndarray, dz: np.ndarray) -> np.ndarray:
     out = np.zeros((H, W))
     for v in range(H):
         for u in range(W):
-            window = [z[vv, uu] for vv in range(max(0, v - 4), min(H, v + 5)) for uu in range(max(0, u - 4), min(W, u + 5))]
+            window = [z[vv, uu] for vv in range(max(0, v - 4), min(H, v + 5))
+                      for uu in range(max(0, u - 4), min(W, u + 5))]
             out[v, u] = max(window) + _softplus(dz[v, u])
     return out
 
@@ -199,7 +200,8 @@ def test_zero_residuals_give_base_attributes(inputs64):
     for b in range(B):
         fx, fy, cx, cy = K[b, 0, 0].item(), K[b, 1, 1].item(), K[b, 0, 2].item(), K[b, 1, 2].item()
         zf = z[b, 0].numpy()
-        pooled = np.array([[max(zf[max(0, v - 4):v + 5, max(0, u - 4):u + 5].ravel()) for u in range(W)] for v in range(H)])
+        pooled = np.array([[zf[max(0, v - 4):v + 5, max(0, u - 4):u + 5].max() for u in range(W)]
+                           for v in range(H)])
         for layer, zl in enumerate([zf, pooled + math.log(2.0)]):
             sl = slice(layer * H * W, (layer + 1) * H * W)
             centre = np.stack([(uu + 0.5 - cx) / fx * zl, (vv + 0.5 - cy) / fy * zl, zl], -1).reshape(-1, 3)
@@ -276,8 +278,8 @@ def test_scale_caps_and_clip():
     big = comp.scales(torch.full((1, 1, 1, 1), 10.0, dtype=torch.float64), torch.zeros(1, 3, 1, 1, dtype=torch.float64),
                       torch.eye(3, dtype=torch.float64)[None], None)
     assert big.flatten().tolist() == [3.0, 3.0, 3.0]
-    tiny = comp.scales(torch.full((1, 1, 1, 1), 0.1, dtype=torch.float64), torch.full((1, 3, 1, 1), -1e4, dtype=torch.float64),
-                       torch.diag(torch.tensor([1e12, 1e12, 1.0], dtype=torch.float64))[None], None)
+    tiny = comp.scales(torch.full((1, 1, 1, 1), 0.1, dtype=torch.float64),
+                       torch.full((1, 3, 1, 1), -1e4, dtype=torch.float64), torch.diag(torch.tensor([1e12, 1e12, 1.0], dtype=torch.float64))[None], None)
     assert tiny.flatten().tolist() == [1e-10, 1e-10, 1e-10]
     for composer in (True, False):  # s0 = 5e-11 m: below S_MIN before any multiplier
         ds = torch.tensor([-1e4, 0.0, 1e4], dtype=torch.float64).view(1, 3, 1, 1)
@@ -402,3 +404,10 @@ def test_constants_are_the_papers():
     assert (comp.S_CAP_FRONT_EDGE, comp.S_CAP_BACK, comp.EDGE_THRESHOLD, comp.EDGE_DILATION) == (0.3, 0.5, 0.05, 8)
     assert (comp.BACK_POOL, comp.SOFT_BETA, comp.Z_MIN, comp.Z_MAX) == (9, 0.3, 0.1, 10.0)
     assert comp.C0 == pytest.approx(1.0 / (2.0 * math.sqrt(math.pi)), rel=1e-15)
+
+
+@pytest.mark.parametrize("options", OPTIONS, ids=[str(o) or "default" for o in OPTIONS])
+def test_device_follows_inputs(options):
+    """On the meta device any tensor the composer made on the CPU would raise: every tensor follows the inputs."""
+    out = comp.compose(*[t.to("meta") for t in make_inputs(dtype=torch.float32)], **options)
+    assert all(v.device.type == "meta" and v.dtype == torch.float32 for v in out.values())
