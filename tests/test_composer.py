@@ -279,7 +279,8 @@ def test_scale_caps_and_clip():
                       torch.eye(3, dtype=torch.float64)[None], None)
     assert big.flatten().tolist() == [3.0, 3.0, 3.0]
     tiny = comp.scales(torch.full((1, 1, 1, 1), 0.1, dtype=torch.float64),
-                       torch.full((1, 3, 1, 1), -1e4, dtype=torch.float64), torch.diag(torch.tensor([1e12, 1e12, 1.0], dtype=torch.float64))[None], None)
+                       torch.full((1, 3, 1, 1), -1e4, dtype=torch.float64),
+                       torch.diag(torch.tensor([1e12, 1e12, 1.0], dtype=torch.float64))[None], None)
     assert tiny.flatten().tolist() == [1e-10, 1e-10, 1e-10]
     for composer in (True, False):  # s0 = 5e-11 m: below S_MIN before any multiplier
         ds = torch.tensor([-1e4, 0.0, 1e4], dtype=torch.float64).view(1, 3, 1, 1)
