@@ -31,14 +31,14 @@ from scenesplat_stereo.encode import decode_image, encode_png, to_uint8
 
 from . import baselines, export
 from .calib import CalibError, Calibration, calib_from_flags, read_calib
-from .geometry import depth_from_disparity
+from .geometry import Z_MAX, depth_from_disparity
 from .render import render_views
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
 DEFAULT_RESOLUTION = 256
 #: Model input sides are multiples of this (the decoder's coarsest feature stride).
 SIZE_MULTIPLE = 16
-#: Novel views sit this fraction of the median depth away from the left camera.
+#: Novel views sit this fraction of the median matched depth (z < z_max) away from the left camera.
 VIEW_RADIUS = 0.15
 #: Frames in the orbit animation.
 ORBIT_FRAMES = 24
@@ -222,10 +222,12 @@ def predict(args: argparse.Namespace, log=print) -> None:
             if gaussians is not None:
                 export.write_ply(gaussians, tmp / "scene.ply")
             zc = z[0, 0].cpu().numpy()
-            (tmp / "depth.png").write_bytes(encode_png(export.depth_png(zc)))
+            matched = zc[zc < Z_MAX] if (zc < Z_MAX).any() else zc.ravel()   # z_max marks "no match"
+            near, far = np.percentile(matched, 2), np.percentile(matched, 98)
+            (tmp / "depth.png").write_bytes(encode_png(export.depth_png(zc, near, far)))
             timer.lap("export")
 
-            focus = float(np.median(zc))
+            focus = float(np.median(matched))
             named = export.novel_view_cameras(VIEW_RADIUS * focus, focus)
             orbit = export.orbit_cameras(ORBIT_FRAMES, VIEW_RADIUS * focus, focus)
             viewmats = torch.as_tensor(np.concatenate([np.stack(list(named.values())), orbit]),
