@@ -1,0 +1,44 @@
+"""Stereo geometry in the left (reference) camera: depth from disparity and unprojection.
+
+Conventions (SPEC section 1 and 7): OpenCV axes (x right, y down, z forward), metres, K in pixels, pixel
+(u, v) centred at (u + 0.5, v + 0.5). Disparity d is in pixels of the image it was measured on, positive
+= valid, left image as reference (a point at column u in the left image is at u - d in the right one).
+"""
+
+from __future__ import annotations
+
+import torch
+
+#: Depth clip of the model, metres (SPEC section 7 "Depth"; paper section 4).
+Z_MIN, Z_MAX = 0.1, 10.0
+
+
+def depth_from_disparity(disparity: torch.Tensor, fx: torch.Tensor | float, baseline: torch.Tensor | float,
+                         z_min: float = Z_MIN, z_max: float = Z_MAX, doffs: torch.Tensor | float = 0.0) -> torch.Tensor:
+    """z = clip(fx B / (d + doffs), z_min, z_max), metres; d + doffs <= 0 (no match) gives z_max.
+
+    disparity [B,1,H,W] pixels; fx [B] or scalar pixels; baseline [B] or scalar metres; doffs [B] or scalar
+    pixels, the principal-point offset between the two cameras (Middlebury's ``doffs``, 0 for rectified
+    pairs with equal principal points): the true disparity is d + doffs. Returns [B,1,H,W] metres.
+    """
+    def per_batch(x):
+        x = torch.as_tensor(x, dtype=disparity.dtype, device=disparity.device)
+        return x.reshape(-1, 1, 1, 1) if x.ndim else x
+
+    d = disparity + per_batch(doffs)
+    valid = d > 0
+    z = per_batch(fx) * per_batch(baseline) / torch.where(valid, d, torch.ones_like(d))
+    return torch.where(valid, z.clamp(z_min, z_max), torch.full_like(d, z_max))
+
+
+def pixel_rays(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """K^-1 [u + 0.5, v + 0.5, 1]^T for every pixel: [B,3,H,W] rays with z = 1 (K [B,3,3] pixels)."""
+    v, u = torch.meshgrid(torch.arange(height, dtype=K.dtype, device=K.device) + 0.5,
+                          torch.arange(width, dtype=K.dtype, device=K.device) + 0.5, indexing="ij")
+    pix = torch.stack([u, v, torch.ones_like(u)]).reshape(3, -1)              # [3, HW]
+    return (torch.linalg.inv(K) @ pix).reshape(K.shape[0], 3, height, width)
+
+
+def unproject(z: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Points z K^-1 [u + 0.5, v + 0.5, 1]^T of a z-depth map z [B,1,H,W] (metres): [B,3,H,W] metres."""
+    return z * pixel_rays(K, z.shape[-2], z.shape[-1])
