@@ -3,7 +3,8 @@
 Run from the repository root: ``python tests/data/make_stereo_pair.py``. Writes ``stereo_room_left.png``,
 ``stereo_room_right.png`` (8-bit RGB, what the rasteriser returns clipped to [0, 1]),
 ``stereo_room_depth_mm.png`` (the left camera's z-depth, 16-bit millimetres, 0 = uncovered) and
-``stereo_room.json``: K of both cameras (pixels, OpenCV, pixel centres at +0.5), the baseline in metres (right camera = left camera moved +B along its own x axis), the left camera's z-depth
+``stereo_room.json``: K of both cameras (pixels, OpenCV, pixel centres at +0.5), the baseline in metres
+(right camera = left camera moved +B along its own x axis), the left camera's z-depth
 percentiles and the true disparity percentiles (fx B / z, pixels) over pixels the scene covers.
 """
 
