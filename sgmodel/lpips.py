@@ -1,0 +1,191 @@
+"""LPIPS-VGG v0.1 (Zhang et al. 2018): the perceptual term of the objective and the LPIPS metric.
+
+Written here because torchvision (and so the ``lpips`` package, which imports it) cannot be imported
+beside the CPU torch wheel. Two weight files, both loaded strictly:
+
+- VGG16's ImageNet convolutions in torchvision's layout (``features.N.weight`` / ``features.N.bias``,
+  the file ``vgg16-397923af.pth``), from ``--lpips-vgg PATH`` or torch's hub cache
+  (``$TORCH_HOME/hub/checkpoints``, default ``~/.cache/torch/hub/checkpoints``). They cannot be downloaded
+  here: without them ``create_lpips`` returns None and the objective falls back (``sgmodel.losses``).
+- The five 1x1 linear layers of LPIPS v0.1 (``lin0..lin4.model.1.weight``, shipped in the ``lpips`` wheel),
+  through ``sgmodel.weights.resolve("lpips-vgg")`` (``sgmodel weights fetch lpips-vgg``).
+
+Computation, per image pair: inputs in [0, 1] are mapped to [-1, 1] (``2x - 1``; the literature's
+convention) unless ``zero_one=False`` says they already are; LPIPS's scaling layer ``(x - shift) / scale``;
+VGG16 up to each of relu1_2, relu2_2, relu3_3, relu4_3, relu5_3; each feature map unit-normalised over
+channels (``f / (||f||_2 + 1e-10)``); squared difference; the layer's 1x1 linear weights summed over
+channels; the spatial mean per layer, summed over the five layers. ``per_pixel`` instead upsamples each
+layer's map bilinearly (half-pixel centres) to the input size and sums them, as ``lpips``'s
+``spatial=True``. The module is frozen: eval mode always, no parameter requires a gradient (gradients
+still reach the inputs).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from sgmodel.weights import WeightsError, resolve, sha256_file
+
+#: torchvision's file name for the ImageNet VGG16 weights; its 8 hex digits are the sha256 prefix.
+VGG16_FILENAME = "vgg16-397923af.pth"
+#: VGG16 configuration "D" (Simonyan & Zisserman 2015): channels per conv, "M" = 2x2 max-pool.
+_VGG16_CFG = (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512)
+#: indices in ``features`` of the ReLUs LPIPS taps: relu1_2, relu2_2, relu3_3, relu4_3, relu5_3.
+TAPS = (3, 8, 15, 22, 29)
+#: channels of those five feature maps.
+CHANNELS = (64, 128, 256, 512, 512)
+#: LPIPS v0.1 scaling layer (``lpips.ScalingLayer``): input (x - shift) / scale, x in [-1, 1].
+_SHIFT = (-0.030, -0.088, -0.188)
+_SCALE = (0.458, 0.448, 0.450)
+#: epsilon of LPIPS's channel normalisation ``f / (||f|| + eps)``.
+_NORM_EPS = 1e-10
+
+
+class VGG16Trunk(nn.Module):
+    """VGG16's ``features`` up to relu5_3 (index 29), indexed as torchvision's so that its state dict keys
+    are ``features.N.weight`` / ``features.N.bias`` (the last pool, index 30, has no weights)."""
+
+    def __init__(self):
+        super().__init__()
+        layers: list[nn.Module] = []
+        c_in = 3
+        for v in _VGG16_CFG:
+            if v == "M":
+                layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
+            else:
+                layers += [nn.Conv2d(c_in, v, kernel_size=3, padding=1), nn.ReLU(inplace=False)]
+                c_in = v
+        self.features = nn.Sequential(*layers)
+
+
+def find_vgg16_weights(path: str | os.PathLike | None = None) -> Path | None:
+    """The VGG16 weight file: ``path`` when given (must exist, else ``WeightsError`` naming
+    ``--lpips-vgg``), else ``vgg16-397923af.pth`` in torch's hub cache, else None."""
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise WeightsError(f"--lpips-vgg {p}: no such file")
+        return p
+    p = Path(torch.hub.get_dir()) / "checkpoints" / VGG16_FILENAME
+    return p if p.is_file() else None
+
+
+def load_vgg16_state(path: str | os.PathLike) -> dict[str, Tensor]:
+    """The ``features.*`` tensors of a torchvision-format VGG16 file (the ImageNet classifier head,
+    ``classifier.*``, is dropped: LPIPS does not use it). A file named ``vgg16-<8 hex>.pth`` must have
+    that sha256 prefix, as torchvision checks. Any other key is left in, so strict loading names it."""
+    p = Path(path)
+    m = re.fullmatch(r"vgg16-([0-9a-f]{8})\.pth", p.name)
+    if m and not sha256_file(p).startswith(m.group(1)):
+        raise WeightsError(f"{p}: sha256 does not start with {m.group(1)} (truncated or corrupt download?)")
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unreadable file is reported the same way
+        raise WeightsError(f"{p}: not a readable torch state dict ({e})") from e
+    if not isinstance(state, dict):
+        raise WeightsError(f"{p}: expected a state dict, got {type(state).__name__}")
+    return {k: v for k, v in state.items() if not k.startswith("classifier.")}
+
+
+def load_lpips_linear(path: str | os.PathLike) -> list[Tensor]:
+    """The five LPIPS v0.1 linear weights ``lin{i}.model.1.weight`` [1, C_i, 1, 1], checked strictly."""
+    p = Path(path)
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unreadable file is reported the same way
+        raise WeightsError(f"{p}: not a readable torch state dict ({e})") from e
+    expected = [f"lin{i}.model.1.weight" for i in range(len(CHANNELS))]
+    if sorted(state) != sorted(expected):
+        raise WeightsError(f"{p}: keys {sorted(state)}, expected {expected}")
+    out = []
+    for key, c in zip(expected, CHANNELS):
+        w = state[key]
+        if tuple(w.shape) != (1, c, 1, 1):
+            raise WeightsError(f"{p}: {key} has shape {tuple(w.shape)}, expected (1, {c}, 1, 1)")
+        out.append(w.float())
+    return out
+
+
+class LPIPS(nn.Module):
+    """LPIPS-VGG v0.1, frozen. Images [..., 3, H, W]; values per image [...] (lower = more similar)."""
+
+    def __init__(self, vgg_state: dict[str, Tensor], linear: list[Tensor], vgg_sha256: str | None = None):
+        super().__init__()
+        self.vgg = VGG16Trunk()
+        self.vgg.load_state_dict(vgg_state, strict=True)
+        for i, w in enumerate(linear):
+            self.register_buffer(f"lin{i}", w.reshape(1, CHANNELS[i], 1, 1).clone())
+        self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1))
+        self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1))
+        self.vgg_sha256 = vgg_sha256
+        self.requires_grad_(False)
+        self.eval()
+
+    def train(self, mode: bool = True) -> "LPIPS":
+        """Frozen: stays in eval mode whatever the caller asks."""
+        return super().train(False)
+
+    def layer_maps(self, a: Tensor, b: Tensor, zero_one: bool = True) -> list[Tensor]:
+        """Per-layer distance maps [N, 1, h_l, w_l] (N = product of the leading dims), before averaging."""
+        if a.shape != b.shape or a.dim() < 3 or a.shape[-3] != 3:
+            raise ValueError(f"LPIPS: images must be [..., 3, H, W] of one shape, got {tuple(a.shape)} "
+                             f"and {tuple(b.shape)}")
+        n = a.shape[:-3].numel()
+        x = torch.cat([a.reshape(n, *a.shape[-3:]), b.reshape(n, *b.shape[-3:])])
+        if zero_one:
+            x = 2 * x - 1
+        x = (x - self.shift) / self.scale
+        maps = []
+        i = 0
+        for k, layer in enumerate(self.vgg.features):
+            x = layer(x)
+            if k == TAPS[i]:
+                f = x / (x.pow(2).sum(dim=1, keepdim=True).sqrt() + _NORM_EPS)
+                d = (f[:n] - f[n:]).pow(2)
+                maps.append((d * getattr(self, f"lin{i}")).sum(dim=1, keepdim=True))
+                i += 1
+        return maps
+
+    def forward(self, a: Tensor, b: Tensor, zero_one: bool = True) -> Tensor:
+        """LPIPS per image pair, [...]: each layer's map averaged spatially, summed over layers."""
+        maps = self.layer_maps(a, b, zero_one)
+        return sum(m.mean(dim=(1, 2, 3)) for m in maps).reshape(a.shape[:-3])
+
+    def per_pixel(self, a: Tensor, b: Tensor, zero_one: bool = True) -> Tensor:
+        """LPIPS map [..., 1, H, W]: each layer's map upsampled bilinearly (align_corners=False) to the
+        input size, summed over layers (``lpips`` with ``spatial=True``)."""
+        size = a.shape[-2:]
+        maps = self.layer_maps(a, b, zero_one)
+        up = sum(F.interpolate(m, size=size, mode="bilinear", align_corners=False) for m in maps)
+        return up.reshape(*a.shape[:-3], 1, *size)
+
+
+def create_lpips(vgg_path: str | os.PathLike | None = None, lin_path: str | os.PathLike | None = None,
+                 device: str | torch.device = "cpu") -> LPIPS | None:
+    """LPIPS-VGG on ``device``, or None when no VGG16 weights are given and none are in torch's hub cache.
+
+    ``vgg_path`` given but missing, an unreadable or mismatching file, or the linear layers neither given
+    (``lin_path``) nor cached raise ``WeightsError`` with what to do."""
+    vgg = find_vgg16_weights(vgg_path)
+    if vgg is None:
+        return None
+    linear = load_lpips_linear(resolve("lpips-vgg", lin_path, flag="--lpips-linear"))
+    state = load_vgg16_state(vgg)
+    try:
+        net = LPIPS(state, linear, vgg_sha256=sha256_file(vgg))
+    except RuntimeError as e:
+        raise WeightsError(f"{vgg}: not torchvision's VGG16 layout: {e}") from e
+    return net.to(device)
+
+
+def vgg16_missing_message() -> str:
+    """Why LPIPS is unavailable and how to provide it (for the first log lines and config.json)."""
+    where = Path(torch.hub.get_dir()) / "checkpoints" / VGG16_FILENAME
+    return (f"no VGG16 weights: {where} is absent and --lpips-vgg was not given "
+            f"(torchvision's ImageNet {VGG16_FILENAME})")

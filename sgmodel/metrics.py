@@ -1,0 +1,138 @@
+"""Image metrics of the feed-forward 3DGS literature (SPEC section 7 "Metrics"): PSNR, SSIM, LPIPS-VGG.
+
+Images are [..., 3, H, W] in [0, 1] (any leading dims, e.g. [B, T]); masks are [..., 1, H, W] bool
+(True = valid pixel). Every function returns one value per image, shape [...], so callers average over
+targets themselves. Metric functions clip both images to [0, 1] first (the renderer's colours can leave
+it); ``ssim_map`` does not clip, so that ``1 - SSIM`` can serve as a differentiable loss.
+
+- PSNR: ``10 log10(1 / MSE)`` with data range 1, MSE over channels and pixels (valid pixels with a mask).
+  Identical images give +inf.
+- SSIM: exactly ``skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5,
+  use_sample_covariance=False, data_range=1, channel_axis=...)``: an 11-tap Gaussian window
+  (sigma 1.5, truncated at 3.5 sigma, as scipy.ndimage), ``reflect`` boundary (scipy's: the edge pixel is
+  repeated, d c b a | a b c d), K1 = 0.01, K2 = 0.03, population covariances. Without a mask the value
+  is skimage's: the SSIM map averaged over channels and over pixels at least 5 px from the border (the
+  window radius). With a mask it is the full map (borders included, as skimage's ``full=True``) averaged
+  over valid pixels and channels. Images with H or W below 11 (the window) raise ``ValueError``, as
+  skimage does.
+- LPIPS: ``sgmodel.lpips.LPIPS`` on inputs scaled to [-1, 1]; without a mask the layer maps are
+  averaged spatially (``lpips`` default), with a mask the per-pixel map (``spatial=True``) is averaged
+  over valid pixels.
+A mask with no valid pixel gives NaN for that image (average with ``nanmean``).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from sgmodel.lpips import LPIPS
+
+#: SSIM constants of Wang et al. 2004 as skimage uses them (SPEC section 7 "Metrics").
+SSIM_SIGMA = 1.5
+SSIM_TRUNCATE = 3.5
+SSIM_K1 = 0.01
+SSIM_K2 = 0.03
+#: window radius as scipy.ndimage computes it: int(truncate * sigma + 0.5) = 5, window 11.
+SSIM_RADIUS = int(SSIM_TRUNCATE * SSIM_SIGMA + 0.5)
+SSIM_WINDOW = 2 * SSIM_RADIUS + 1
+
+
+def _check(pred: Tensor, target: Tensor, mask: Tensor | None) -> None:
+    if pred.shape != target.shape or pred.dim() < 3 or pred.shape[-3] != 3:
+        raise ValueError(f"metrics: images must be [..., 3, H, W] of one shape, got {tuple(pred.shape)} "
+                         f"and {tuple(target.shape)}")
+    if mask is not None:
+        want = (*pred.shape[:-3], 1, *pred.shape[-2:])
+        if tuple(mask.shape) != want or mask.dtype != torch.bool:
+            raise ValueError(f"metrics: mask must be bool {want}, got {mask.dtype} {tuple(mask.shape)}")
+
+
+def _masked_mean(values: Tensor, mask: Tensor | None) -> Tensor:
+    """Mean of [..., C, H, W] over C, H, W; with a mask [..., 1, H, W] over valid pixels only."""
+    if mask is None:
+        return values.mean(dim=(-3, -2, -1))
+    w = mask.to(values.dtype).expand_as(values)
+    return (values * w).sum(dim=(-3, -2, -1)) / w.sum(dim=(-3, -2, -1))
+
+
+def psnr(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
+    """PSNR in dB per image [...], images clipped to [0, 1], data range 1."""
+    _check(pred, target, mask)
+    mse = _masked_mean((pred.clamp(0, 1) - target.clamp(0, 1)).pow(2), mask)
+    return 10 * torch.log10(1 / mse)
+
+
+def _gaussian_window(dtype: torch.dtype, device: torch.device) -> Tensor:
+    x = torch.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, dtype=torch.float64)
+    w = torch.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
+    return (w / w.sum()).to(dtype=dtype, device=device)
+
+
+def _symmetric_index(n: int, r: int, device: torch.device) -> Tensor:
+    """Indices of a length-n axis padded by r on each side with scipy's ``reflect`` (edge repeated);
+    valid for r <= n."""
+    i = torch.arange(-r, n + r, device=device)
+    return torch.where(i < 0, -i - 1, torch.where(i >= n, 2 * n - 1 - i, i))
+
+
+def _gaussian_filter(x: Tensor) -> Tensor:
+    """scipy.ndimage.gaussian_filter(sigma 1.5, truncate 3.5, mode 'reflect') over the last two axes of
+    [N, C, H, W], separable, per channel."""
+    n, c, h, w = x.shape
+    r = SSIM_RADIUS
+    k = _gaussian_window(x.dtype, x.device)
+    x = x.index_select(-2, _symmetric_index(h, r, x.device)).index_select(-1, _symmetric_index(w, r, x.device))
+    x = F.conv2d(x, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+    return F.conv2d(x, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+
+
+def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
+    """SSIM map [..., 3, H, W] (skimage's ``full=True`` map per channel); no clipping, differentiable."""
+    _check(pred, target, None)
+    h, w = pred.shape[-2:]
+    if h < SSIM_WINDOW or w < SSIM_WINDOW:
+        raise ValueError(f"SSIM: image {h}x{w} is smaller than the {SSIM_WINDOW}x{SSIM_WINDOW} Gaussian "
+                         f"window (skimage raises too)")
+    lead = pred.shape[:-3]
+    x = pred.reshape(-1, 3, h, w)
+    y = target.reshape(-1, 3, h, w)
+    f = _gaussian_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1))
+    ux, uy, uxx, uyy, uxy = f.split(3, dim=1)
+    vx, vy, vxy = uxx - ux * ux, uyy - uy * uy, uxy - ux * uy
+    c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2  # data range 1
+    s = (2 * ux * uy + c1) * (2 * vxy + c2) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+    return s.reshape(*lead, 3, h, w)
+
+
+def ssim(pred: Tensor, target: Tensor, mask: Tensor | None = None, clip: bool = True) -> Tensor:
+    """SSIM per image [...] as skimage (see the module docstring for the masked variant)."""
+    _check(pred, target, mask)
+    if clip:
+        pred, target = pred.clamp(0, 1), target.clamp(0, 1)
+    s = ssim_map(pred, target)
+    if mask is None:
+        r = SSIM_RADIUS
+        return s[..., r:-r, r:-r].mean(dim=(-3, -2, -1))
+    return _masked_mean(s, mask)
+
+
+def lpips(net: LPIPS, pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
+    """LPIPS-VGG per image [...], images clipped to [0, 1] then scaled to [-1, 1] inside ``net``."""
+    _check(pred, target, mask)
+    pred, target = pred.clamp(0, 1), target.clamp(0, 1)
+    if mask is None:
+        return net(pred, target)
+    return _masked_mean(net.per_pixel(pred, target), mask)
+
+
+@torch.no_grad()
+def image_metrics(pred: Tensor, target: Tensor, mask: Tensor | None = None,
+                  lpips_net: LPIPS | None = None) -> dict[str, Tensor]:
+    """``psnr``, ``ssim`` and, when ``lpips_net`` is given, ``lpips``: each [...] per image."""
+    out = {"psnr": psnr(pred, target, mask), "ssim": ssim(pred, target, mask)}
+    if lpips_net is not None:
+        out["lpips"] = lpips(lpips_net, pred, target, mask)
+    return out
+

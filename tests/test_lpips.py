@@ -1,0 +1,205 @@
+"""LPIPS-VGG (sgmodel.lpips) and the objective (sgmodel.losses) against a float64 reference written here.
+
+The real LPIPS v0.1 linear layers (fetched from the ``lpips`` wheel) with random VGG16 weights saved in
+torchvision's key layout: the ImageNet VGG16 file cannot be downloaded here. The reference rebuilds the
+VGG16 trunk from the state dict's keys (conv + ReLU per key, a 2x2 max-pool before each new stage) and
+the LPIPS arithmetic from the paper: scale, normalise over channels, squared difference, weighted channel
+sum, spatial mean, sum over layers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from sgmodel import weights
+from sgmodel.losses import create_objective
+from sgmodel.lpips import LPIPS, create_lpips, find_vgg16_weights
+from sgmodel.weights import WeightsError
+
+#: torchvision's VGG16 `features` indices of the 13 convolutions, and of the first conv of stages 2-5.
+CONV_INDICES = (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28)
+STAGE_STARTS = (5, 10, 17, 24)
+CHANNELS = (64, 64, 128, 128, 256, 256, 256, 512, 512, 512, 512, 512, 512)
+
+
+@pytest.fixture(scope="module")
+def lin_path():
+    path = weights.cached_path("lpips-vgg")
+    if not path.is_file():
+        try:
+            path = weights.fetch("lpips-vgg")
+        except WeightsError as e:
+            pytest.skip(f"LPIPS v0.1 linear layers not cached and `sgmodel weights fetch lpips-vgg` failed: {e}")
+    return path
+
+
+def random_vgg_state(seed: int = 0) -> dict[str, torch.Tensor]:
+    """Random VGG16 weights with torchvision's keys, including the classifier head of the real file."""
+    g = torch.Generator().manual_seed(seed)
+    state, c_in = {}, 3
+    for idx, c in zip(CONV_INDICES, CHANNELS):
+        std = (2.0 / (9 * c_in)) ** 0.5
+        state[f"features.{idx}.weight"] = torch.randn(c, c_in, 3, 3, generator=g) * std
+        state[f"features.{idx}.bias"] = torch.randn(c, generator=g) * 0.05
+        c_in = c
+    state["classifier.0.weight"] = torch.zeros(8, 8)  # shape irrelevant: the head is dropped on load
+    state["classifier.0.bias"] = torch.zeros(8)
+    return state
+
+
+@pytest.fixture(scope="module")
+def vgg_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("vgg") / "vgg16-random.pth"
+    torch.save(random_vgg_state(), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def net(vgg_path, lin_path) -> LPIPS:
+    return create_lpips(vgg_path, lin_path)
+
+
+def reference_layers(x: torch.Tensor, state: dict) -> list[torch.Tensor]:
+    """Float64 VGG16 relu1_2 .. relu5_3 from the state dict alone."""
+    feats = []
+    x = x.double()
+    for k, idx in enumerate(CONV_INDICES):
+        if idx in STAGE_STARTS:
+            feats.append(x)
+            x = F.max_pool2d(x, 2, 2)
+        x = F.relu(F.conv2d(x, state[f"features.{idx}.weight"].double(), state[f"features.{idx}.bias"].double(),
+                            padding=1))
+    feats.append(x)
+    return feats
+
+
+def reference_lpips(a: np.ndarray, b: np.ndarray, state: dict, lins: list[np.ndarray], spatial: bool):
+    """LPIPS v0.1 in float64; a, b [N, 3, H, W] in [0, 1]. spatial: per-pixel map [N, 1, H, W]."""
+    shift = np.array([-0.030, -0.088, -0.188])[None, :, None, None]
+    scale = np.array([0.458, 0.448, 0.450])[None, :, None, None]
+    fa = reference_layers(torch.from_numpy((2 * a - 1 - shift) / scale), state)
+    fb = reference_layers(torch.from_numpy((2 * b - 1 - shift) / scale), state)
+    total = 0.0
+    for f0, f1, w in zip(fa, fb, lins):
+        f0, f1 = f0.numpy(), f1.numpy()
+        n0 = f0 / (np.sqrt((f0 ** 2).sum(axis=1, keepdims=True)) + 1e-10)
+        n1 = f1 / (np.sqrt((f1 ** 2).sum(axis=1, keepdims=True)) + 1e-10)
+        d = ((n0 - n1) ** 2 * w.reshape(1, -1, 1, 1)).sum(axis=1, keepdims=True)
+        total = total + (bilinear(d, a.shape[-2:]) if spatial else d.mean(axis=(1, 2, 3)))
+    return total
+
+
+def bilinear(m: np.ndarray, size) -> np.ndarray:
+    """Bilinear resize of [N, 1, h, w] to size with half-pixel centres (source clamped at 0 and the edge)."""
+    def axis(n_in, n_out):
+        src = np.maximum((np.arange(n_out) + 0.5) * n_in / n_out - 0.5, 0)
+        i0 = np.minimum(np.floor(src).astype(int), n_in - 1)
+        i1 = np.minimum(i0 + 1, n_in - 1)
+        return i0, i1, src - i0
+    y0, y1, ty = axis(m.shape[2], size[0])
+    x0, x1, tx = axis(m.shape[3], size[1])
+    rows = m[:, :, y0] * (1 - ty)[:, None] + m[:, :, y1] * ty[:, None]
+    return rows[..., x0] * (1 - tx) + rows[..., x1] * tx
+
+
+def test_matches_float64_reference(net, vgg_path, lin_path):
+    rng = np.random.default_rng(1)
+    a = rng.random((2, 3, 34, 26))
+    b = np.clip(a + 0.2 * rng.standard_normal(a.shape), 0, 1)
+    state = torch.load(vgg_path, weights_only=True)
+    lins = [v.numpy().astype(np.float64) for v in torch.load(lin_path, map_location="cpu", weights_only=True).values()]
+    want = reference_lpips(a, b, state, lins, spatial=False)
+    got = net(torch.from_numpy(a).float(), torch.from_numpy(b).float()).double().numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-4)
+    want_map = reference_lpips(a, b, state, lins, spatial=True)
+    got_map = net.per_pixel(torch.from_numpy(a).float(), torch.from_numpy(b).float()).double().numpy()
+    assert got_map.shape == (2, 1, 34, 26)
+    np.testing.assert_allclose(got_map, want_map, rtol=1e-4, atol=1e-7)
+    # inputs already in [-1, 1]
+    got_pm = net(torch.from_numpy(2 * a - 1).float(), torch.from_numpy(2 * b - 1).float(), zero_one=False)
+    np.testing.assert_allclose(got_pm.double().numpy(), want, rtol=1e-4)
+
+
+def test_zero_for_identical_positive_otherwise_batched(net):
+    g = torch.Generator().manual_seed(2)
+    a = torch.rand(2, 2, 3, 24, 24, generator=g)
+    b = (a + 0.1 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+    same = net(a, a)
+    assert same.shape == (2, 2) and torch.all(same == 0)
+    diff = net(a, b)
+    assert diff.shape == (2, 2) and torch.all(diff > 0)
+    torch.testing.assert_close(diff[1, 1], net(a[1, 1], b[1, 1]))  # batching does not mix images
+    assert torch.all(net.per_pixel(a, a) == 0)
+
+
+def test_gradient_reaches_input_not_weights(net):
+    net.train()
+    assert not net.training and not net.vgg.training
+    assert all(not p.requires_grad for p in net.parameters())
+    a = torch.rand(1, 3, 32, 32, requires_grad=True)
+    b = torch.rand(1, 3, 32, 32)
+    net(a, b).sum().backward()
+    assert a.grad is not None and torch.isfinite(a.grad).all() and a.grad.abs().sum() > 0
+    assert all(p.grad is None for p in net.parameters())
+
+
+def test_strict_loading_names_bad_keys(tmp_path, lin_path):
+    state = random_vgg_state()
+    state["features.29.weight"] = state.pop("features.28.weight")
+    bad = tmp_path / "renamed.pth"
+    torch.save(state, bad)
+    with pytest.raises(WeightsError, match="features.2[89].weight"):
+        create_lpips(bad, lin_path)
+    state = random_vgg_state()
+    del state["features.0.bias"]
+    torch.save(state, bad)
+    with pytest.raises(WeightsError, match="features.0.bias"):
+        create_lpips(bad, lin_path)
+    lin = torch.load(lin_path, map_location="cpu", weights_only=True)
+    lin["lin5.model.1.weight"] = lin["lin4.model.1.weight"]
+    torch.save(lin, tmp_path / "lin.pth")
+    with pytest.raises(WeightsError, match="lin5"):
+        create_lpips(tmp_path / "renamed.pth", tmp_path / "lin.pth")
+
+
+def test_missing_vgg_weights(tmp_path, monkeypatch, lin_path, vgg_path):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    assert find_vgg16_weights() is None and create_lpips(None, lin_path) is None
+    with pytest.raises(WeightsError, match="--lpips-vgg"):
+        create_lpips(tmp_path / "nope.pth", lin_path)
+    hub = tmp_path / "torch" / "hub" / "checkpoints"
+    hub.mkdir(parents=True)
+    (hub / "vgg16-397923af.pth").write_bytes(vgg_path.read_bytes())  # right name, wrong content
+    assert find_vgg16_weights() == hub / "vgg16-397923af.pth"
+    with pytest.raises(WeightsError, match="sha256"):
+        create_lpips(None, lin_path)
+
+
+def test_objective_uses_lpips_or_falls_back_to_ssim(tmp_path, monkeypatch, vgg_path, lin_path):
+    from skimage.metrics import structural_similarity
+
+    g = torch.Generator().manual_seed(3)
+    target = torch.rand(2, 2, 3, 24, 24, generator=g, dtype=torch.float64)
+    render = (target + 0.1 * torch.randn(target.shape, generator=g, dtype=torch.float64)).requires_grad_(True)
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    obj = create_objective(None, lin_path)
+    assert obj.name == "mse+ssim" and "no VGG16 weights" in obj.description
+    assert obj.to_config()["name"] == "mse+ssim"
+    loss, parts = obj(render, target)
+    t, r = target.numpy(), render.detach().numpy()
+    ssim_ref = np.mean([structural_similarity(t[i, j], r[i, j], gaussian_weights=True, sigma=1.5,
+                                              use_sample_covariance=False, data_range=1, channel_axis=0)
+                        for i in range(2) for j in range(2)])
+    want = np.mean((t - r) ** 2) + 0.05 * (1 - ssim_ref)
+    assert abs(loss.item() - want) < 1e-10 and abs(parts["ssim"].item() - ssim_ref) < 1e-10
+    loss.backward()
+    assert torch.isfinite(render.grad).all()
+
+    obj = create_objective(vgg_path, lin_path)
+    assert obj.name == "mse+lpips-vgg" and obj.to_config()["vgg16_sha256"] == weights.sha256_file(vgg_path)
+    loss, parts = obj(render.float(), target.float())
+    want = parts["mse"] + 0.05 * obj.lpips_net(target.float(), render.float()).mean()
+    torch.testing.assert_close(loss, want)
