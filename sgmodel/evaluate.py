@@ -69,7 +69,7 @@ def baseline_method(name: str, encoder_name: str, weights: str | None, resolutio
                                  batch["baseline"])
         S = batch["targets"].shape[-1]
         if name == "naive-gs":
-            g = baselines.naive_gaussians(batch["left"], z, batch["K"])
+            g = baselines.naive_gs(batch["left"], z, batch["K"])
             return render_views(g, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
         return baselines.forward_splat(batch["left"], z, batch["K"], batch["target_viewmats"], batch["target_Ks"],
                                        S, S)[0]
@@ -138,7 +138,7 @@ def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpi
              batch_size: int = 4, progress: bool = True) -> dict:
     """Run the evaluation and write the report; returns metrics.json's content."""
     loader = make_loader(data, split, batch_size, method.resolution, None, 0, 0, 0, 1, train=False)
-    lpips_net = create_lpips(lpips_vgg, device)
+    lpips_net = create_lpips(lpips_vgg, device=device)
     rows, kept = measure(method, loader, device, lpips_net, progress)
     result = {"method": method.name, "encoder": method.encoder, "split": split, "data": str(Path(data).resolve()),
               "resolution": method.resolution, "targets": len(rows),

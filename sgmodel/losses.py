@@ -58,8 +58,8 @@ class Objective:
 
 
 def create_objective(vgg_path: str | os.PathLike | None = None, lin_path: str | os.PathLike | None = None,
-                     device: str | torch.device = "cpu") -> Objective:
+                     device: str | torch.device = "cpu", weight: float = PERCEPTUAL_WEIGHT) -> Objective:
     """The objective on ``device``: LPIPS-VGG when VGG16 weights are found (``vgg_path`` or torch's hub
     cache), else the SSIM fallback. Weights that are given but unusable raise ``WeightsError``."""
     net = create_lpips(vgg_path, lin_path, device)
-    return Objective(net, reason="" if net is not None else vgg16_missing_message())
+    return Objective(net, reason="" if net is not None else vgg16_missing_message(), weight=weight)

@@ -96,17 +96,18 @@ class StereoGaussians(nn.Module):
     def compose(self, front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | None, c: canvas.Canvas,
                 baseline: torch.Tensor) -> dict[str, torch.Tensor]:
         """The composer in float32 (the predictor may run in bf16)."""
-        if back is None:  # front layer only: the composer ignores back and dz
-            back, dz = front, c.depth
         p = self.params.composer
-        return compose(front.float(), back.float(), dz.float(), c.depth, c.rgb.float(), c.K, baseline,
+        back, dz = (None, None) if back is None else (back.float(), dz.float())
+        return compose(front.float(), back, dz, c.depth, c.rgb.float(), c.K, baseline,
                        back_layer=p.back_layer, edge_mask=p.edge_mask, composer=p.composer)
 
-    def forward(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> Prediction:
-        """left/right [B,3,H,W] in [0,1], K [B,3,3] pixels, baseline [B] metres -> Prediction."""
+    def forward(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor,
+                doffs: float = 0.0) -> Prediction:
+        """left/right [B,3,H,W] in [0,1], K [B,3,3] pixels, baseline [B] metres -> Prediction. ``doffs``:
+        the pair's principal-point disparity offset in pixels (Middlebury), added to the encoder's."""
         check_inputs(left, right, K, baseline)
         disparity, features = self.encode(left, right)
-        z = depth_from_disparity(disparity, K[:, 0, 0], baseline)
+        z = depth_from_disparity(disparity, K[:, 0, 0], baseline, doffs=doffs)
         front, back, dz, c = self.layers(left, z, features, K)
         return Prediction(self.compose(front, back, dz, c, baseline), z, disparity, c.K, front, back, dz)
 
@@ -132,9 +133,10 @@ class Predictor:
         return self.model.params.resolution
 
     @torch.no_grad()
-    def predict(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor
-                ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-        out = self.model(left, right, K, baseline)
+    def predict(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor,
+                doffs: float = 0.0) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """(Gaussians, depth z [B,1,H,W] metres) of a batch of pairs; see ``StereoGaussians.forward``."""
+        out = self.model(left, right, K, baseline, doffs)
         return out.gaussians, out.depth
 
 

@@ -183,7 +183,7 @@ def predict(args: argparse.Namespace, log=print) -> None:
     if args.checkpoint:
         from .model import load_predictor
 
-        predictor = load_predictor(args.checkpoint, device)
+        predictor = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo)
         short = args.resolution or predictor.resolution
     else:
         try:

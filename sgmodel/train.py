@@ -29,9 +29,9 @@ from scenesplat_stereo.shards import atomic_write_bytes
 from . import metrics
 from .checkpoint import load_checkpoint, save_checkpoint
 from .config import ModelParams, TrainParams
-from .data import make_loader
+from .data import make_loader, read_split
 from .distributed import World, all_sum, broadcast_flag, close_world, init_world
-from .losses import make_objective
+from .losses import create_objective
 from .model import StereoGaussians, create_model
 from .render import render_views
 from .sheets import validation_sheet
@@ -90,13 +90,19 @@ def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, 
 
 
 @torch.no_grad()
-def validate(model, loader, world: World, amp: bool, sheet_samples: int) -> tuple[dict, list]:
+def validate(model, loader, world: World, amp: bool, sheet_samples: int, limit: int | None = None
+             ) -> tuple[dict, list]:
     """Mean PSNR over every target of the split (full image and valid pixels only), summed over ranks;
-    and the first ``sheet_samples`` samples of this rank for the contact sheet."""
+    and the first ``sheet_samples`` samples of this rank for the contact sheet. ``limit`` caps the
+    samples each rank validates on (None: all)."""
     was_training = model.training
     model.eval()
     total, total_masked, count, shown = 0.0, 0.0, 0, []
+    samples = 0
     for batch in loader:
+        if limit is not None and samples >= limit:
+            break
+        samples += len(batch["keys"])
         batch = to_device(batch, world.device)
         rgb, _, pred = render_targets(model, batch, amp)
         total += metrics.psnr(rgb, batch["targets"]).sum().item()
@@ -135,7 +141,7 @@ def run_config(model_params: ModelParams, train_params: TrainParams, data: Path,
     """The record written to RUN/config.json; a resumed run must match it (except the worker count)."""
     return {"model": model_params.to_dict(), "train": train_params.to_dict(), "data": str(Path(data).resolve()),
             "encoder": {"name": encoder.name, "weights_sha256": encoder.weights_sha256},
-            "loss": objective.description}
+            "loss": objective.to_config()}
 
 
 def _check_resumable(paths: RunPaths, config: dict) -> bool:
@@ -174,13 +180,10 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
         raise ValueError(f"--batch-size {tp.batch_size} must be divisible by the {world.size} ranks")
     local_batch = tp.batch_size // world.size
     S = model_params.resolution
-    train_loader = make_loader(data, "train", local_batch, S, tp.targets, tp.seed, tp.workers, world.rank,
-                               world.size, train=True)
-    val_loader = make_loader(data, "val", local_batch, S, None, tp.seed, tp.workers, world.rank, world.size,
-                             train=False, limit=tp.val_samples)
+    read_split_checked(data)
     torch.manual_seed(tp.seed)
     model = create_model(model_params, world.device)
-    objective = make_objective(tp.lpips_weight, vgg_path, world.device)
+    objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight)
     config = run_config(model_params, tp, data, model.encoder, objective)
     resume = _check_resumable(paths, config)
     params = [p for p in model.parameters() if p.requires_grad]
@@ -198,13 +201,14 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
         torch.set_rng_state(ckpt["rng"]["torch"].cpu())
         if world.device.type == "cuda" and ckpt["rng"].get("cuda") is not None:
             torch.cuda.set_rng_state(ckpt["rng"]["cuda"].cpu(), world.device)
+    train_loader = make_loader(data, "train", local_batch, S, tp.targets, tp.seed, tp.workers, world.rank,
+                               world.size, train=True, start_step=step)
+    val_loader = make_loader(data, "val", local_batch, S, None, tp.seed, tp.workers, world.rank, world.size,
+                             train=False)
     if world.main:
         print(f"sgmodel train: {'resuming at step ' + str(step) if resume else 'new run'} in {paths.root}; "
               f"loss {objective.description}; encoder {model.encoder.name}; {world.size} rank(s) on "
               f"{world.device}; batch {tp.batch_size} ({local_batch} per rank) at {S}x{S}", flush=True)
-        if "lpips" not in objective.description.lower():
-            print("  (no VGG16 ImageNet weights: the LPIPS term is replaced by 0.05 (1 - SSIM); "
-                  "pass --lpips-vgg PATH to vgg16-397923af.pth for the paper's objective)", flush=True)
         paths.root.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(paths.config, (json.dumps(config, indent=2) + "\n").encode())
         _trim_metrics(paths.metrics, step)
@@ -216,7 +220,7 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
 
     def validation(step: int, best: float) -> tuple[bool, float]:
         """Validate, log, draw the sheet; (is it the best so far, its PSNR). Step 0 is never the best."""
-        val, shown = validate(net, val_loader, world, tp.amp, tp.sheet_samples)
+        val, shown = validate(net, val_loader, world, tp.amp, tp.sheet_samples, tp.val_samples)
         improved = broadcast_flag(world, step > 0 and val["val_psnr"] > best)
         if world.main:
             bar.write(f"step {step}: val PSNR {val['val_psnr']:.2f} dB (valid pixels {val['val_psnr_masked']:.2f})"
@@ -227,7 +231,7 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
 
     if step == 0:  # where training starts from, for the PSNR curve
         validation(0, best)
-    batches = iter(train_loader.from_step(step))
+    batches = iter(train_loader)
     while step < tp.steps:
         t0 = time.perf_counter()
         batch = to_device(next(batches), world.device)
@@ -274,3 +278,9 @@ def summary_table(metrics_path: Path, summary: dict) -> str:
                         for r in rows])
     return (f"{table}\nbest validation PSNR {summary['best_val_psnr']:.2f} dB at step {summary['best_step']}; "
             f"{summary['steps']} steps in {summary['wall_s']:.0f} s; checkpoints in {summary['run']}/checkpoints")
+
+
+def read_split_checked(data: Path) -> None:
+    """Both splits a run needs exist and are readable (DataError naming the file otherwise)."""
+    for split in ("train", "val"):
+        read_split(Path(data), split)

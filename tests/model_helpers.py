@@ -28,7 +28,7 @@ class StandInEncoder(StereoEncoder):
         self.disparity = disparity
         self.freeze()
 
-    def forward(self, left: torch.Tensor, right: torch.Tensor) -> EncoderOutput:
+    def encode(self, left: torch.Tensor, right: torch.Tensor) -> EncoderOutput:
         B, _, H, W = left.shape
         d = torch.full((B, 1, H, W), self.disparity, device=left.device)
         f2 = self.proj2(torch.nn.functional.avg_pool2d(left, 2, ceil_mode=True))

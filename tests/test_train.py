@@ -12,7 +12,7 @@ import torch
 from sgmodel import train as train_mod
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
-from sgmodel.losses import make_objective
+from sgmodel.losses import create_objective
 from sgmodel.model import create_model
 from tests.model_helpers import StandInEncoder, textured_batch
 
@@ -38,7 +38,7 @@ def test_overfitting_one_batch_raises_psnr_by_10db():
     batch["targets"] = 1.0 - batch["targets"]  # colours the initial Gaussians do not have
     model = create_model(ModelParams(resolution=32, padding=2, decoder=DecoderParams(channels=16, groups=4),
                                      predictor=PredictorParams(channels=16, groups=4)), encoder=StandInEncoder())
-    objective = make_objective(0.05, None, "cpu")
+    objective = create_objective(None, device="cpu")
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=3e-3)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0)
     first = train_mod.train_step(model, batch, objective, opt, sched, amp=False)["psnr"]
@@ -60,7 +60,7 @@ def test_short_run_raises_validation_psnr_and_writes_its_files(demo_dataset, tmp
     assert vals[-1]["val_psnr"] > vals[0]["val_psnr"], vals
     assert summary["best_step"] in (15, 30)
     config = json.loads((run / "config.json").read_text())
-    assert config["encoder"]["name"] == "sgbm" and "SSIM" in config["loss"]
+    assert config["encoder"]["name"] == "sgbm" and config["loss"]["name"] == "mse+ssim"
     for name in ("checkpoints/last.pt", "checkpoints/best.pt", "sheets/val_000015.png"):
         assert (run / name).is_file(), name
     ckpt = torch.load(run / "checkpoints/last.pt", weights_only=True)

@@ -22,7 +22,7 @@ from scenesplat_stereo.shards import atomic_write_bytes
 from ..cli import add_model_arguments, params_from_args
 from ..data import make_loader
 from ..geometry import depth_from_disparity
-from ..losses import make_objective
+from ..losses import create_objective
 from ..model import create_model
 from ..render import render_views
 from ..train import to_device, train_step
@@ -88,13 +88,13 @@ def run(args: argparse.Namespace) -> int:
     model_params, train_params = params_from_args(args)
     device = torch.device(args.device)
     model = create_model(model_params, device)
-    objective = make_objective(0.05, args.lpips_vgg, device)
+    objective = create_objective(args.lpips_vgg, device=device)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=1e-5)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
     S, amp = model_params.resolution, not args.no_amp
     loader = iter(make_loader(args.data, "train", args.batch_size, S, args.targets, 0, args.workers, 0, 1,
-                              train=True).from_step(0)) if args.data else None
+                              train=True)) if args.data else None
     now = _timer(device)
     stages: dict[str, list[float]] = {s: [] for s in STAGES}
     free: list[float] = []
