@@ -31,8 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from scenesplat_stereo.colmap import (PinholeCamera, Recovery, RecoveryOptions, image_size, recover_poses,
-                                      write_json_atomic)
+from scenesplat_stereo.cameras import right_camera
+from scenesplat_stereo.colmap import PinholeCamera, Recovery, RecoveryOptions, image_size, recover_poses
+from scenesplat_stereo.files import atomic_write_json
+from scenesplat_stereo.text import format_table, key_safe_name
 
 # Paper appendix F: IRS intrinsics (pixels) at its native 960x540, and the rectified stereo baseline.
 IRS_CAMERA = PinholeCamera(fx=480.0, fy=480.0, cx=480.0, cy=270.0, width=960, height=540)
@@ -205,13 +207,11 @@ def filter_reasons(registered: int, reprojection_error: float, scale: ScaleEstim
 
 
 def stereo_poses(c2w: np.ndarray, scale: float, baseline: float = IRS_BASELINE) -> tuple[np.ndarray, np.ndarray]:
-    """Metric left poses (camera centres times ``scale``) and right poses ``T_L Trans(baseline, 0, 0)``,
-    both [R,4,4] c2w OpenCV, metres."""
+    """Metric left poses (camera centres times ``scale``) and right poses ``cameras.right_camera``
+    (``T_L Trans(baseline, 0, 0)``), both [R,4,4] c2w OpenCV, metres."""
     left = np.array(c2w, dtype=np.float64, copy=True)
     left[:, :3, 3] *= scale
-    right = left.copy()
-    right[:, :3, 3] += baseline * left[:, :3, 0]
-    return left, right
+    return left, right_camera(left, baseline)
 
 
 @dataclass
@@ -270,7 +270,7 @@ def recover_variant(root: Path, folder: Path, cfg: VariantConfig) -> dict[str, A
             report["reasons"] = filter_reasons(recovery.registered, err, scale, cfg.filters)
             report["kept"] = not report["reasons"]
             if scale is not None and scale.used:
-                write_json_atomic(out / "poses.json", _poses_json(variant, recovery, scale, cfg), indent=None)
+                atomic_write_json(out / "poses.json", _poses_json(variant, recovery, scale, cfg), indent=None)
     except Exception as exc:  # a broken variant must not stop the dataset: it is reported instead
         report["kept"] = False
         report["reasons"] = [f"error: {type(exc).__name__}: {exc}"]
@@ -279,7 +279,7 @@ def recover_variant(root: Path, folder: Path, cfg: VariantConfig) -> dict[str, A
         if not cfg.keep_colmap:
             shutil.rmtree(out / "colmap", ignore_errors=True)
     report["seconds"] = round(time.perf_counter() - start, 3)
-    write_json_atomic(out / "report.json", report)
+    atomic_write_json(out / "report.json", report)
     return report
 
 
@@ -340,7 +340,7 @@ def run_dataset(root: Path, cfg: VariantConfig, workers: int = 1, progress: bool
                 bar.update()
     bar.close()
     ordered = [reports[k] for k in sorted(reports)]
-    write_json_atomic(out / "summary.json", {"dataset": str(root), "variants": len(ordered),
+    atomic_write_json(out / "summary.json", {"dataset": str(root), "variants": len(ordered),
                                              "kept": sum(r["kept"] for r in ordered), "reports": ordered})
     return ordered
 

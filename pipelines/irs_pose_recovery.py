@@ -35,7 +35,7 @@ from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION
                            MAX_SCALE_IQR_FRACTION, MIN_REGISTERED_FRAMES, Filters, VariantConfig, run_dataset,
                            summary_table)
 from scenesplat_stereo.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera,  # noqa: E402
-                                      RecoveryOptions, image_size, recover_poses, recovery_json, write_json_atomic)
+                                      RecoveryOptions, image_size, recover_poses, recovery_json)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
@@ -124,7 +124,7 @@ def run_recover(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    write_json_atomic(args.out, recovery_json(recovery, [p.name for p in images]))
+    atomic_write_json(args.out, recovery_json(recovery, [p.name for p in images]))
     print(f"{recovery.registered}/{len(images)} images registered, mean reprojection error "
           f"{recovery.mean_reprojection_error:.3f} px ({recovery.matching} matching) -> {args.out}")
     return 0 if recovery.registered else 1

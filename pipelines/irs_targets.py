@@ -271,7 +271,7 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
 
     from tqdm import tqdm
 
-    from scenesplat_stereo.colmap import write_json_atomic
+    from scenesplat_stereo.files import atomic_write_json
     from scenesplat_stereo.encode import SampleEncoder
     from scenesplat_stereo.protocol import split_scenes
     from scenesplat_stereo.shards import (ShardWriter, collect_stats, finished_shards, remove_shard, write_index,
@@ -307,7 +307,7 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
                          "targets": sum(len(r.targets) for r in stored),
                          "mean_coverage": float(np.mean(cov)) if cov else None})
     write_stats(out, collect_stats(out))
-    write_json_atomic(Path(out) / "irs_selection.json", {"rules": asdict(rules),
+    atomic_write_json(Path(out) / "irs_selection.json", {"rules": asdict(rules),
                                                          "min_targets": min_targets, "variants": rows})
     return rows
 

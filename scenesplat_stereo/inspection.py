@@ -25,7 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo import shards
-from scenesplat_stereo.cameras import fibonacci_directions, rigid_error, translation
+from scenesplat_stereo.cameras import fibonacci_directions, right_camera, rigid_error, translation
 from scenesplat_stereo.encode import decode_image, encode_png
 from scenesplat_stereo.protocol import NUM_TARGETS, tier_for_psnr
 
@@ -99,7 +99,7 @@ def _check_poses(key: str, meta: dict, ids: list[int]) -> list[str]:
     scale = max(1.0, float(np.abs(left[:3, 3]).max()))
     if "c2w_right" in meta:
         right = np.array(meta["c2w_right"], dtype=np.float64)
-        if np.abs(right - left @ translation(np.array([B, 0.0, 0.0]))).max() > POSE_TOLERANCE * scale:
+        if np.abs(right - right_camera(left, B)).max() > POSE_TOLERANCE * scale:
             problems.append(f"{key}.json: c2w_right is not c2w_left Trans(B={B}, 0, 0)")
     want = left[None] @ translation(rho * fibonacci_directions(NUM_TARGETS)[ids])
     bad = np.abs(targets - want).max(axis=(1, 2)) > POSE_TOLERANCE * scale
