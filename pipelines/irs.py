@@ -83,10 +83,10 @@ class IrsVariant:
 
 def variant_name(root: Path, folder: Path) -> str:
     """Variant name from its folder: the path relative to the dataset root with '/' -> '-' (a variant at
-    the root itself is named after the root folder). Never contains '__' (the shard key separator)."""
+    the root itself is named after the root folder), made usable in sample keys by ``text.key_safe_name``
+    (no '.', whitespace or '__')."""
     rel = Path(folder).relative_to(Path(root))
-    name = "-".join(rel.parts) if rel.parts else Path(root).resolve().name
-    return re.sub(r"_{2,}", "_", name)
+    return key_safe_name("-".join(rel.parts) if rel.parts else Path(root).resolve().name)
 
 
 def find_variants(root: Path) -> list[Path]:
@@ -375,7 +375,4 @@ def summary_table(reports: list[dict[str, Any]]) -> str:
     rows.append((f"total {len(reports)}", str(frames), str(sum(r.get("registered") or 0 for r in reports)), "", "",
                  "", f"{secs:.1f}", num(100 * secs / frames if frames else None, ".1f"),
                  f"{sum(r['kept'] for r in reports)} kept"))
-    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]) - 1)]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(row[:-1], widths)) + "  " + row[-1] for row in rows]
-    lines.insert(1, "-" * max(len(line) for line in lines))
-    return "\n".join(lines)
+    return format_table(rows, align="l" * len(rows[0]), rule=True, free_last=True)

@@ -6,7 +6,8 @@ sha256 and holds the listed keys in order; every sample has ``json``, ``left.jpg
 ``target_<jj>.jpg`` and ``mask_<jj>.png`` per stored target (``left_depth.exr`` in all samples of a split
 or none); the JSON has the SPEC fields and its poses follow the protocol (rigid c2w, right =
 T_L Trans(B, 0, 0), target = T_L Trans(rho u_j) with the Fibonacci directions, all with the reference
-orientation); images decode at width x height (RGB JPEGs, single-channel 0/255 PNG masks); and
+orientation; a sample whose JSON lists ``target_frames``, as IRS samples do, has real frames as targets:
+rigid and within rho of the left camera); images decode at width x height (RGB JPEGs, single-channel 0/255 PNG masks); and
 ``OUT/stats.json`` agrees with the counts read from the shards. ``--quick`` decodes the images of the
 first sample of each shard only. Baselines and radii that differ from the teacher's PSNR tier are noted,
 not failed (``--baseline``/``--rho`` override them on purpose).
@@ -101,6 +102,16 @@ def _check_poses(key: str, meta: dict, ids: list[int]) -> list[str]:
         right = np.array(meta["c2w_right"], dtype=np.float64)
         if np.abs(right - right_camera(left, B)).max() > POSE_TOLERANCE * scale:
             problems.append(f"{key}.json: c2w_right is not c2w_left Trans(B={B}, 0, 0)")
+    if "target_frames" in meta:  # real frames as targets (IRS, SPEC section 6): rigid, within rho of the left
+        frames = meta["target_frames"]
+        if not isinstance(frames, list) or len(frames) != len(targets):
+            return problems + [f"{key}.json: target_frames does not list one frame per target"]
+        dist = np.linalg.norm(targets[:, :3, 3] - left[:3, 3], axis=1)
+        bad = [ids[i] for i, t in enumerate(targets)
+               if rigid_error(t) > POSE_TOLERANCE or dist[i] > rho + POSE_TOLERANCE * scale]
+        if bad:
+            problems.append(f"{key}.json: targets {bad} are not rigid or lie farther than rho={rho} from c2w_left")
+        return problems
     want = left[None] @ translation(rho * fibonacci_directions(NUM_TARGETS)[ids])
     bad = np.abs(targets - want).max(axis=(1, 2)) > POSE_TOLERANCE * scale
     if bad.any():

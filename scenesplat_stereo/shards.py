@@ -267,7 +267,7 @@ def remove_unplanned(root: Path, split: str, planned: set[int]) -> int:
     folder = Path(root) / split
     if not folder.is_dir():
         return 0
-    for tmp in folder.glob(f"{_TMP_PREFIX}*"):
+    for tmp in [*folder.glob(f"{_TMP_PREFIX}*"), *(folder / DONE_DIR).glob(f"{_TMP_PREFIX}*")]:
         tmp.unlink(missing_ok=True)
     numbers = {int(m.group(1)) for p in folder.glob("shard-*.tar") if (m := _SHARD_RE.match(p.name))}
     numbers |= {int(m.group(1)) for p in (folder / DONE_DIR).glob("shard-*.json")

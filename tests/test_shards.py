@@ -154,7 +154,14 @@ def test_sample_json_has_the_spec_fields():
     assert doc["frame"] == 7 and doc["width"] == 64 and doc["K"][0][2] == 32
     assert doc["c2w_left"][0][3] == 1.0 and len(doc["targets"]) == 3 and doc["target_ids"] == [0, 1, 2]
     assert doc["teacher_psnr"] == 31.5 and doc["camera_convention"] == "opencv"
-    assert sample_json(plan) == sample_json(plan)
+    # The exact bytes: compact JSON, fields in SPEC order, float64 values as written (expected written here
+    # by hand, not from sample_json).
+    right = (c2w + 0.5).tolist()
+    want = {"key": "s0__000007", "scene": "s0", "subset": "ScanNetGS", "frame": 7, "width": 64, "height": 48,
+            "K": [[100.0, 0.0, 32.0], [0.0, 100.0, 24.0], [0.0, 0.0, 1.0]], "baseline": 0.05, "rho": 0.1,
+            "teacher_psnr": 31.5, "c2w_left": c2w.tolist(), "c2w_right": right, "target_ids": [0, 1, 2],
+            "targets": [c2w.tolist()] * 3, "camera_convention": "opencv"}
+    assert sample_json(plan) == json.dumps(want, separators=(",", ":")).encode()
 
 
 def test_planned_shards_follow_the_plan_and_discard(tmp_path):
