@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +30,7 @@ from scenesplat_stereo import shards
 from scenesplat_stereo.cameras import fibonacci_directions, right_camera, rigid_error, translation
 from scenesplat_stereo.encode import decode_image, encode_png
 from scenesplat_stereo.protocol import NUM_TARGETS, tier_for_psnr
+from scenesplat_stereo.text import whole_number
 
 REQUIRED_FIELDS = ("scene", "subset", "frame", "width", "height", "K", "baseline", "rho", "teacher_psnr",
                    "c2w_left", "targets")
@@ -151,9 +153,16 @@ def inspect_dataset(out: Path, contact_sheet: Path | None = None, sheet_samples:
     if not splits:
         report.problems.append(f"{out}: no <split>/{shards.INDEX_NAME}; not a built dataset")
     for split in splits:
-        index = json.loads((out / split / shards.INDEX_NAME).read_text())
+        try:
+            index = json.loads((out / split / shards.INDEX_NAME).read_text())
+            entries = [e for e in index["shards"] if all(k in e for k in ("name", "bytes", "sha256", "keys"))]
+            if len(entries) != len(index["shards"]):
+                raise KeyError("shards[].name/bytes/sha256/keys")
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
+            report.problems.append(f"{out / split / shards.INDEX_NAME}: unreadable ({type(e).__name__}: {e})")
+            continue
         depth_in: set[bool] = set()
-        for entry in tqdm(index["shards"], desc=f"inspect {split}", unit="shard", disable=not progress):
+        for entry in tqdm(entries, desc=f"inspect {split}", unit="shard", disable=not progress):
             path = out / split / entry["name"]
             if not path.is_file():
                 report.problems.append(f"{path}: listed in index.json but missing")
@@ -208,7 +217,11 @@ def _check_stats(out: Path, report: InspectReport, scenes: dict) -> None:
     if not path.is_file():
         report.problems.append(f"{path}: missing")
         return
-    stats = json.loads(path.read_text())
+    try:
+        stats = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        report.problems.append(f"{path}: unreadable ({e})")
+        return
     for (subset, split), row in report.counts.items():
         got = stats.get("subsets", {}).get(subset, {}).get("splits", {}).get(split, {})
         want = {k: row[k] for k in ("scenes", "pairs", "targets")}
@@ -269,13 +282,16 @@ def add_arguments(p) -> None:
     p.add_argument("out", type=Path, help="a folder written by `scenesplat-stereo build`")
     p.add_argument("--contact-sheet", type=Path, default=None,
                    help="PNG to write: left, right, targets and masks of a few samples (default OUT/contact_sheet.png)")
-    p.add_argument("--sheet-samples", type=int, default=4, help="samples on the contact sheet, one per scene (default 4)")
+    p.add_argument("--sheet-samples", type=whole_number("--sheet-samples", 0), default=4, help="samples on the contact sheet, one per scene (default 4)")
     p.add_argument("--quick", action="store_true", help="decode only the first sample of each shard")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args) -> int:
-    """CLI entry: print the table, notes and problems; exit 1 when any check fails."""
+    """CLI entry: print the table, notes and problems; exit 1 when any check fails, 2 when OUT is no folder."""
+    if not Path(args.out).is_dir():
+        print(f"scenesplat-stereo inspect: error: OUT {args.out}: not a folder", file=sys.stderr)
+        return 2
     sheet = args.contact_sheet or Path(args.out) / "contact_sheet.png"
     report = inspect_dataset(args.out, sheet, args.sheet_samples, args.quick, progress=not args.no_progress)
     print(table(report))
