@@ -282,8 +282,8 @@ def test_plain_features_and_three_cameras(channels: int) -> None:
     assert_matches_reference(ours, ref, "RGB+D")
 
 
-def test_tile_size_does_not_change_the_image() -> None:
-    """Tile sizes 8, 16, 32 on a 70x45 image (no size a multiple of 16 or 32) give the same outputs."""
+def test_tile_size_changes_the_image_by_at_most_1e5() -> None:
+    """Tile sizes 8, 16, 32 on a 70x45 image (no size a multiple of 16 or 32) give outputs within 1e-5 (not bit for bit: the order of float32 sums may change)."""
     from scenesplat_stereo.raster import rasterization
 
     scene = random_scene(300, seed=5, sh_degree=2)
