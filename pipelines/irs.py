@@ -31,8 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from scenesplat_stereo.colmap import (PinholeCamera, Recovery, RecoveryOptions, image_size, recover_poses,
-                                      write_json_atomic)
+from scenesplat_stereo.cameras import right_camera
+from scenesplat_stereo.colmap import PinholeCamera, Recovery, RecoveryOptions, image_size, recover_poses
+from scenesplat_stereo.files import atomic_write_json
+from scenesplat_stereo.text import format_table, key_safe_name
 
 # Paper appendix F: IRS intrinsics (pixels) at its native 960x540, and the rectified stereo baseline.
 IRS_CAMERA = PinholeCamera(fx=480.0, fy=480.0, cx=480.0, cy=270.0, width=960, height=540)
@@ -81,10 +83,10 @@ class IrsVariant:
 
 def variant_name(root: Path, folder: Path) -> str:
     """Variant name from its folder: the path relative to the dataset root with '/' -> '-' (a variant at
-    the root itself is named after the root folder). Never contains '__' (the shard key separator)."""
+    the root itself is named after the root folder), made usable in sample keys by ``text.key_safe_name``
+    (no '.', whitespace or '__')."""
     rel = Path(folder).relative_to(Path(root))
-    name = "-".join(rel.parts) if rel.parts else Path(root).resolve().name
-    return re.sub(r"_{2,}", "_", name)
+    return key_safe_name("-".join(rel.parts) if rel.parts else Path(root).resolve().name)
 
 
 def find_variants(root: Path) -> list[Path]:
@@ -205,13 +207,11 @@ def filter_reasons(registered: int, reprojection_error: float, scale: ScaleEstim
 
 
 def stereo_poses(c2w: np.ndarray, scale: float, baseline: float = IRS_BASELINE) -> tuple[np.ndarray, np.ndarray]:
-    """Metric left poses (camera centres times ``scale``) and right poses ``T_L Trans(baseline, 0, 0)``,
-    both [R,4,4] c2w OpenCV, metres."""
+    """Metric left poses (camera centres times ``scale``) and right poses ``cameras.right_camera``
+    (``T_L Trans(baseline, 0, 0)``), both [R,4,4] c2w OpenCV, metres."""
     left = np.array(c2w, dtype=np.float64, copy=True)
     left[:, :3, 3] *= scale
-    right = left.copy()
-    right[:, :3, 3] += baseline * left[:, :3, 0]
-    return left, right
+    return left, right_camera(left, baseline)
 
 
 @dataclass
@@ -270,7 +270,7 @@ def recover_variant(root: Path, folder: Path, cfg: VariantConfig) -> dict[str, A
             report["reasons"] = filter_reasons(recovery.registered, err, scale, cfg.filters)
             report["kept"] = not report["reasons"]
             if scale is not None and scale.used:
-                write_json_atomic(out / "poses.json", _poses_json(variant, recovery, scale, cfg), indent=None)
+                atomic_write_json(out / "poses.json", _poses_json(variant, recovery, scale, cfg), indent=None)
     except Exception as exc:  # a broken variant must not stop the dataset: it is reported instead
         report["kept"] = False
         report["reasons"] = [f"error: {type(exc).__name__}: {exc}"]
@@ -279,7 +279,7 @@ def recover_variant(root: Path, folder: Path, cfg: VariantConfig) -> dict[str, A
         if not cfg.keep_colmap:
             shutil.rmtree(out / "colmap", ignore_errors=True)
     report["seconds"] = round(time.perf_counter() - start, 3)
-    write_json_atomic(out / "report.json", report)
+    atomic_write_json(out / "report.json", report)
     return report
 
 
@@ -340,7 +340,7 @@ def run_dataset(root: Path, cfg: VariantConfig, workers: int = 1, progress: bool
                 bar.update()
     bar.close()
     ordered = [reports[k] for k in sorted(reports)]
-    write_json_atomic(out / "summary.json", {"dataset": str(root), "variants": len(ordered),
+    atomic_write_json(out / "summary.json", {"dataset": str(root), "variants": len(ordered),
                                              "kept": sum(r["kept"] for r in ordered), "reports": ordered})
     return ordered
 
@@ -375,7 +375,4 @@ def summary_table(reports: list[dict[str, Any]]) -> str:
     rows.append((f"total {len(reports)}", str(frames), str(sum(r.get("registered") or 0 for r in reports)), "", "",
                  "", f"{secs:.1f}", num(100 * secs / frames if frames else None, ".1f"),
                  f"{sum(r['kept'] for r in reports)} kept"))
-    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]) - 1)]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(row[:-1], widths)) + "  " + row[-1] for row in rows]
-    lines.insert(1, "-" * max(len(line) for line in lines))
-    return "\n".join(lines)
+    return format_table(rows, align="l" * len(rows[0]), rule=True, free_last=True)

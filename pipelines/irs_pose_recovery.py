@@ -2,7 +2,7 @@
 
 Dataset mode::
 
-    python pipelines/irs_pose_recovery.py DATASET_ROOT --out DIR [--workers N]
+    python -m pipelines.irs_pose_recovery DATASET_ROOT --out DIR [--workers N]
 
 Every folder under DATASET_ROOT holding ``l_<n>.png`` (with ``r_<n>.png`` and ``d_<n>.exr``) is one scene
 variant. Each is reconstructed from its left images with the intrinsics fixed (IRS: fx = fy = 480,
@@ -14,7 +14,7 @@ x right / y down / z forward, metres; right = left Trans(0.1 m, 0, 0)), ``DIR/<v
 
 Folder mode (no metric scale without depth)::
 
-    python pipelines/irs_pose_recovery.py recover --images DIR --intrinsics fx,fy,cx,cy --out poses.json
+    python -m pipelines.irs_pose_recovery recover --images DIR --intrinsics fx,fy,cx,cy --out poses.json
 
 writes ``{"frames": [{"image": name, "c2w": 4x4}], "registered": n, "mean_reprojection_error": e}``
 (c2w OpenCV, in COLMAP's arbitrary units; e in pixels). Images are taken in natural name order
@@ -29,13 +29,12 @@ import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `pipelines.irs`
-
-from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION_ERROR,  # noqa: E402
-                           MAX_SCALE_IQR_FRACTION, MIN_REGISTERED_FRAMES, Filters, VariantConfig, run_dataset,
-                           summary_table)
-from scenesplat_stereo.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera,  # noqa: E402
-                                      RecoveryOptions, image_size, recover_poses, recovery_json, write_json_atomic)
+from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION_ERROR, MAX_SCALE_IQR_FRACTION,
+                           MIN_REGISTERED_FRAMES, Filters, VariantConfig, run_dataset, summary_table)
+from scenesplat_stereo.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera, RecoveryOptions,
+                                      image_size, recover_poses, recovery_json)
+from scenesplat_stereo.files import atomic_write_json, check_writable
+from scenesplat_stereo.text import argtype, parse_size, positive_number, whole_number
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
@@ -44,14 +43,14 @@ def _colmap_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--matching", choices=MATCHING_MODES, default="auto",
                    help="feature matching: auto = exhaustive up to --exhaustive-max-frames frames, else "
                         "sequential (default auto)")
-    p.add_argument("--exhaustive-max-frames", type=int, default=EXHAUSTIVE_MAX_FRAMES,
+    p.add_argument("--exhaustive-max-frames", type=whole_number("--exhaustive-max-frames"), default=EXHAUSTIVE_MAX_FRAMES,
                    help="largest sequence matched exhaustively under --matching auto "
                         f"(default {EXHAUSTIVE_MAX_FRAMES})")
     p.add_argument("--vocab-tree", type=Path, default=None,
                    help="local COLMAP vocabulary-tree file: enables loop detection in sequential matching "
                         "(none is downloaded; without it there is no loop detection)")
-    p.add_argument("--max-features", type=int, default=8192, help="SIFT features per image (default 8192)")
-    p.add_argument("--init-min-inliers", type=int, default=100,
+    p.add_argument("--max-features", type=whole_number("--max-features"), default=8192, help="SIFT features per image (default 8192)")
+    p.add_argument("--init-min-inliers", type=whole_number("--init-min-inliers"), default=100,
                    help="inliers required of COLMAP's initial image pair (default 100; lower for small images)")
     p.add_argument("--threads", type=int, default=-1, help="COLMAP threads (default: all cores, shared by workers)")
     p.add_argument("--seed", type=int, default=0, help="COLMAP random seed (default 0)")
@@ -65,29 +64,22 @@ def _options(args: argparse.Namespace) -> RecoveryOptions:
                            verbose=args.verbose)
 
 
-def _size(text: str) -> tuple[int, int]:
-    m = re.fullmatch(r"(\d+)x(\d+)", text)
-    if not m:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT in pixels, got {text!r}")
-    return int(m.group(1)), int(m.group(2))
-
-
 def dataset_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="irs_pose_recovery.py", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m pipelines.irs_pose_recovery", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("root", type=Path, metavar="DATASET_ROOT", help="IRS dataset root (searched recursively)")
     p.add_argument("--out", type=Path, required=True, help="output folder (one sub-folder per variant)")
-    p.add_argument("--workers", type=int, default=1, help="variants processed in parallel (processes; default 1)")
-    p.add_argument("--image-size", type=_size, default=None, metavar="WxH",
+    p.add_argument("--workers", type=whole_number("--workers"), default=1, help="variants processed in parallel (processes; default 1)")
+    p.add_argument("--image-size", type=argtype(parse_size, "--image-size"), default=None, metavar="WxH",
                    help="expected image size when the images are a resized copy of IRS (default 960x540); the "
                         "intrinsics are scaled from 960x540, the disparity stays in 960-px pixels")
-    p.add_argument("--focal-baseline", type=float, default=IRS_FOCAL_BASELINE,
+    p.add_argument("--focal-baseline", type=positive_number("--focal-baseline"), default=IRS_FOCAL_BASELINE,
                    help=f"fx * B in pixels * metres for z = fx B / d (default {IRS_FOCAL_BASELINE:g})")
-    p.add_argument("--min-registered", type=int, default=MIN_REGISTERED_FRAMES,
+    p.add_argument("--min-registered", type=whole_number("--min-registered"), default=MIN_REGISTERED_FRAMES,
                    help=f"filter: registered frames at least (default {MIN_REGISTERED_FRAMES})")
-    p.add_argument("--max-reprojection-error", type=float, default=MAX_MEAN_REPROJECTION_ERROR,
+    p.add_argument("--max-reprojection-error", type=positive_number("--max-reprojection-error"), default=MAX_MEAN_REPROJECTION_ERROR,
                    help=f"filter: mean reprojection error at most, pixels (default {MAX_MEAN_REPROJECTION_ERROR:g})")
-    p.add_argument("--max-scale-iqr", type=float, default=MAX_SCALE_IQR_FRACTION,
+    p.add_argument("--max-scale-iqr", type=positive_number("--max-scale-iqr"), default=MAX_SCALE_IQR_FRACTION,
                    help=f"filter: scale-ratio IQR / median at most (default {MAX_SCALE_IQR_FRACTION:g})")
     p.add_argument("--keep-colmap", action="store_true", help="keep each variant's COLMAP database and models")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -96,7 +88,7 @@ def dataset_parser() -> argparse.ArgumentParser:
 
 
 def recover_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="irs_pose_recovery.py recover",
+    p = argparse.ArgumentParser(prog="python -m pipelines.irs_pose_recovery recover",
                                 description="Recover camera poses (c2w, OpenCV axes, arbitrary units) of the "
                                             "images of one folder seen by one fixed pinhole camera.")
     p.add_argument("--images", type=Path, required=True, help="folder of images (natural name order)")
@@ -121,10 +113,10 @@ def run_recover(args: argparse.Namespace) -> int:
         camera = PinholeCamera.parse(args.intrinsics, *image_size(images[0]))
         with tempfile.TemporaryDirectory(prefix="colmap-") as tmp:
             recovery = recover_poses(images, camera, args.work_dir or Path(tmp), _options(args))
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    write_json_atomic(args.out, recovery_json(recovery, [p.name for p in images]))
+    atomic_write_json(args.out, recovery_json(recovery, [p.name for p in images]))
     print(f"{recovery.registered}/{len(images)} images registered, mean reprojection error "
           f"{recovery.mean_reprojection_error:.3f} px ({recovery.matching} matching) -> {args.out}")
     return 0 if recovery.registered else 1
@@ -138,8 +130,9 @@ def run_dataset_cli(args: argparse.Namespace) -> int:
                         filters=Filters(args.min_registered, args.max_reprojection_error, args.max_scale_iqr),
                         options=_options(args), keep_colmap=args.keep_colmap)
     try:
+        check_writable(args.out, "--out")
         reports = run_dataset(args.root, cfg, workers=args.workers, progress=not args.no_progress)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(summary_table(reports))

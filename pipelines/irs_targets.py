@@ -1,6 +1,6 @@
 """IRS target selection and shards (paper appendix F, "IRS target selection and training"; SPEC section 6).
 
-    python pipelines/irs_targets.py POSES_DIR --out SHARDS_DIR [--val-variants 8] [--min-targets 4]
+    python -m pipelines.irs_targets POSES_DIR --out SHARDS_DIR [--val-variants 8] [--min-targets 4]
 
 POSES_DIR is the output of ``irs_pose_recovery.py``: only variants whose report.json says ``kept`` are
 used. Targets are existing left frames of the same variant:
@@ -36,9 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `pipelines.irs`
-
-from pipelines.irs import IRS_FOCAL_BASELINE, depth_from_disparity, read_disparity  # noqa: E402
+from pipelines.irs import IRS_FOCAL_BASELINE, depth_from_disparity, read_disparity
+from scenesplat_stereo.text import format_table, key_safe_name, positive_number, whole_number
 
 # Paper appendix F, "IRS target selection and training".
 REFERENCE_MIN_TRANSLATION = 0.05  # metres since the last reference frame ...
@@ -212,9 +211,41 @@ class VariantSelection:
     references: list[Reference]
 
 
+_POSES_FIELDS = ("source", "frames", "K", "width", "height", "baseline")
+_FRAME_FIELDS = ("frame", "left", "right", "disparity", "c2w_left", "c2w_right")
+
+
+def read_poses(path: Path) -> dict:
+    """A variant's poses.json, checked: ValueError naming the file and the missing or malformed field."""
+    try:
+        poses = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise ValueError(f"{path}: unreadable JSON ({e})") from None
+    if not isinstance(poses, dict):
+        raise ValueError(f"{path}: expected a JSON object")
+    missing = [k for k in _POSES_FIELDS if k not in poses]
+    if missing:
+        raise ValueError(f"{path}: missing field(s) {', '.join(missing)}")
+    if not isinstance(poses["frames"], list) or not poses["frames"]:
+        raise ValueError(f"{path}: frames: expected a non-empty list")
+    for i, f in enumerate(poses["frames"]):
+        gone = [k for k in _FRAME_FIELDS if not isinstance(f, dict) or k not in f]
+        if gone:
+            raise ValueError(f"{path}: frames[{i}]: missing field(s) {', '.join(gone)}")
+        for k in ("c2w_left", "c2w_right"):
+            if np.asarray(f[k], dtype=object).shape != (4, 4):
+                raise ValueError(f"{path}: frames[{i}].{k}: expected a 4x4 matrix")
+    if np.asarray(poses["K"], dtype=object).shape != (3, 3):
+        raise ValueError(f"{path}: K: expected a 3x3 matrix")
+    for k in ("width", "height"):
+        if isinstance(poses[k], bool) or not isinstance(poses[k], int) or poses[k] < 1:
+            raise ValueError(f"{path}: {k}: expected a whole number of pixels >= 1, got {poses[k]!r}")
+    return poses
+
+
 def _select(args: tuple[str, str, Path, TargetRules, float]) -> VariantSelection:
     name, split, poses_path, rules, focal_baseline = args
-    poses = json.loads(Path(poses_path).read_text())
+    poses = read_poses(poses_path)
     source = Path(poses["source"])
     return VariantSelection(name, split, poses, source, select_variant(poses, source, rules, focal_baseline))
 
@@ -269,15 +300,30 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
 
     from tqdm import tqdm
 
-    from scenesplat_stereo.colmap import write_json_atomic
+    from scenesplat_stereo.files import atomic_write_json
     from scenesplat_stereo.encode import SampleEncoder
     from scenesplat_stereo.protocol import split_scenes
     from scenesplat_stereo.shards import (ShardWriter, collect_stats, finished_shards, remove_shard, write_index,
                                           write_stats)
 
+    from scenesplat_stereo.files import check_writable
+
+    if samples_per_shard < 1:
+        raise ValueError(f"--samples-per-shard {samples_per_shard}: must be >= 1")
+    if rules.depth_stride < 1:
+        raise ValueError(f"--depth-stride {rules.depth_stride}: must be >= 1")
+    if not Path(poses_dir).is_dir():
+        raise ValueError(f"POSES_DIR {poses_dir}: not a folder")
     names = kept_variants(poses_dir)
     if not names:
         raise ValueError(f"{poses_dir}: no kept variant (report.json 'kept': true with a poses.json)")
+    for n in names:
+        if key_safe_name(n) != n:
+            raise ValueError(f"{Path(poses_dir) / n}: variant name {n!r} is not usable in sample keys ('.', "
+                             f"whitespace or '__'); rename the folder (e.g. {key_safe_name(n)!r})")
+    for n in names:
+        read_poses(Path(poses_dir) / n / "poses.json")  # every input checked before anything is removed
+    check_writable(out, "--out")
     splits = split_scenes({IRS_SUBSET: names}, {IRS_SUBSET: val_variants})
     jobs = [(n, splits[n], Path(poses_dir) / n / "poses.json", rules, focal_baseline) for n in names]
     bar = dict(desc="select targets", unit="variant", disable=not progress)
@@ -305,7 +351,7 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
                          "targets": sum(len(r.targets) for r in stored),
                          "mean_coverage": float(np.mean(cov)) if cov else None})
     write_stats(out, collect_stats(out))
-    write_json_atomic(Path(out) / "irs_selection.json", {"rules": asdict(rules),
+    atomic_write_json(Path(out) / "irs_selection.json", {"rules": asdict(rules),
                                                          "min_targets": min_targets, "variants": rows})
     return rows
 
@@ -323,27 +369,24 @@ def summary_table(rows: list[dict]) -> str:
         table.append((f"total {len(sub)}", split, str(sum(r["registered"] for r in sub)),
                       str(sum(r["references"] for r in sub)), str(sum(r["pairs"] for r in sub)),
                       str(sum(r["targets"] for r in sub)), ""))
-    widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip() for row in table]
-    lines.insert(1, "-" * max(len(line) for line in lines))
-    return "\n".join(lines)
+    return format_table(table, align="l" * len(table[0]), rule=True)
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="irs_targets.py", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m pipelines.irs_targets", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("poses_dir", type=Path, metavar="POSES_DIR", help="output folder of irs_pose_recovery.py")
     p.add_argument("--out", type=Path, required=True, help="shard folder (OUT/<split>/shard-*.tar)")
-    p.add_argument("--val-variants", type=int, default=VAL_VARIANTS,
+    p.add_argument("--val-variants", type=whole_number("--val-variants", 0), default=VAL_VARIANTS,
                    help=f"validation variants, chosen with random.Random(42) (default {VAL_VARIANTS})")
-    p.add_argument("--min-targets", type=int, default=TRAIN_MIN_TARGETS,
+    p.add_argument("--min-targets", type=whole_number("--min-targets"), default=TRAIN_MIN_TARGETS,
                    help=f"training pairs need at least this many targets (default {TRAIN_MIN_TARGETS})")
-    p.add_argument("--depth-stride", type=int, default=DEPTH_STRIDE,
+    p.add_argument("--depth-stride", type=whole_number("--depth-stride"), default=DEPTH_STRIDE,
                    help=f"coverage uses every n-th pixel of the reference depth (default {DEPTH_STRIDE})")
-    p.add_argument("--focal-baseline", type=float, default=IRS_FOCAL_BASELINE,
+    p.add_argument("--focal-baseline", type=positive_number("--focal-baseline"), default=IRS_FOCAL_BASELINE,
                    help=f"fx * B in pixels * metres for z = fx B / d (default {IRS_FOCAL_BASELINE:g})")
-    p.add_argument("--samples-per-shard", type=int, default=256, help="samples per tar (default 256)")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--samples-per-shard", type=whole_number("--samples-per-shard"), default=256, help="samples per tar (default 256)")
+    p.add_argument("--workers", type=whole_number("--workers"), default=1,
                    help="processes for target selection and threads for JPEG encoding (default 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)

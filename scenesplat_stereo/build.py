@@ -17,11 +17,13 @@ summary and skipped; the others go on, and the teacher's unfinished shard is rem
 from __future__ import annotations
 
 import json
+import math
+import os
+import sys
 import time
 import warnings
-from argparse import ArgumentTypeError
 from collections import defaultdict
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +44,7 @@ from scenesplat_stereo.protocol import (
     plan_scene,
     split_scenes,
 )
+from scenesplat_stereo.raster import check_device
 from scenesplat_stereo.render_pairs import start_render, stream_samples
 from scenesplat_stereo.teachers import (
     Discovery,
@@ -52,39 +55,130 @@ from scenesplat_stereo.teachers import (
     resolve_trajectory,
     summary_table,
 )
+from scenesplat_stereo.text import argtype, format_table, parse_number, parse_size, positive_number, whole_number
 
 SPLITS_OF_MODE = {"trainval": ("train", "val"), "test": ("test",)}
 BUILD_JSON = "build.json"
 EXIT_TEACHER_FAILED = 3  # exit status when some teachers failed at build time (the rest is complete)
 
 
+def _val_scenes(text: str, flag: str) -> dict[str, int] | int:
+    try:
+        if "=" not in text:
+            return parse_number(text, flag, int, 0)
+        return {k.strip(): parse_number(v, f"{flag} {k.strip()}", int, 0)
+                for k, v in (item.split("=") for item in text.split(",") if item.strip())}
+    except ValueError as e:
+        raise ValueError(f"{flag} {text!r}: expected 'Subset=k,...' or one integer >= 0 ({e})") from None
+
+
+def _min_psnr(text: str, flag: str) -> float | None:
+    return None if text.strip().lower() == "none" else parse_number(text, flag, float)
+
+
+def _effects(text: str, flag: str) -> str:
+    CameraEffects.parse(text)  # unknown names raise, naming --effects
+    return text
+
+
+def _flag(help: str, **argparse_kwargs) -> dict:
+    """Field metadata: the ``build`` flag of a setting (``--field-name``), its help and argparse options."""
+    return {"cli": dict(help=help, **argparse_kwargs)}
+
+
+def _default_device() -> str:
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 @dataclass(frozen=True)
 class BuildSettings:
-    """Everything a build needs. Units: ``resolution`` (W, H) pixels; ``baseline``, ``rho`` world units
-    (metres), None for the teacher's PSNR tier; ``min_psnr`` dB, None keeps every teacher; ``val_scenes``
-    {subset: k} or one k for every subset, None for the paper's ``VAL_SCENES``."""
+    """Everything a build needs, and the one description of the ``build`` flags (each field's metadata:
+    ``add_arguments`` makes the flags from it, ``settings_from_args`` reads them back). Units:
+    ``resolution`` (W, H) pixels; ``baseline``, ``rho`` world units (metres), None for the teacher's PSNR
+    tier; ``min_psnr`` dB, None keeps every teacher; ``val_scenes`` {subset: k} or one k for every subset,
+    None for the paper's ``VAL_SCENES``. Construction checks every value (ValueError naming the flag), so
+    a refused setting never reaches the output folder."""
 
-    teachers: Path
-    out: Path
-    split_mode: str = "trainval"
-    resolution: tuple[int, int] | None = None
-    baseline: float | None = None
-    rho: float | None = None
-    targets: int = NUM_TARGETS
-    val_scenes: dict[str, int] | int | None = None
-    min_psnr: float | None = MIN_TEACHER_PSNR
-    with_depth: bool = False
-    effects: CameraEffects | None = None
-    device: str = "cpu"
-    samples_per_shard: int = 64
-    workers: int = 2
-    backend: str = "local"
-    ray_address: str | None = "auto"
-    orbit: OrbitSpec | None = None
-    max_frames: int | None = None
-    batch_pairs: int = 4
+    teachers: Path = field(metadata=_flag(
+        "folder of teacher scenes (SceneSplat-7K/gsplat, INRIA or plain layout, detected per sub-folder)",
+        type=Path, required=True))
+    out: Path = field(metadata=_flag(
+        "output folder (OUT/<split>/shard-NNNNNN.tar, index.json, stats.json)", type=Path, required=True))
+    split_mode: str = field(default="trainval", metadata=_flag(
+        "trainval: train and val scene splits (seed 42), every frame for train, 5 pairs x 4 targets per val "
+        "scene; test: 100 evenly spaced pairs x all targets per scene (default trainval)",
+        choices=list(SPLITS_OF_MODE)))
+    resolution: tuple[int, int] | None = field(default=None, metadata=_flag(
+        "render size in pixels (default: each teacher's native size; K is rescaled)",
+        type=argtype(parse_size, "--resolution"), metavar="WxH"))
+    baseline: float | None = field(default=None, metadata=_flag(
+        "stereo baseline B in world units (metres), > 0; default: PSNR tier", type=positive_number("--baseline")))
+    rho: float | None = field(default=None, metadata=_flag(
+        "target radius rho in world units (metres), > 0; default: PSNR tier", type=positive_number("--rho")))
+    targets: int = field(default=NUM_TARGETS, metadata=_flag(
+        f"targets per pair, 1..{NUM_TARGETS}: the first of the {NUM_TARGETS} Fibonacci directions (val: of the "
+        "first 4)", type=whole_number("--targets")))
+    val_scenes: dict[str, int] | int | None = field(default=None, metadata=_flag(
+        "validation scenes per subset, e.g. 'ScanNetGS=30,ScanNetPPGS-V2=20' (the default; 0 for other "
+        "subsets) or one integer for every subset", type=argtype(_val_scenes, "--val-scenes"),
+        metavar="SUBSET=K,...|K"))
+    min_psnr: float | None = field(default=MIN_TEACHER_PSNR, metadata=_flag(
+        f"keep teachers with PSNR strictly above this (dB, default {MIN_TEACHER_PSNR}); 'none' keeps all, "
+        "including teachers without a PSNR", type=argtype(_min_psnr, "--min-psnr"), metavar="DB|none"))
+    with_depth: bool = field(default=False, metadata=_flag(
+        "also store the left camera's expected depth (world units along z) as float16 EXR "
+        "<key>.left_depth.exr", action="store_true"))
+    effects: CameraEffects | None = field(default=None, metadata=_flag(
+        "camera effects on the left/right inputs only, comma-separated from noise,vignetting,exposure "
+        "(default: none); --seed seeds their per-sample parameters", type=argtype(_effects, "--effects"),
+        metavar="LIST"))
+    device: str = field(default_factory=_default_device, metadata=_flag(
+        "torch device for rendering: cpu, cuda or cuda:<n> (default: cuda when available)",
+        type=argtype(check_device, "--device")))
+    samples_per_shard: int = field(default=64, metadata=_flag(
+        "samples (pairs) per tar shard (default 64)", type=whole_number("--samples-per-shard")))
+    workers: int = field(default_factory=default_encoder_threads, metadata=_flag(
+        "JPEG/PNG encoder threads per renderer (default: half the CPU cores; 0 encodes inline)",
+        type=whole_number("--workers", 0)))
+    batch_pairs: int = field(default=4, metadata=_flag(
+        "pairs rendered per rasterisation call (12 cameras each)", type=whole_number("--batch-pairs")))
+    backend: str = field(default="local", metadata=_flag(
+        "local: one process; ray: one task per teacher on an existing Ray cluster (pip extra [ray])",
+        choices=["local", "ray"]))
+    ray_address: str | None = field(default="auto", metadata=_flag(
+        "ray.init address for --backend ray (default auto)"))
+    orbit: OrbitSpec | None = field(default=None, metadata=_flag(
+        "trajectory for teachers without one: 'RADIUS' or 'radius=6,frames=60,elevation=20,size=616x456,"
+        "fov=60,up=-y' (world units, degrees, pixels); the orbit circles the median of the Gaussian means, "
+        "OpenCV cameras looking at it", type=argtype(OrbitSpec.parse, "--orbit"), metavar="SPEC"))
+    max_frames: int | None = field(default=None, metadata=_flag(
+        "at most this many evenly spaced pairs per teacher (quick runs), >= 1", type=whole_number("--max-frames")))
     jpeg_quality: int = JPEG_QUALITY
     progress: bool = True
+
+    def __post_init__(self) -> None:
+        def bad(flag: str, value, why: str) -> ValueError:
+            return ValueError(f"{flag} {value}: {why}")
+
+        if self.split_mode not in SPLITS_OF_MODE:
+            raise bad("--split-mode", repr(self.split_mode), f"must be one of {list(SPLITS_OF_MODE)}")
+        if self.resolution is not None and (len(self.resolution) != 2 or min(self.resolution) < 1):
+            raise bad("--resolution", self.resolution, "width and height must be >= 1 pixel")
+        for flag, value in (("--baseline", self.baseline), ("--rho", self.rho)):
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise bad(flag, value, "must be a finite number > 0 (world units)")
+        if not 1 <= self.targets <= NUM_TARGETS:
+            raise bad("--targets", self.targets, f"must be in 1..{NUM_TARGETS}")
+        for flag, value, low in (("--samples-per-shard", self.samples_per_shard, 1), ("--workers", self.workers, 0),
+                                 ("--batch-pairs", self.batch_pairs, 1),
+                                 ("--max-frames", 1 if self.max_frames is None else self.max_frames, 1)):
+            if value < low:
+                raise bad(flag, value, f"must be >= {low}")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise bad("jpeg_quality", self.jpeg_quality, "must be in 1..100")
+        if self.backend not in ("local", "ray"):
+            raise bad("--backend", repr(self.backend), "must be 'local' or 'ray'")
+        check_device(self.device)
 
     def fingerprint(self) -> dict:
         """The settings that decide the output bytes (stored in ``OUT/build.json``)."""
@@ -165,7 +259,7 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
     t = job.teacher
     result = TeacherResult(t.scene_id, t.subset, job.split, path=str(t.ply_path))
     sink = shards.PlannedShards(settings.out, job.split, job.chunks)
-    encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality)
+    encoder = None
     try:
         scene = load_ply(t.ply_path, strict=True)
         teacher = resolve_trajectory(t, scene.means) if t.c2w is None else t
@@ -177,7 +271,8 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
         batches = [todo[s:s + settings.batch_pairs] for s in range(0, len(todo), settings.batch_pairs)]
         rendered = stream_samples(batches, lambda b: start_render(
             gaussians, scene.sh_degree, b, settings.device, settings.with_depth, settings.effects))
-        with encoder:
+        encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality)  # threads start here ...
+        with encoder:  # ... and are joined when this block ends, whatever happens in it
             for batch in batches:
                 t0 = time.perf_counter()
                 samples = next(rendered)
@@ -191,7 +286,8 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
     except Exception as e:  # noqa: BLE001  (one bad teacher must not stop the others; reported)
         sink.discard()
         result.error = f"{type(e).__name__}: {e}"
-    result.encode_s, result.write_s = encoder.encode_s, encoder.sink_s
+    if encoder is not None:
+        result.encode_s, result.write_s = encoder.encode_s, encoder.sink_s
     result.shards, result.pairs = sink.done, sink.pairs
     return result
 
@@ -246,22 +342,43 @@ def _val_counts(settings: BuildSettings, subsets: set[str]) -> dict[str, int]:
     return dict(settings.val_scenes)
 
 
-def _check_fingerprint(settings: BuildSettings) -> None:
-    """Refuse to mix outputs of different settings in one OUT; record the settings otherwise."""
+def _check_fingerprint(settings: BuildSettings) -> dict:
+    """Refuse to mix outputs of different settings in one OUT (reads only); returns ``build.json`` with
+    this build's settings recorded, for ``_record_fingerprint`` once everything else is checked."""
     path = Path(settings.out) / BUILD_JSON
-    doc = json.loads(path.read_text()) if path.is_file() else {}
+    try:
+        doc = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise ValueError(f"{path}: unreadable ({e}); delete it (and OUT) to rebuild") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a JSON object; delete it (and OUT) to rebuild")
     old, new = doc.get(settings.split_mode), settings.fingerprint()
     if old is not None and old != new:
         diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
         raise ValueError(f"{path}: OUT was built ({settings.split_mode}) with other settings ({', '.join(diff)} "
                          "differ); use a new --out, or delete OUT to rebuild")
-    doc[settings.split_mode] = new
-    shards.atomic_write_bytes(path, (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode())
+    return doc | {settings.split_mode: new}
 
 
-def plan_build(settings: BuildSettings) -> tuple[BuildReport, list[TeacherJob]]:
-    """Discovery, filter, splits and the shard layout; finished shards are left out of the jobs and
-    shards of an earlier layout that this one does not plan are removed (counted)."""
+def _check_out(out: Path) -> None:
+    """``--out`` must be a folder we can write in (created if missing); checked before anything is written
+    or removed."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a folder")
+    if not out.exists():
+        parent = next((p for p in out.absolute().parents if p.exists()), None)
+        if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            raise ValueError(f"--out {out}: cannot create it ({parent} is not a writable folder)")
+    elif not os.access(out, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out}: not writable")
+
+
+def plan_build(settings: BuildSettings) -> tuple[BuildReport, list[TeacherJob], dict[str, set[int]]]:
+    """Discovery, filter, splits and the shard layout, reading only: returns the report, the jobs (finished
+    shards are left out) and, per split, the planned shard numbers (``remove_stale`` removes the others).
+    Every refusal (no teacher kept, too few scenes for the validation split, a sample plan that cannot be
+    made) is raised here, before the build writes or removes anything."""
     discovery = discover_teachers(settings.teachers, settings.orbit)
     kept, dropped = filter_teachers(discovery.teachers, settings.min_psnr)
     report = BuildReport(discovery, dropped)
@@ -275,11 +392,18 @@ def plan_build(settings: BuildSettings) -> tuple[BuildReport, list[TeacherJob]]:
             split_of = split_scenes(by_subset, _val_counts(settings, set(by_subset)))
         except ValueError as e:
             raise ValueError(f"{e} (set --val-scenes)") from None
+    if not kept:
+        raise ValueError(f"--teachers {settings.teachers}: no teacher to build from ({len(discovery.rejected)} "
+                         f"rejected, {len(dropped)} dropped by --min-psnr)\n" + summary_table(discovery, dropped))
     jobs: list[TeacherJob] = []
+    layout: dict[str, set[int]] = {}
     for split in SPLITS_OF_MODE[settings.split_mode]:
         number, planned, teachers, pairs = 0, set(), 0, 0
         for t in sorted((t for t in kept if split_of[t.scene_id] == split), key=lambda t: t.scene_id):
-            keys = _planned_keys(t, split, settings)
+            try:
+                keys = _planned_keys(t, split, settings)
+            except ValueError as e:
+                raise ValueError(f"{t.ply_path.parent}: cannot plan its {split} samples: {e}") from None
             chunks = [(number + i, keys[s:s + settings.samples_per_shard])
                       for i, s in enumerate(range(0, len(keys), settings.samples_per_shard))]
             number += len(chunks)
@@ -294,29 +418,33 @@ def plan_build(settings: BuildSettings) -> tuple[BuildReport, list[TeacherJob]]:
                     todo.append((n, chunk_keys))
             if todo:
                 jobs.append(TeacherJob(t, split, todo))
+        layout[split] = planned
+        report.planned[split] = {"teachers": teachers, "pairs": pairs, "shards": number}
+    return report, jobs, layout
+
+
+def remove_stale(settings: BuildSettings, report: BuildReport, layout: dict[str, set[int]]) -> None:
+    """Remove the shards of an earlier layout that this build does not plan (counted in the report)."""
+    for split, planned in layout.items():
         stale = shards.remove_unplanned(settings.out, split, planned)
         if stale:
             warnings.warn(f"{Path(settings.out) / split}: removed {stale} shards that this build does not plan "
                           "(an earlier layout)", stacklevel=2)
         report.removed_stale += stale
-        report.planned[split] = {"teachers": teachers, "pairs": pairs, "shards": number}
-    return report, jobs
 
 
 def build(settings: BuildSettings) -> BuildReport:
     """Run a build (see the module docstring) and return its report; prints nothing but the progress bar."""
     t_start = time.perf_counter()
-    if settings.split_mode not in SPLITS_OF_MODE:
-        raise ValueError(f"--split-mode must be one of {list(SPLITS_OF_MODE)}, got {settings.split_mode!r}")
-    if settings.samples_per_shard < 1 or settings.batch_pairs < 1 or settings.workers < 0:
-        raise ValueError("--samples-per-shard and --batch-pairs must be >= 1, --workers >= 0")
-    if str(settings.device).startswith("cuda") and not torch.cuda.is_available():
-        raise RuntimeError("--device cuda: no CUDA device is available to torch")
-    if settings.backend not in ("local", "ray"):
-        raise ValueError(f"--backend must be 'local' or 'ray', got {settings.backend!r}")
+    # Everything is checked (settings at construction, OUT, earlier settings, teachers, plans) before the
+    # first write: a refused command leaves OUT as it was, so the corrected command is not refused.
+    _check_out(settings.out)
+    recorded = _check_fingerprint(settings)
+    report, jobs, layout = plan_build(settings)
     Path(settings.out).mkdir(parents=True, exist_ok=True)
-    _check_fingerprint(settings)
-    report, jobs = plan_build(settings)
+    shards.atomic_write_bytes(Path(settings.out) / BUILD_JSON,
+                              (json.dumps(recorded, indent=1, sort_keys=True) + "\n").encode())
+    remove_stale(settings, report, layout)
     total = sum(j.pairs for j in jobs)
     with tqdm(total=total, unit="pair", disable=not settings.progress, dynamic_ncols=True) as bar:
         run = _run_ray if settings.backend == "ray" else _run_local
@@ -354,8 +482,7 @@ def summary(report: BuildReport) -> str:
         rows.append((split, str(plan["teachers"]), str(plan["pairs"]), str(plan["shards"]),
                      str(sum(r.pairs for r in done)), str(sum(r.renders for r in done)),
                      str(sum(r.shards for r in done))))
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines += ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths))) for r in rows]
+    lines.append(format_table(rows))
     pairs = sum(r.pairs for r in report.results)
     renders = sum(r.renders for r in report.results)
     render_s = sum(r.render_s for r in report.results)
@@ -369,99 +496,32 @@ def summary(report: BuildReport) -> str:
     return "\n".join(lines)
 
 
-def _resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ArgumentTypeError(f"{text!r}: expected WxH, e.g. 616x456") from None
-    if w < 1 or h < 1:
-        raise ArgumentTypeError(f"{text!r}: width and height must be >= 1")
-    return w, h
-
-
-def _val_scenes(text: str) -> dict[str, int] | int:
-    try:
-        if "=" not in text:
-            return int(text)
-        return {k.strip(): int(v) for k, v in (item.split("=") for item in text.split(",") if item.strip())}
-    except ValueError:
-        raise ArgumentTypeError(f"{text!r}: expected 'Subset=k,...' or one integer") from None
-
-
-def _min_psnr(text: str) -> float | None:
-    if text.strip().lower() == "none":
-        return None
-    try:
-        return float(text)
-    except ValueError:
-        raise ArgumentTypeError(f"{text!r}: expected a number (dB) or 'none'") from None
-
-
-def _checked(parse):
-    """An argparse type from a parser that raises ValueError (its message is shown to the user)."""
-    def convert(text: str):
-        try:
-            return parse(text)
-        except ValueError as e:
-            raise ArgumentTypeError(str(e)) from None
-    return convert
-
-
 def add_arguments(p) -> None:
-    """The ``build`` flags (units and conventions in the help)."""
-    p.add_argument("--teachers", type=Path, required=True,
-                   help="folder of teacher scenes (SceneSplat-7K/gsplat, INRIA or plain layout, detected per sub-folder)")
-    p.add_argument("--out", type=Path, required=True, help="output folder (OUT/<split>/shard-NNNNNN.tar, index.json, stats.json)")
-    p.add_argument("--split-mode", choices=list(SPLITS_OF_MODE), default="trainval",
-                   help="trainval: train and val scene splits (seed 42), every frame for train, 5 pairs x 4 "
-                   "targets per val scene; test: 100 evenly spaced pairs x all targets per scene (default trainval)")
-    p.add_argument("--resolution", type=_resolution, default=None, metavar="WxH",
-                   help="render size in pixels (default: each teacher's native size; K is rescaled)")
-    p.add_argument("--baseline", type=float, default=None, help="stereo baseline B in world units (metres); default: PSNR tier")
-    p.add_argument("--rho", type=float, default=None, help="target radius rho in world units (metres); default: PSNR tier")
-    p.add_argument("--targets", type=int, default=NUM_TARGETS,
-                   help=f"targets per pair, the first of the {NUM_TARGETS} Fibonacci directions (val: of the first 4)")
-    p.add_argument("--val-scenes", type=_val_scenes, default=None, metavar="SUBSET=K,...|K",
-                   help="validation scenes per subset, e.g. 'ScanNetGS=30,ScanNetPPGS-V2=20' (the default; 0 for "
-                   "other subsets) or one integer for every subset")
-    p.add_argument("--min-psnr", type=_min_psnr, default=MIN_TEACHER_PSNR, metavar="DB|none",
-                   help=f"keep teachers with PSNR strictly above this (dB, default {MIN_TEACHER_PSNR}); 'none' keeps all, "
-                   "including teachers without a PSNR")
-    p.add_argument("--with-depth", action="store_true",
-                   help="also store the left camera's expected depth (world units along z) as float16 EXR <key>.left_depth.exr")
-    p.add_argument("--effects", type=_checked(lambda t: CameraEffects.parse(t) and t), default=None, metavar="LIST",
-                   help="camera effects on the left/right inputs only, comma-separated from noise,vignetting,exposure (default: none)")
+    """The ``build`` flags, one per ``BuildSettings`` field with flag metadata, plus ``--seed`` (of the
+    effects) and ``--no-progress``."""
+    for f in fields(BuildSettings):
+        if "cli" in f.metadata:
+            default = {} if f.metadata["cli"].get("required") else {
+                "default": f.default_factory() if f.default_factory is not MISSING else f.default}
+            p.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **default, **f.metadata["cli"])
     p.add_argument("--seed", type=int, default=0, help="seed of the per-sample effect parameters (default 0)")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu",
-                   help="torch device for rendering: cpu or cuda (default: cuda when available)")
-    p.add_argument("--samples-per-shard", type=int, default=64, help="samples (pairs) per tar shard (default 64)")
-    p.add_argument("--workers", type=int, default=default_encoder_threads(),
-                   help="JPEG/PNG encoder threads per renderer (default: half the CPU cores; 0 encodes inline)")
-    p.add_argument("--batch-pairs", type=int, default=4, help="pairs rendered per rasterisation call (12 cameras each)")
-    p.add_argument("--backend", choices=["local", "ray"], default="local",
-                   help="local: one process; ray: one task per teacher on an existing Ray cluster (pip extra [ray])")
-    p.add_argument("--ray-address", default="auto", help="ray.init address for --backend ray (default auto)")
-    p.add_argument("--orbit", type=_checked(OrbitSpec.parse), default=None, metavar="SPEC",
-                   help="trajectory for teachers without one: 'RADIUS' or 'radius=6,frames=60,elevation=20,size=616x456,"
-                   "fov=60,up=-y' (world units, degrees, pixels); the orbit circles the median of the Gaussian means, "
-                   "OpenCV cameras looking at it")
-    p.add_argument("--max-frames", type=int, default=None, help="at most this many evenly spaced pairs per teacher (quick runs)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def settings_from_args(args) -> BuildSettings:
+    """``BuildSettings`` from parsed ``build`` flags (ValueError naming the flag when a value is refused)."""
+    values = {f.name: getattr(args, f.name) for f in fields(BuildSettings) if "cli" in f.metadata}
+    values["effects"] = CameraEffects.parse(args.effects, args.seed)
+    return BuildSettings(**values, progress=not args.no_progress)
+
+
 def run(args) -> int:
-    """CLI entry: build, print the summary; exit 0, or ``EXIT_TEACHER_FAILED`` if some teacher failed."""
-    settings = BuildSettings(
-        teachers=args.teachers, out=args.out, split_mode=args.split_mode, resolution=args.resolution,
-        baseline=args.baseline, rho=args.rho, targets=args.targets, val_scenes=args.val_scenes,
-        min_psnr=args.min_psnr, with_depth=args.with_depth, effects=CameraEffects.parse(args.effects, args.seed),
-        device=args.device, samples_per_shard=args.samples_per_shard, workers=args.workers,
-        backend=args.backend, ray_address=args.ray_address, orbit=args.orbit, max_frames=args.max_frames,
-        batch_pairs=args.batch_pairs, progress=not args.no_progress)
+    """CLI entry: build, print the summary; exit 0, exit 2 with one line naming the flag or file when an
+    input is refused (nothing is written then), or ``EXIT_TEACHER_FAILED`` if some teacher failed."""
     try:
-        report = build(settings)
+        report = build(settings_from_args(args))
     except (OSError, ValueError, RuntimeError) as e:
-        print(f"scenesplat-stereo build: error: {e}")
+        print(f"scenesplat-stereo build: error: {e}", file=sys.stderr)
         return 2
     print(summary(report))
     return EXIT_TEACHER_FAILED if report.failed else 0

@@ -147,6 +147,12 @@ def fibonacci_directions(n: int = 10) -> np.ndarray:
     return np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=-1)
 
 
+def right_camera(c2w_left: np.ndarray, baseline: float) -> np.ndarray:
+    """The right camera of a rectified pair: ``T_L Trans(B, 0, 0)`` (SPEC section 4), c2w [..., 4, 4]
+    OpenCV, ``baseline`` B in world units (metres), along the left camera's +x (to its right)."""
+    return _as_poses(c2w_left, "c2w_left") @ translation(np.array([baseline, 0.0, 0.0]))
+
+
 def stereo_rig(
     c2w_left: np.ndarray, baseline: float, rho: float, directions: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -158,7 +164,7 @@ def stereo_rig(
     """
     c2w_left = _as_poses(c2w_left, "c2w_left")
     directions = np.asarray(directions, dtype=np.float64)
-    right = c2w_left @ translation(np.array([baseline, 0.0, 0.0]))
+    right = right_camera(c2w_left, baseline)
     targets = c2w_left[..., None, :, :] @ translation(rho * directions)
     return right, targets
 

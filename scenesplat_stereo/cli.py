@@ -10,6 +10,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from scenesplat_stereo.text import argtype, parse_size, whole_number
+
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
     from scenesplat_stereo import render_cmd
@@ -34,12 +36,12 @@ def _add_build(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_inspect(sub: argparse._SubParsersAction) -> None:
-    from scenesplat_stereo import inspect
+    from scenesplat_stereo import inspection
 
     p = sub.add_parser("inspect", help="Table-6 counts, a contact sheet and integrity checks of a built dataset",
-                       description=inspect.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    inspect.add_arguments(p)
-    p.set_defaults(func=inspect.run)
+                       description=inspection.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    inspection.add_arguments(p)
+    p.set_defaults(func=inspection.run)
 
 
 def _add_demo_teachers(sub: argparse._SubParsersAction) -> None:
@@ -48,16 +50,17 @@ def _add_demo_teachers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo-teachers", help="write procedural indoor teacher scenes (plain layout) to OUT",
                        description=demo.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", type=Path, help="output folder; one sub-folder per scene")
-    p.add_argument("--scenes", type=int, default=4, help="number of scenes (default 4)")
+    p.add_argument("--scenes", type=whole_number("--scenes"), default=4, help="number of scenes (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
-    p.add_argument("--gaussians", type=int, default=demo.DEFAULT_NUM_GAUSSIANS,
+    p.add_argument("--gaussians", type=whole_number("--gaussians"), default=demo.DEFAULT_NUM_GAUSSIANS,
                    help=f"Gaussians per room (default {demo.DEFAULT_NUM_GAUSSIANS})")
-    p.add_argument("--frames", type=int, default=12, help="trajectory frames per scene (default 12)")
-    p.add_argument("--size", default="256x192", help="native image size WxH in pixels (default 256x192)")
+    p.add_argument("--frames", type=whole_number("--frames"), default=12, help="trajectory frames per scene (default 12)")
+    p.add_argument("--size", type=argtype(parse_size, "--size"), default="256x192", metavar="WxH",
+                   help="native image size in pixels (default 256x192)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     def run(args: argparse.Namespace) -> int:
-        width, height = (int(v) for v in args.size.lower().split("x"))
+        width, height = args.size
         folders = demo.write_demo_teachers(args.out, n_scenes=args.scenes, seed=args.seed,
                                            num_gaussians=args.gaussians, n_frames=args.frames, width=width,
                                            height=height, progress=not args.no_progress)

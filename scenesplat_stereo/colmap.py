@@ -11,15 +11,14 @@ reconstruction's arbitrary units (COLMAP has no scale); the caller scales them. 
 COLMAP, which is the SPEC section 1 convention: pixel (u, v) covers [u, u+1) x [v, v+1), the centre of the
 top-left pixel is (0.5, 0.5).
 
-pycolmap is an optional dependency (the ``colmap`` extra); it is imported when a function needs it.
+pycolmap is a regular dependency, imported when a function needs it (``import_pycolmap`` turns a failed
+import into a RuntimeError that says how to install it).
 """
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
-import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -225,6 +224,16 @@ def _observations(image: Any, xyz: dict[int, np.ndarray]) -> Observations:
     return Observations(xy, depth, ids)
 
 
+def import_pycolmap() -> Any:
+    """The ``pycolmap`` module; RuntimeError with the install command when it cannot be imported."""
+    try:
+        import pycolmap
+    except ImportError as e:
+        raise RuntimeError(f"pose recovery needs pycolmap (a dependency of this package): pip install "
+                           f"'pycolmap>=4.0' ({e})") from None
+    return pycolmap
+
+
 def recover_poses(image_paths: Sequence[Path], camera: PinholeCamera, work_dir: Path,
                   options: RecoveryOptions | None = None) -> Recovery:
     """Recover the poses of ``image_paths`` (capture order) seen by one fixed pinhole ``camera``.
@@ -233,8 +242,7 @@ def recover_poses(image_paths: Sequence[Path], camera: PinholeCamera, work_dir: 
     Images whose size differs from the camera's raise ValueError naming the file (the intrinsics would be
     wrong). A sequence that COLMAP cannot reconstruct returns a Recovery with nothing registered.
     """
-    import pycolmap
-
+    pycolmap = import_pycolmap()
     options = options or RecoveryOptions()
     image_paths = [Path(p) for p in image_paths]
     for p in image_paths:
@@ -296,22 +304,3 @@ def recovery_json(recovery: Recovery, names: Sequence[str]) -> dict[str, Any]:
     err = recovery.mean_reprojection_error
     return {"frames": frames, "registered": recovery.registered,
             "mean_reprojection_error": None if not np.isfinite(err) else err}
-
-
-def write_json_atomic(path: Path, data: Any, indent: int | None = 1) -> None:
-    """Write JSON (``indent`` as in json.dump) to a temporary file beside ``path``, then os.replace it into
-    place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=indent)
-            f.write("\n")
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

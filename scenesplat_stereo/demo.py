@@ -15,7 +15,6 @@ camera convention), spanning the PSNR tiers and SH degrees 0..3.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import shutil
@@ -27,6 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo.cameras import OPENGL_TO_OPENCV, intrinsics_matrix, look_at
+from scenesplat_stereo.files import atomic_write_json
 from scenesplat_stereo.gaussians import SH_C0, GaussianScene, save_ply
 from scenesplat_stereo.protocol import TIERS
 
@@ -292,10 +292,6 @@ def room_trajectory(n_frames: int, seed: int = 0, size: tuple[float, float, floa
 
 
 # ----------------------------------------------------------------------------------------------- files
-def _write_json(path: Path, data: dict) -> None:
-    path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-
-
 def write_demo_teachers(out: Path, n_scenes: int = 4, seed: int = 0, num_gaussians: int = DEFAULT_NUM_GAUSSIANS,
                         n_frames: int = 12, width: int = 256, height: int = 192, fov_x_deg: float = 70.0,
                         progress: bool = True) -> list[Path]:
@@ -332,9 +328,9 @@ def write_demo_teachers(out: Path, n_scenes: int = 4, seed: int = 0, num_gaussia
         tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=out))
         try:
             save_ply(room, tmp / "point_cloud.ply")
-            _write_json(tmp / "transforms.json", transforms)
-            _write_json(tmp / "scene.json", {"psnr": psnr, "subset": DEMO_SUBSET, "camera_convention": convention,
-                                             "generator": f"scenesplat_stereo.demo seed={seed} scene={i}"})
+            atomic_write_json(tmp / "transforms.json", transforms, indent=2)
+            atomic_write_json(tmp / "scene.json", {"psnr": psnr, "subset": DEMO_SUBSET, "camera_convention": convention,
+                                                         "generator": f"scenesplat_stereo.demo seed={seed} scene={i}"}, indent=2)
             os.chmod(tmp, 0o755)
             if final.exists():
                 shutil.rmtree(final)

@@ -26,13 +26,14 @@ with ``strict=True``.
 from __future__ import annotations
 
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from scenesplat_stereo.files import atomic_write_bytes
 
 #: Real SH constant of band 0 (SPEC section 1); the compressed layout stores colour = 0.5 + SH_C0 * f_dc.
 SH_C0 = 0.28209479177387814
@@ -234,6 +235,8 @@ def read_ply_header(path: str | os.PathLike) -> PlyHeader:
                 raise PlyError(f"{path}: unsupported format '{words[1]}' (header line {i})")
             fmt = words[1]
         elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+            if words[1] in (e[0] for e in elements):
+                raise PlyError(f"{path}: element '{words[1]}' is declared twice (header line {i})")
             current = [words[1], int(words[2]), []]
             elements.append(current)
         elif words[0] == "property" and current is not None and len(words) in (3, 5):
@@ -283,6 +286,10 @@ def _read_elements(header: PlyHeader, wanted: set[str]) -> dict[str, np.ndarray]
             row += e.count
             if e.name in wanted:
                 out[e.name] = _parse_ascii(path, e, block)
+        if last == len(header.elements) - 1 and row < len(lines):
+            e = header.elements[last]
+            raise PlyError(f"{path}: element '{e.name}' declares {e.count} rows but the body has "
+                           f"{len(lines) - row} more non-empty lines after them")
         return out
     size, offset = path.stat().st_size, header.body_offset
     with open(path, "rb") as f:
@@ -473,7 +480,7 @@ def save_ply(scene: GaussianScene, path: str | os.PathLike) -> Path:
 
     ``opacity`` = logit(clip(o, OPACITY_EPS, 1 - OPACITY_EPS)), ``scale_*`` = ln(s), both computed in
     float64 and stored as float32; ``nx ny nz`` = 0; ``f_rest`` channel-major. Written to a temporary file
-    in the same folder and moved into place with ``os.replace``. Returns the path.
+    (``files.atomic_write_bytes``: fsync'd temp file, ``os.replace``). Returns the path.
     """
     path = Path(path)
     n, k = len(scene), (scene.sh_degree + 1) ** 2
@@ -487,16 +494,5 @@ def save_ply(scene: GaussianScene, path: str | os.PathLike) -> Path:
     names = inria_property_names(scene.sh_degree)
     head = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
                      + [f"property float {p}" for p in names] + ["end_header\n"])
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(head.encode("ascii"))
-            f.write(np.ascontiguousarray(body).tobytes())
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, head.encode("ascii") + np.ascontiguousarray(body).tobytes())
     return path

@@ -17,34 +17,40 @@ import time
 from pathlib import Path
 
 import numpy as np
-import OpenImageIO as oiio
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.cameras import viewmats_from_c2w
-from scenesplat_stereo.encode import to_uint8
+from scenesplat_stereo.cameras import scale_intrinsics, viewmats_from_c2w
+from scenesplat_stereo.encode import encode_png
+from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.gaussians import load_ply
-from scenesplat_stereo.raster import rasterization
-from scenesplat_stereo.render_pairs import tile_size_for
+from scenesplat_stereo.raster import check_device, rasterization, tile_size_for
 from scenesplat_stereo.teachers import OrbitSpec, Teacher, discover_teachers, resolve_trajectory
+from scenesplat_stereo.text import argtype, parse_size, whole_number
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("source", type=Path, help="a teacher folder, or a .ply file (then --orbit is used)")
     p.add_argument("--out", type=Path, required=True, help="output folder for frame_<k>.png")
-    p.add_argument("--orbit", default="radius=6,frames=8,size=640x480",
+    p.add_argument("--orbit", type=argtype(OrbitSpec.parse, "--orbit"),
+                   default="radius=6,frames=8,size=640x480",
                    help="orbit for a .ply or a teacher without trajectory: 'radius=R,frames=N,elevation=DEG,"
                         "size=WxH,fov=DEG,up=-y' (radius in world units; default %(default)s)")
-    p.add_argument("--max-frames", type=int, default=None, help="render only the first N frames")
-    p.add_argument("--resolution", default=None, help="WxH override (intrinsics rescaled)")
+    p.add_argument("--max-frames", type=whole_number("--max-frames"), default=None, help="render only the first N frames")
+    p.add_argument("--resolution", type=argtype(parse_size, "--resolution"), default=None, metavar="WxH",
+                   help="render size in pixels (intrinsics rescaled)")
     p.add_argument("--rasterize-mode", default="antialiased", choices=("classic", "antialiased"),
                    help="antialiased (default, as the dataset) or classic 3DGS")
     p.add_argument("--alpha", action="store_true", help="also write alpha_<k>.png (8-bit opacity)")
-    p.add_argument("--batch", type=int, default=4, help="cameras per rasterization call")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")
+    p.add_argument("--batch", type=whole_number("--batch"), default=4, help="cameras per rasterization call")
+    p.add_argument("--device", type=argtype(check_device, "--device"),
+                   default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")
 
 
 def _teacher_for(source: Path, orbit: OrbitSpec) -> Teacher:
+    """The teacher of SOURCE; ValueError naming SOURCE and the reason when it is none."""
+    if not source.exists():
+        raise ValueError(f"SOURCE {source}: no such file or folder")
     if source.suffix == ".ply":
         with tempfile.TemporaryDirectory() as tmp:  # a one-teacher root around the file
             link = Path(tmp) / source.stem
@@ -57,32 +63,25 @@ def _teacher_for(source: Path, orbit: OrbitSpec) -> Teacher:
         found = discover_teachers(source, orbit)
     if not found.teachers:
         reason = found.rejected[0].reason if found.rejected else "no teacher layout found"
-        raise SystemExit(f"render: {source}: {reason}")
+        raise ValueError(f"SOURCE {source}: {reason}")
     return found.teachers[0]
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
-    """Write an [H, W, C] uint8 image as PNG through OpenImageIO, atomically (temp file + rename)."""
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    spec = oiio.ImageSpec(image.shape[1], image.shape[0], image.shape[2], "uint8")
-    out = oiio.ImageOutput.create(str(tmp))
-    if out is None or not out.open(str(tmp), spec) or not out.write_image(np.ascontiguousarray(image)):
-        raise RuntimeError(f"render: could not write {tmp}: {oiio.geterror()}")
-    out.close()
-    os.replace(tmp, path)
-
-
 def run(args: argparse.Namespace) -> int:
-    teacher = _teacher_for(args.source, OrbitSpec.parse(args.orbit))
-    scene = load_ply(teacher.ply_path)
+    """CLI entry: exit 2 with one line naming the flag or file when an input is unusable."""
+    try:
+        if args.out.exists() and not args.out.is_dir():
+            raise ValueError(f"--out {args.out}: exists and is not a folder")
+        teacher = _teacher_for(args.source, args.orbit)
+        scene = load_ply(teacher.ply_path)
+    except (OSError, ValueError) as e:
+        print(f"scenesplat-stereo render: error: {e}", file=sys.stderr)
+        return 2
     teacher = resolve_trajectory(teacher, scene.means)
     c2w, Ks, width, height = teacher.c2w, teacher.Ks, teacher.width, teacher.height
     if args.resolution:
-        from scenesplat_stereo.cameras import scale_intrinsics
-
-        w2, h2 = (int(v) for v in args.resolution.lower().split("x"))
-        Ks = np.stack([scale_intrinsics(K, (width, height), (w2, h2)) for K in Ks])
-        width, height = w2, h2
+        Ks = np.stack([scale_intrinsics(K, (width, height), args.resolution) for K in Ks])
+        width, height = args.resolution
     if args.max_frames:
         c2w, Ks = c2w[: args.max_frames], Ks[: args.max_frames]
     g = scene.to_torch(args.device)
@@ -98,9 +97,10 @@ def run(args: argparse.Namespace) -> int:
                 rasterize_mode=args.rasterize_mode, tile_size=tile_size_for(args.device),
             )
             for k in range(img.shape[0]):
-                _write_png(args.out / f"frame_{i + k:04d}.png", to_uint8(img[k].cpu().numpy()))
+                atomic_write_bytes(args.out / f"frame_{i + k:04d}.png", encode_png(img[k].cpu().numpy()))
                 if args.alpha:
-                    _write_png(args.out / f"alpha_{i + k:04d}.png", to_uint8(alpha[k].cpu().numpy()))
+                    atomic_write_bytes(args.out / f"alpha_{i + k:04d}.png",
+                                       encode_png(alpha[k].cpu().numpy()))
             bar.update(img.shape[0])
     dt = time.perf_counter() - t0
     print(f"{teacher.scene_id}: {len(c2w)} frames {width}x{height}, {len(scene):,} Gaussians, SH {scene.sh_degree}, "

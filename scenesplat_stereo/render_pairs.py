@@ -19,16 +19,9 @@ import torch
 from scenesplat_stereo.cameras import viewmats_from_c2w
 from scenesplat_stereo.encode import SampleImages
 from scenesplat_stereo.protocol import MASK_ALPHA_THRESHOLD, SampleMeta, SamplePlan
-from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.raster import rasterization, tile_size_for
 
 _copy_streams: dict[torch.device, torch.cuda.Stream] = {}
-
-
-def tile_size_for(device: str) -> int:
-    """Tile edge for rendering on ``device``: the image does not depend on it, the time does. Warp runs
-    CPU kernels serially, so shorter per-tile lists win there (8 px: 3.4x faster than 16 at 320x180,
-    docs/benchmarks.md); on CUDA 16 px (gsplat's default) keeps 256-thread blocks."""
-    return 8 if str(device) == "cpu" else 16
 
 
 @dataclass

@@ -29,25 +29,16 @@ from typing import Any
 
 import numpy as np
 
+from scenesplat_stereo.files import TMP_PREFIX as _TMP_PREFIX
+from scenesplat_stereo.files import atomic_write_bytes
+
+__all__ = ["atomic_write_bytes"]  # re-exported: the one atomic writer lives in scenesplat_stereo.files
+
 SHARD_NAME = "shard-{:06d}.tar"
 DONE_DIR = ".done"
 INDEX_NAME = "index.json"
 STATS_NAME = "stats.json"
 _SHARD_RE = re.compile(r"^shard-(\d{6,})\.tar$")
-_TMP_PREFIX = ".tmp-"
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temp file in the same folder and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{_TMP_PREFIX}{os.getpid()}-{path.name}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _json_bytes(obj: Any) -> bytes:
@@ -100,9 +91,9 @@ class ShardWriter:
     ("left.jpg", "target_03.jpg", "mask_03.png", "json", ...) mapped to bytes.
 
     Each shard is streamed to a temp file (a stale one from a killed run is removed first) and
-    ``os.replace``'d into place when full or when the ``with`` block ends normally; its done marker
-    follows. If the block ends with an exception, the shard in progress is discarded. ``written`` lists
-    the shard numbers completed.
+    ``os.replace``'d into place when full or on ``close()``; its done marker follows. ``abort()`` throws
+    the shard in progress away. As a context manager, a ``with`` block that ends normally closes and one
+    that ends with an exception aborts. ``written`` lists the shard numbers completed.
     """
 
     def __init__(self, root: Path, split: str, samples_per_shard: int, first_shard: int = 0) -> None:
@@ -181,7 +172,13 @@ class ShardWriter:
         self._tar = self._file = None
         self.next_shard += 1
 
-    def _discard(self) -> None:
+    def close(self) -> None:
+        """Finish the shard in progress (if any sample was added since the last one finished)."""
+        if self._tar is not None:
+            self._finish()
+
+    def abort(self) -> None:
+        """Throw the shard in progress away (its temp file is removed); finished shards stay."""
         if self._tar is not None:
             try:
                 self._tar.close()
@@ -195,10 +192,10 @@ class ShardWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None and self._tar is not None:
-            self._finish()
+        if exc_type is None:
+            self.close()
         else:
-            self._discard()
+            self.abort()
 
 
 class PlannedShards:
@@ -217,17 +214,16 @@ class PlannedShards:
         if key != keys[self.count]:
             raise RuntimeError(f"shard {number}: got sample {key}, planned {keys[self.count]}")
         if self.writer is None:
-            self.writer = ShardWriter(self.root, self.split, len(keys), first_shard=number).__enter__()
-        self.writer.add(key, members)
+            self.writer = ShardWriter(self.root, self.split, len(keys), first_shard=number)
+        self.writer.add(key, members)  # the writer finishes the shard by itself at its len(keys)-th sample
         self.count += 1
         if self.count == len(keys):
-            self.writer.__exit__(None, None, None)
             self.writer, self.count, self.index = None, 0, self.index + 1
             self.done, self.pairs = self.done + 1, self.pairs + len(keys)
 
     def discard(self) -> None:
         if self.writer is not None:
-            self.writer._discard()
+            self.writer.abort()
             self.writer = None
 
 
@@ -237,7 +233,7 @@ def remove_unplanned(root: Path, split: str, planned: set[int]) -> int:
     folder = Path(root) / split
     if not folder.is_dir():
         return 0
-    for tmp in folder.glob(f"{_TMP_PREFIX}*"):
+    for tmp in [*folder.glob(f"{_TMP_PREFIX}*"), *(folder / DONE_DIR).glob(f"{_TMP_PREFIX}*")]:
         tmp.unlink(missing_ok=True)
     numbers = {int(m.group(1)) for p in folder.glob("shard-*.tar") if (m := _SHARD_RE.match(p.name))}
     numbers |= {int(m.group(1)) for p in (folder / DONE_DIR).glob("shard-*.json")

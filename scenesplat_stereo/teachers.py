@@ -5,10 +5,10 @@ reader each (nerfstudio dataparser style):
 
 - ``scenesplat`` (SceneSplat-7K / gsplat trainer): ``ckpts/point_cloud_<step>.ply`` (highest step),
   PSNR from ``stats/val_step<step>.json`` key ``psnr`` (the checkpoint's step, else the highest step
-  present), trajectory ``transforms_train.json`` (else ``transforms.json``).
+  present, with a warning), trajectory ``transforms_train.json`` (else ``transforms.json``).
 - ``inria`` (INRIA trainer output): ``point_cloud/iteration_<N>/point_cloud.ply`` (highest N),
   trajectory ``cameras.json``, PSNR from ``results.json`` ``{"ours_<N>": {"PSNR": ...}}`` (the
-  checkpoint's N, else the highest present) when the file exists.
+  checkpoint's N, else the highest present, with a warning) when the file exists.
 - ``plain``: ``point_cloud.ply`` (or the folder's single ``.ply``), optional ``transforms.json``.
 
 Any layout may carry ``scene.json`` ``{"psnr": float, "camera_convention": "opencv"|"opengl",
@@ -49,6 +49,7 @@ import numpy as np
 from scenesplat_stereo.cameras import (intrinsics_matrix, opengl_to_opencv, orbit_poses, orthonormalize,
                                        rigid_error, scale_intrinsics)
 from scenesplat_stereo.gaussians import PlyError, read_ply_header
+from scenesplat_stereo.text import format_table, key_safe_name, parse_size
 
 Layout = Literal["scenesplat", "inria", "plain"]
 
@@ -76,15 +77,19 @@ class OrbitSpec:
     fov_x_deg: float = 60.0
 
     def __post_init__(self) -> None:
-        if not (self.radius > 0 and self.n_frames >= 1 and self.width >= 1 and self.height >= 1):
-            raise ValueError(f"OrbitSpec: radius, n_frames, width, height must be positive: {self}")
+        if not (math.isfinite(self.radius) and self.radius > 0):
+            raise ValueError(f"radius must be a finite number > 0 (world units), got {self.radius}")
+        if not (self.n_frames >= 1 and self.width >= 1 and self.height >= 1):
+            raise ValueError(f"frames, width and height must be >= 1, got {self.n_frames}, {self.width}x{self.height}")
         if not 0.0 < self.fov_x_deg < 180.0:
-            raise ValueError(f"OrbitSpec: fov_x_deg must be in (0, 180), got {self.fov_x_deg}")
+            raise ValueError(f"fov must be in (0, 180) degrees, got {self.fov_x_deg}")
+        if not -90.0 < self.elevation_deg < 90.0:
+            raise ValueError(f"elevation must be in (-90, 90) degrees, got {self.elevation_deg}")
 
     @classmethod
-    def parse(cls, text: str) -> OrbitSpec:
+    def parse(cls, text: str, flag: str = "--orbit") -> OrbitSpec:
         """``"6"`` or ``"radius=6,frames=60,elevation=20,size=616x456,fov=60,up=-y"`` (up: +x -x +y
-        -y +z -z)."""
+        -y +z -z). ValueError naming ``flag`` and the bad item."""
         keys = {"radius": "radius", "frames": "n_frames", "elevation": "elevation_deg", "fov": "fov_x_deg"}
         kwargs: dict = {}
         for i, item in enumerate(t.strip() for t in text.split(",") if t.strip()):
@@ -95,17 +100,20 @@ class OrbitSpec:
                 if key in keys:
                     kwargs[keys[key]] = int(value) if key == "frames" else float(value)
                 elif key == "size":
-                    kwargs["width"], kwargs["height"] = (int(v) for v in value.lower().split("x"))
+                    kwargs["width"], kwargs["height"] = parse_size(value, "size")
                 elif key == "up" and re.fullmatch(r"[+-][xyz]", value):
                     axis = np.eye(3)["xyz".index(value[1])] * (1.0 if value[0] == "+" else -1.0)
                     kwargs["up"] = tuple(float(a) for a in axis)
                 else:
                     raise ValueError(f"unknown key or value {item!r}")
             except ValueError as e:
-                raise ValueError(f"--orbit {text!r}: {e}") from None
+                raise ValueError(f"{flag} {text!r}: {e}") from None
         if "radius" not in kwargs:
-            raise ValueError(f"--orbit {text!r}: radius is required")
-        return cls(**kwargs)
+            raise ValueError(f"{flag} {text!r}: radius is required")
+        try:
+            return cls(**kwargs)
+        except ValueError as e:
+            raise ValueError(f"{flag} {text!r}: {e}") from None
 
     def intrinsics(self) -> np.ndarray:
         fx = 0.5 * self.width / math.tan(math.radians(0.5 * self.fov_x_deg))
@@ -197,11 +205,15 @@ def _highest(paths: list[Path], pattern: str) -> tuple[int, Path] | None:
 
 
 def _psnr_for_step(candidates: dict[int, Path], step: int, key_of, label: str) -> float | None:
-    """PSNR from the candidate file of ``step``, else of the highest step present; None if none."""
+    """PSNR from the candidate file of ``step``, else of the highest step present (with a warning naming
+    both steps); None if none."""
     if not candidates:
         return None
     chosen = step if step in candidates else max(candidates)
     path = candidates[chosen]
+    if chosen != step:
+        warnings.warn(f"{path}: no PSNR for the checkpoint's step {step}; using step {chosen}'s "
+                      f"({label.format(step=chosen)})", stacklevel=2)
     value = key_of(_read_json(path), chosen)
     if value is None:
         raise TeacherError(path, label.format(step=chosen), "missing")
@@ -238,7 +250,10 @@ def _read_inria(folder: Path) -> _Found | None:
                 if (m := re.fullmatch(r"ours_(\d+)", k))}
         if not keys:
             raise TeacherError(results, "ours_<N>", "no entry")
-        psnr = _psnr_for_step(keys, step, lambda d, s: (d.get(f"ours_{s}") or {}).get("PSNR"), "ours_{step}.PSNR")
+        for k, entry in data.items():
+            if re.fullmatch(r"ours_\d+", k) and not isinstance(entry, dict):
+                raise TeacherError(results, k, f"expected an object {{\"PSNR\": dB, ...}}, got {entry!r}")
+        psnr = _psnr_for_step(keys, step, lambda d, s: d[f"ours_{s}"].get("PSNR"), "ours_{step}.PSNR")
     trajectory = folder / "cameras.json" if (folder / "cameras.json").is_file() else None
     return _Found("inria", it_dir / "point_cloud.ply", psnr, trajectory)
 
@@ -327,10 +342,15 @@ def _inria_frame(path: Path, i: int, cam: object) -> Frame:
             raise TeacherError(path, f"{where}.{key}", "missing")
     w, h, fx, fy = (_number(cam[k], path, f"{where}.{k}", positive=True) for k in ("width", "height", "fx", "fy"))
     try:
-        pose = np.eye(4)
-        pose[:3, :3], pose[:3, 3] = np.array(cam["rotation"], dtype=float), np.array(cam["position"], dtype=float)
+        rotation, position = np.array(cam["rotation"], dtype=float), np.array(cam["position"], dtype=float)
     except (TypeError, ValueError):
         raise TeacherError(path, f"{where}.rotation/position", "not a 3x3 matrix and a 3-vector") from None
+    if rotation.shape != (3, 3):
+        raise TeacherError(path, f"{where}.rotation", f"expected a 3x3 matrix, got shape {rotation.shape}")
+    if position.shape != (3,):
+        raise TeacherError(path, f"{where}.position", f"expected 3 numbers, got shape {position.shape}")
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rotation, position
     return (_pose(pose, path, f"{where}.rotation/position"), intrinsics_matrix(fx, fy, 0.5 * w, 0.5 * h),
             (round(w), round(h)), str(cam.get("img_name", f"frame_{i:06d}")))
 
@@ -437,8 +457,9 @@ def _teacher_folders(root: Path) -> list[Path]:
 
 def discover_teachers(root: Path, orbit: OrbitSpec | None = None) -> Discovery:
     """Find every teacher under ``root`` (see the module docstring). ``orbit`` gives a trajectory to
-    teachers that have none; without it they are rejected. Scene ids are folder names; a '.' (which
-    would break WebDataset keys) becomes '_' with a warning; a duplicate id is rejected."""
+    teachers that have none; without it they are rejected. Scene ids are folder names made
+    usable in sample keys (``text.key_safe_name``: '.', '/', whitespace and '__' become '_', with a
+    warning); a duplicate id is rejected."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"teachers root {root} is not a folder")
@@ -446,10 +467,15 @@ def discover_teachers(root: Path, orbit: OrbitSpec | None = None) -> Discovery:
     seen: dict[str, Path] = {}
     renamed = 0
     for folder in _teacher_folders(root):
-        scene_id = folder.resolve().name.replace(".", "_")
-        renamed += scene_id != folder.resolve().name
+        name = folder.resolve().name
         subset = _subset_from_folder(folder)
         try:
+            try:
+                scene_id = key_safe_name(name)
+            except ValueError as e:
+                scene_id = name
+                raise TeacherError(folder, "folder name", str(e)) from None
+            renamed += scene_id != name
             if scene_id in seen:
                 raise TeacherError(folder, "scene id", f"duplicate of {seen[scene_id]}")
             teacher = _read_teacher(folder, scene_id, orbit)
@@ -459,8 +485,8 @@ def discover_teachers(root: Path, orbit: OrbitSpec | None = None) -> Discovery:
         seen[scene_id] = folder
         found.teachers.append(teacher)
     if renamed:
-        warnings.warn(f"{root}: {renamed} scene folder names contain '.', replaced by '_' in scene ids",
-                      stacklevel=2)
+        warnings.warn(f"{root}: {renamed} scene folder names contain '.', '/', whitespace or '__', replaced by "
+                      "'_' in scene ids", stacklevel=2)
     return found
 
 
@@ -490,20 +516,15 @@ def summary_table(discovery: Discovery, dropped: list[Rejection] = (), per_teach
     rows = [("subset", "found", "kept", "dropped")]
     for s in sorted({x.subset for x in found}) + ["total"]:
         rows.append((s, *(str(sum(s in ("total", x.subset) for x in group)) for group in (found, kept, drops))))
-    lines = _format_rows(rows)
+    lines = [format_table(rows)]
     if per_teacher and kept:
-        lines += ["", "kept teachers:"] + _format_rows(
+        lines += ["", "kept teachers:", format_table(
             [("scene", "subset", "layout", "frames", "size", "SH", "PSNR", "trajectory")]
             + [(t.scene_id, t.subset, t.layout, str(t.num_frames), f"{t.width}x{t.height}", str(t.sh_degree),
                 "-" if t.psnr is None else f"{t.psnr:.2f}", f"{t.trajectory} ({t.camera_convention})")
-               for t in kept])
+               for t in kept])]
     if drops:
         lines += ["", f"dropped ({len(drops)}):"] + [f"  {r.scene_id} [{r.subset}] {r.reason}  ({r.path})"
                                                       for r in drops]
     return "\n".join(lines)
 
-
-def _format_rows(rows: list[tuple[str, ...]]) -> list[str]:
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    return ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths)))
-            for r in rows]

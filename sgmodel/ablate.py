@@ -18,7 +18,8 @@ import json
 import time
 from pathlib import Path
 
-from scenesplat_stereo.shards import atomic_write_bytes
+from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.text import markdown_table
 
 from . import evaluate
 from .config import ModelParams, TrainParams
@@ -95,19 +96,18 @@ def table(rows: list[tuple[str, str, dict]], schedule: TrainParams, base: ModelP
     """Markdown in the Table 4 layout: blocks of variants, PSNR / SSIM / LPIPS (full and valid pixels)."""
     lines = [f"Validation split; schedule: {schedule.steps} steps, batch {schedule.batch_size}, {schedule.targets} "
              f"targets, lr {schedule.lr}; {base.resolution}x{base.resolution}, P = {base.padding}, encoder "
-             f"{base.encoder.name}; device {device}; this run {wall_s / 60:.1f} min (finished parts read back).", "",
-             "| Variant | PSNR ↑ | SSIM ↑ | LPIPS ↓ | PSNR (valid) ↑ | SSIM (valid) ↑ |", "|---|---|---|---|---|---|"]
-    current = None
+             f"{base.encoder.name}; device {device}; this run {wall_s / 60:.1f} min (finished parts read back).", ""]
+    body, current = [], None
     for block, name, result in rows:
         if block != current and block:
-            lines.append(f"| **{block}** | | | | | |")
+            body.append([f"**{block}**", "", "", "", "", ""])
         current = block
         m = result["mean"]
         lpips = f"{m['lpips']:.4f}" if "lpips" in m else "n/a"
-        label = f"**{name}**" if not block else name
-        lines.append(f"| {label} | {m['psnr']:.3f} | {m['ssim']:.4f} | {lpips} | {m['psnr_masked']:.3f} | "
-                     f"{m['ssim_masked']:.4f} |")
-    return "\n".join(lines) + "\n"
+        body.append([f"**{name}**" if not block else name, f"{m['psnr']:.3f}", f"{m['ssim']:.4f}", lpips,
+                     f"{m['psnr_masked']:.3f}", f"{m['ssim_masked']:.4f}"])
+    header = ["Variant", "PSNR ↑", "SSIM ↑", "LPIPS ↓", "PSNR (valid) ↑", "SSIM (valid) ↑"]
+    return "\n".join(lines) + "\n" + markdown_table(header, body) + "\n"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 
-from scenesplat_stereo.shards import atomic_write_bytes
+from scenesplat_stereo.files import atomic_write_bytes
 
 CHECKPOINT_FORMAT = "sgmodel-checkpoint-v1"
 REQUIRED = ("format", "model_params", "model", "step")

@@ -22,7 +22,8 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.shards import atomic_write_bytes
+from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.text import markdown_table
 
 from . import baselines, metrics
 from .data import make_loader
@@ -114,8 +115,6 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def scene_table(rows: list[dict]) -> str:
-    from scenesplat_stereo.tables import markdown_table
-
     scenes = sorted({r["scene"] for r in rows})
     cols = [k for k in ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "lpips_masked") if k in rows[0]]
     body = []

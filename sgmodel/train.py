@@ -24,7 +24,8 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from scenesplat_stereo.shards import atomic_write_bytes
+from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.text import format_table
 
 from . import metrics
 from .checkpoint import load_checkpoint, save_checkpoint
@@ -150,7 +151,7 @@ def _check_resumable(paths: RunPaths, config: dict) -> bool:
         return False
     if not paths.config.exists():
         raise ValueError(f"{paths.root}: exists and is not a training run (no config.json); choose another --out")
-    old = json.loads(paths.config.read_text())
+    old, config = json.loads(paths.config.read_text()), json.loads(json.dumps(config))  # as JSON sees it
     for part in ("model", "data", "encoder", "loss"):
         if old.get(part) != config[part]:
             raise ValueError(f"{paths.root}: was trained with other settings ({part} differs); use a new --out "
@@ -270,12 +271,10 @@ def _state(model, config, optimizer, scheduler, step, best, best_step, world: Wo
 
 def summary_table(metrics_path: Path, summary: dict) -> str:
     """The validation history as a text table, then the best step."""
-    from scenesplat_stereo.tables import text_table
-
     rows = [json.loads(line) for line in metrics_path.read_text().splitlines() if "val_psnr" in line]
-    table = text_table(["step", "val PSNR (dB)", "valid-pixel PSNR (dB)", "targets"],
-                       [[r["step"], f"{r['val_psnr']:.2f}", f"{r['val_psnr_masked']:.2f}", r["val_targets"]]
-                        for r in rows])
+    table = format_table([["step", "val PSNR (dB)", "valid-pixel PSNR (dB)", "targets"]] +
+                         [[r["step"], f"{r['val_psnr']:.2f}", f"{r['val_psnr_masked']:.2f}", r["val_targets"]]
+                          for r in rows], rule=True)
     return (f"{table}\nbest validation PSNR {summary['best_val_psnr']:.2f} dB at step {summary['best_step']}; "
             f"{summary['steps']} steps in {summary['wall_s']:.0f} s; checkpoints in {summary['run']}/checkpoints")
 

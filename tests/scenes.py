@@ -25,7 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from reference import reference_rasterization
+from scenesplat_stereo.reference import as_renderer_sees, reference_rasterization
 
 # Tolerances against the float64 reference (the issue's acceptance numbers).
 PSNR_MIN_DB = 50.0  # RGB, peak 1, per image
@@ -49,8 +49,6 @@ MAX_KNIFE_EDGE_FRACTION = 0.005
 # Per-pixel colour tolerance: alpha's, scaled by the largest reference colour. PSNR >= 50 dB alone would
 # let a bug at a few pixels through (one pixel off by 0.1 in a 64x48 image still scores ~60 dB).
 RGB_TOL = ALPHA_TOL
-# The float parameters the renderer sees as float32 (see ``render_both``).
-_FLOAT32_PARAMS = ("near_plane", "far_plane", "eps2d", "max_alpha")
 
 
 def intrinsics(width: int, height: int, fov_x_deg: float = 60.0, cx: float | None = None,
@@ -133,17 +131,14 @@ def render_both(scene: dict[str, torch.Tensor], viewmats: torch.Tensor, Ks: torc
                 height: int, **kwargs) -> tuple[tuple, tuple]:
     """Render with our Warp ``rasterization`` and with the float64 reference: ((colors, alphas, meta) x 2).
 
-    The float parameters ``near_plane, far_plane, eps2d, max_alpha`` reach the reference rounded to float32,
-    the values the float32 renderer actually computes with: e.g. with max_alpha = 0.99, two stacked opaque
-    Gaussians give T (1 - alpha) = (1 - 0.99)^2 = 1.0000000000000002e-4 > 1e-4 in float64 but
-    (1 - float32(0.99))^2 = 9.99998e-5 <= 1e-4; the reference must judge the renderer's actual input.
+    The float parameters reach the reference rounded to float32 (``reference.as_renderer_sees``), the values
+    the float32 renderer actually computes with.
     """
     from scenesplat_stereo.raster import rasterization
 
     ours = rasterization(scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["colors"],
                          viewmats, Ks, width, height, **kwargs)
-    ref_kwargs = {k: float(np.float32(v)) if k in _FLOAT32_PARAMS else v for k, v in kwargs.items()}
-    ref_kwargs.setdefault("max_alpha", float(np.float32(0.99)))
+    ref_kwargs = as_renderer_sees(kwargs)
     with torch.no_grad():
         ref = reference_rasterization(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
                                       scene["colors"], viewmats, Ks, width, height, **ref_kwargs)

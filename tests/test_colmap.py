@@ -15,7 +15,7 @@ pytest.importorskip("pycolmap")
 from irs_synthetic import align, cached_variant  # noqa: E402
 from pipelines import irs_pose_recovery  # noqa: E402
 from scenesplat_stereo.colmap import (EXHAUSTIVE_MAX_FRAMES, PinholeCamera, RecoveryOptions,  # noqa: E402
-                                      recover_poses, recovery_json, write_json_atomic)
+                                      recover_poses, recovery_json)
 
 FAST = dict(max_num_features=1024, num_threads=2)
 
@@ -61,10 +61,12 @@ def test_matching_choice_and_checks(tmp_path):
     assert RecoveryOptions(vocab_tree_path=tree).matching_for(500) == "sequential"
 
 
-def test_write_json_atomic(tmp_path):
+def test_atomic_write_json(tmp_path):
+    from scenesplat_stereo.files import atomic_write_json
+
     path = tmp_path / "sub" / "a.json"
-    write_json_atomic(path, {"x": [1, 2]})
-    write_json_atomic(path, {"x": [3]})
+    atomic_write_json(path, {"x": [1, 2]})
+    atomic_write_json(path, {"x": [3]})
     assert json.loads(path.read_text()) == {"x": [3]}
     assert sorted(p.name for p in path.parent.iterdir()) == ["a.json"]  # no temp file left behind
     umask = os.umask(0)

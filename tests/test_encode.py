@@ -187,3 +187,52 @@ def test_scratch_files_do_not_accumulate():
         list(ex.map(lambda i: (encode_jpeg(smooth_image(seed=i)), decode_image(encode_mask_png(np.eye(4, dtype=bool)), "png")),
                     range(9)))
     assert os.listdir(encode._scratch_dir()) == []
+
+
+# IJG / JPEG Annex K.1 luminance quantisation table (natural row order) and libjpeg's quality scaling,
+# written here from the standard: scale = 5000 / q for q < 50 else 200 - 2 q; entry = (base * scale + 50)
+# // 100 clamped to 1..255.
+_ANNEX_K_LUMA = [16, 11, 10, 16, 24, 40, 51, 61, 12, 12, 14, 19, 26, 58, 60, 55, 14, 13, 16, 24, 40, 57, 69, 56,
+                 14, 17, 22, 29, 51, 87, 80, 62, 18, 22, 37, 56, 68, 109, 103, 77, 24, 35, 55, 64, 81, 104, 113, 92,
+                 49, 64, 78, 87, 103, 121, 120, 101, 72, 92, 95, 98, 112, 100, 103, 99]
+_ZIGZAG = [0, 1, 8, 16, 9, 2, 3, 10, 17, 24, 32, 25, 18, 11, 4, 5, 12, 19, 26, 33, 40, 48, 41, 34, 27, 20, 13, 6, 7,
+           14, 21, 28, 35, 42, 49, 56, 57, 50, 43, 36, 29, 22, 15, 23, 30, 37, 44, 51, 58, 59, 52, 45, 38, 31, 39,
+           46, 53, 60, 61, 54, 47, 55, 62, 63]
+
+
+def _luma_table(jpeg: bytes) -> list[int]:
+    """Table 0 of the first DQT segment (0xFFDB), in natural order (the file stores zigzag order)."""
+    i = 2
+    while i < len(jpeg):
+        assert jpeg[i] == 0xFF
+        marker, length = jpeg[i + 1], int.from_bytes(jpeg[i + 2:i + 4], "big")
+        if marker == 0xDB:
+            seg = jpeg[i + 4:i + 2 + length]
+            assert seg[0] == 0x00, "8-bit table 0 expected first"
+            table = [0] * 64
+            for k, v in enumerate(seg[1:65]):
+                table[_ZIGZAG[k]] = v
+            return table
+        i += 2 + length
+    raise AssertionError("no DQT segment")
+
+
+def _ijg_table(quality: int) -> list[int]:
+    scale = 5000 // quality if quality < 50 else 200 - 2 * quality
+    return [min(255, max(1, (b * scale + 50) // 100)) for b in _ANNEX_K_LUMA]
+
+
+def test_written_jpeg_bytes_are_quality_92():
+    """The JPEG bytes a sample stores carry the quantisation table of quality 92 (not just 'some quality')."""
+    from scenesplat_stereo.encode import SampleImages, encode_sample
+    from scenesplat_stereo.protocol import JPEG_QUALITY
+
+    assert JPEG_QUALITY == 92
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (16, 24, 3), dtype=np.uint8)
+    sample = SampleImages(key="s__000000", left=img, right=img, targets=img[None], masks=np.ones((1, 16, 24), bool),
+                          target_ids=(0,), meta=b"{}", depth=None)
+    members = encode_sample(sample)
+    for name in ("left.jpg", "right.jpg", "target_00.jpg"):
+        assert _luma_table(members[name]) == _ijg_table(92), name
+    assert _ijg_table(92) != _ijg_table(91) and _ijg_table(92) != _ijg_table(93)

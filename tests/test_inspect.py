@@ -17,7 +17,7 @@ from scenesplat_stereo import shards
 from scenesplat_stereo.build import build
 from scenesplat_stereo.cli import main
 from scenesplat_stereo.encode import decode_image, encode_mask_png
-from scenesplat_stereo.inspect import THUMB_WIDTH, inspect_dataset, table
+from scenesplat_stereo.inspection import THUMB_WIDTH, inspect_dataset, table
 
 
 @pytest.fixture(scope="module")

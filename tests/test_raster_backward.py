@@ -1,4 +1,4 @@
-"""The rasteriser's hand-written backward pass against the float64 reference (tests/reference.py).
+"""The rasteriser's hand-written backward pass against the float64 reference (scenesplat_stereo/reference.py).
 
 Truth: torch autograd through ``reference_rasterization`` (float64, written from SPEC section 2 only) and,
 independently of autograd, central finite differences of that reference. The loss is a random cotangent
@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import torch
 
-from reference import reference_rasterization
+from scenesplat_stereo.reference import reference_rasterization
 from scenes import camera_rig, intrinsics, knife_edge_pixels, random_scene
 from scenesplat_stereo.raster import autograd, rasterization
 from scenesplat_stereo.raster.composite_backward import composite_backward
@@ -184,7 +184,7 @@ def test_sh_stage_matches_reference(sh_degree, device):
     """The SH stage alone, for directions over the whole sphere (in renders they point roughly along the
     camera axis, where the normalisation hides errors along it) and of any length, with extra bands beyond
     the degree (zero gradient), some channels clamped at 0 and some culled pairs (zero gradient)."""
-    from reference import sh_colors as reference_sh_colors
+    from scenesplat_stereo.reference import sh_colors as reference_sh_colors
 
     g = torch.Generator().manual_seed(sh_degree)
     C, N, K = 3, 64, 16

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from reference import SH_C1, reference_rasterization, sh_basis
+from scenesplat_stereo.reference import SH_C1, reference_rasterization, sh_basis
 from scenes import (assert_matches_reference, camera_rig, knife_edge_pixels, orbit_cameras, random_scene,
                     render_both)
 
@@ -191,9 +191,9 @@ def test_reference_sh_colour_direction_from_camera_centre() -> None:
 
 @pytest.mark.parametrize("rasterize_mode", ["classic", "antialiased"])
 def test_reference_block_pruning_is_exact(monkeypatch: pytest.MonkeyPatch, rasterize_mode: str) -> None:
-    """The reference's per-block pruning (tests/reference.py ``_touch_extents``) changes nothing: the same
+    """The reference's per-block pruning (``reference._touch_extents``) changes nothing: the same
     scene with unbounded extents (every Gaussian against every pixel) gives the same image and decisions."""
-    import reference
+    from scenesplat_stereo import reference
 
     scene = random_scene(150, seed=7, sh_degree=1, scale=(0.01, 1.0), opacity=(0.0, 1.0))
     viewmats, Ks = camera_rig(2, 37, 21, seed=5)
@@ -282,8 +282,8 @@ def test_plain_features_and_three_cameras(channels: int) -> None:
     assert_matches_reference(ours, ref, "RGB+D")
 
 
-def test_tile_size_does_not_change_the_image() -> None:
-    """Tile sizes 8, 16, 32 on a 70x45 image (no size a multiple of 16 or 32) give the same outputs."""
+def test_tile_size_changes_the_image_by_at_most_1e5() -> None:
+    """Tile sizes 8, 16, 32 on a 70x45 image (no size a multiple of 16 or 32) give outputs within 1e-5 (not bit for bit: the order of float32 sums may change)."""
     from scenesplat_stereo.raster import rasterization
 
     scene = random_scene(300, seed=5, sh_degree=2)
@@ -314,3 +314,15 @@ def test_guitar_matches_reference(guitar_ply, rasterize_mode: str) -> None:
                             render_mode="RGB+ED", rasterize_mode=rasterize_mode, backgrounds=torch.ones(2, 3))
     assert float(ref[1].mean()) > 0.05 and int(ref[2]["n_composited"].max()) > 300
     assert_matches_reference(ours, ref, "RGB+ED", max_knife_edge_fraction=0.15)
+
+
+def test_reference_never_imports_the_rasteriser() -> None:
+    """The float64 truth must stay independent of the code it judges: importing it (in a fresh interpreter)
+    loads no module of ``scenesplat_stereo.raster`` and no Warp."""
+    import subprocess
+    import sys
+
+    code = ("import sys, scenesplat_stereo.reference; "
+            "print(sorted(m for m in sys.modules if m.startswith('scenesplat_stereo.raster') or m == 'warp'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

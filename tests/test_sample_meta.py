@@ -131,3 +131,26 @@ def test_unreadable_json(data, message):
     with pytest.raises(SampleMetaError, match=message):
         SampleMeta.from_json(data, "src")
     assert issubclass(SampleMetaError, ValueError)
+
+
+def test_json_bytes_match_hand_written_json():
+    c2w = np.eye(4)
+    c2w[:3, 3] = (1.0, 2.0, 3.0)
+    plan = SamplePlan(scene="s0", subset="ScanNetGS", frame=7, key="s0__000007", c2w_left=c2w,
+                      c2w_right=c2w + 0.5, c2w_targets=np.stack([c2w] * 3), target_ids=(0, 1, 2),
+                      K=np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]]), width=64, height=48,
+                      baseline=0.05, rho=0.1, teacher_psnr=31.5)
+    doc = json.loads(SampleMeta.from_plan(plan).to_json())
+    for f in ("scene", "subset", "frame", "width", "height", "K", "baseline", "rho", "teacher_psnr", "c2w_left", "targets"):
+        assert f in doc
+    assert doc["frame"] == 7 and doc["width"] == 64 and doc["K"][0][2] == 32
+    assert doc["c2w_left"][0][3] == 1.0 and len(doc["targets"]) == 3 and doc["target_ids"] == [0, 1, 2]
+    assert doc["teacher_psnr"] == 31.5 and doc["camera_convention"] == "opencv"
+    # The exact bytes: compact JSON, fields in SPEC order, float64 values as written (expected written here
+    # by hand, not from sample_json).
+    right = (c2w + 0.5).tolist()
+    want = {"key": "s0__000007", "scene": "s0", "subset": "ScanNetGS", "frame": 7, "width": 64, "height": 48,
+            "K": [[100.0, 0.0, 32.0], [0.0, 100.0, 24.0], [0.0, 0.0, 1.0]], "baseline": 0.05, "rho": 0.1,
+            "teacher_psnr": 31.5, "c2w_left": c2w.tolist(), "c2w_right": right, "target_ids": [0, 1, 2],
+            "targets": [c2w.tolist()] * 3, "camera_convention": "opencv"}
+    assert SampleMeta.from_plan(plan).to_json() == json.dumps(want, separators=(",", ":")).encode()

@@ -187,7 +187,7 @@ def test_orbit_teacher_resolved_from_median(tmp_path):
         resolve_trajectory(t, np.full((3, 3), np.nan))
 
 
-@pytest.mark.parametrize("text,error", [("", "radius is required"), ("radius=-1", "positive"),
+@pytest.mark.parametrize("text,error", [("", "radius is required"), ("radius=-1", "radius must be a finite number > 0"),
                                         ("radius=1,up=z", "unknown"), ("radius=1,fov=200", "fov")])
 def test_orbit_spec_parse_errors(text, error):
     with pytest.raises(ValueError, match=error):

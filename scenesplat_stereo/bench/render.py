@@ -5,7 +5,7 @@ Prints markdown tables (paste-ready for docs/benchmarks.md):
    antialiased) against gsplat 1.5.3's ``rasterization`` on the same inputs (when gsplat is importable);
 2. one-knob-at-a-time sweeps from a base setting (tile size, SH degree, rasterize mode, render mode,
    resolution, number of Gaussians): median ms per frame, PSNR against gsplat at the timed size, and PSNR
-   against the float64 reference (tests/reference.py, from a source checkout) on a small frame;
+   against the float64 reference (``scenesplat_stereo.reference``) on a small frame;
 3. with ``--backward``: forward+backward time and peak memory against gsplat, for the two headline
    workloads and the model's (32 scenes x 4 targets at 256x256, 2 x 288^2 Gaussians per scene).
 Times are medians of ``--repeats`` runs after warm-up, synchronised on CUDA. Peak memory is torch's
@@ -27,7 +27,9 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.cameras import look_at, viewmats_from_c2w
+from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.reference import as_renderer_sees, reference_rasterization
 
 # The real guitar teacher beside a checkout (../shared/data), or where SCENESPLAT_GUITAR_PLY points.
 GUITAR = Path(os.environ.get("SCENESPLAT_GUITAR_PLY", Path(__file__).resolve().parents[2].parent
@@ -125,36 +127,25 @@ def load_gsplat():
     return gs_rasterization
 
 
-def load_reference():
-    """tests/reference.py's float64 renderer from a source checkout, else None."""
-    path = Path(__file__).resolve().parents[2] / "tests" / "reference.py"
-    if not path.exists():
-        return None
-    spec = importlib.util.spec_from_file_location("_sss_reference", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.reference_rasterization
-
-
 def _fmt(x: float, digits: int = 1) -> str:
     return "n/a" if x is None else ("inf" if math.isinf(x) else f"{x:.{digits}f}")
 
 
-def reference_psnr(reference, s: Setting, device: str, seed: int = 1) -> float | None:
+def reference_psnr(s: Setting, device: str, seed: int = 1) -> float:
     """PSNR of our float32 render (on ``device``) against the float64 reference (on the CPU) on a small
-    frame of the same setting."""
-    if reference is None:
-        return None
+    frame of the same setting; the reference gets the float parameters rounded to float32 as the tests do
+    (``reference.as_renderer_sees``)."""
     small = replace(s, n=3000, width=max(8, s.width // 8), height=max(8, s.height // 8))
     scene = random_scene(small.n, s.sh_degree, "cpu", seed)
     viewmats, Ks = identity_camera(small.width, small.height, "cpu")
     on_device = {k: v.to(device) for k, v in scene.items()}
     ours = _render_fn(rasterization, on_device, viewmats.to(device), Ks.to(device), small, 0.99)()[0].cpu()
     d64 = {k: v.double() for k, v in scene.items()}
-    ref = reference(d64["means"], d64["quats"], d64["scales"], d64["opacities"], d64["colors"],
-                    viewmats.double(), Ks.double(), small.width, small.height, sh_degree=s.sh_degree,
-                    render_mode=s.render_mode, rasterize_mode=s.rasterize_mode,
-                    tile_size=s.tile_size)[0]
+    ref = reference_rasterization(d64["means"], d64["quats"], d64["scales"], d64["opacities"], d64["colors"],
+                    viewmats.double(), Ks.double(), small.width, small.height,
+                    **as_renderer_sees(dict(sh_degree=s.sh_degree, render_mode=s.render_mode,
+                                            rasterize_mode=s.rasterize_mode, tile_size=s.tile_size,
+                                            max_alpha=0.99)))[0]
     return psnr(ours[..., :3], ref[..., :3])
 
 
@@ -196,7 +187,7 @@ def headline(args, gs) -> list[str]:
     return out
 
 
-def sweeps(args, gs, reference) -> list[str]:
+def sweeps(args, gs) -> list[str]:
     device = args.device
     base = Setting(n=args.sweep_n, width=args.width, height=args.height)
     out = ["| setting | N | size | ours ms/frame | gsplat ms/frame | PSNR vs gsplat (dB) | PSNR vs float64 ref, small frame (dB) |",
@@ -214,7 +205,7 @@ def sweeps(args, gs, reference) -> list[str]:
             theirs = _render_fn(gs, scenes[key], viewmats, Ks, s, 0.999)
             t_gs = median_seconds(theirs, device, args.repeats)
             p = psnr(ours()[0][..., :3], theirs()[0][..., :3])
-        pref = reference_psnr(reference, s, device)
+        pref = reference_psnr(s, device)
         out.append(f"| {name} | {s.n:,} | {s.width}x{s.height} | {_fmt(t * 1e3, 2)} | "
                    f"{_fmt(t_gs and t_gs * 1e3, 2)} | {_fmt(p)} | {_fmt(pref)} |")
     return out
@@ -287,20 +278,19 @@ def run(args: argparse.Namespace) -> int:
     args.sweep_n = 20_000 if quick else 200_000
     args.model_size, args.model_scenes = (64, 2) if quick else (256, 32)
     gs = None if args.no_gsplat else load_gsplat()
-    reference = load_reference()
     name = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"CPU ({torch.get_num_threads()} threads)"
     lines = [f"Device: {name}; gsplat: {'1.5.3 (rasterization, max_alpha 0.999 on our side)' if gs else 'not installed'}; "
              f"median of {args.repeats} runs.", "", "### Headline workloads (forward)", ""]
     lines += headline(args, gs)
     lines += ["", "### One knob at a time (forward)", ""]
-    lines += sweeps(args, gs, reference)
+    lines += sweeps(args, gs)
     if args.backward:
         lines += ["", "### Forward + backward", ""]
         lines += backward_rows(args, gs)
     text = "\n".join(lines)
     print(text)
     if args.out:
-        args.out.write_text(text + "\n")
+        atomic_write_bytes(args.out, (text + "\n").encode())
     return 0
 
 

@@ -1,5 +1,6 @@
 """The Warp rasteriser: the only room that imports Warp. Both packages render through ``rasterization``."""
 
 from .rendering import RASTERIZE_MODES, RENDER_MODES, rasterization
+from .tiling import check_device, tile_size_for
 
-__all__ = ["rasterization", "RENDER_MODES", "RASTERIZE_MODES"]
+__all__ = ["rasterization", "RENDER_MODES", "RASTERIZE_MODES", "check_device", "tile_size_for"]

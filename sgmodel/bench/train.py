@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from scenesplat_stereo.shards import atomic_write_bytes
+from scenesplat_stereo.files import atomic_write_bytes
 
 from ..cli import add_model_arguments, params_from_args
 from ..data import make_loader

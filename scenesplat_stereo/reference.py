@@ -9,7 +9,9 @@ operation is out of place and differentiable with respect to means, quats (unnor
 scales, opacities, colors (SH coefficients or plain colours) and backgrounds. Culled Gaussians are removed
 by index selection *before* any division, so they get exactly zero (never NaN) gradients.
 
-It must never import ``scenesplat_stereo.raster``.
+It lives in the package (as gsplat ships ``_torch_impl.py``) so that ``bench render`` and
+scripts/gpu_parity.py find it in an installed copy too. It must never import ``scenesplat_stereo.raster``
+(tests/test_raster_forward.py checks this in a fresh interpreter).
 
 Conventions (SPEC section 1): OpenCV cameras (x right, y down, z forward); ``viewmats`` are world-to-camera;
 intrinsics in pixels; pixel (u, v) covers [u, u+1) x [v, v+1) and its centre is (u+0.5, v+0.5);
@@ -59,6 +61,20 @@ PRUNE_SLACK = 0.01
 DIAGNOSTICS = ("n_composited", "touch_margin", "stop_margin", "order_margin")
 # The [pixels, Gaussians] matrices hold at most this many entries at a time.
 _MAX_PAIRS = 1 << 21
+
+
+# The float parameters the float32 renderer computes with; the reference must judge the renderer's actual
+# input: e.g. with max_alpha = 0.99, two stacked opaque Gaussians give T (1 - alpha) = (1 - 0.99)^2 =
+# 1.0000000000000002e-4 > 1e-4 in float64 but (1 - float32(0.99))^2 = 9.99998e-5 <= 1e-4.
+FLOAT32_PARAMS = ("near_plane", "far_plane", "eps2d", "max_alpha")
+
+
+def as_renderer_sees(kwargs: dict) -> dict:
+    """``kwargs`` of a ``rasterization`` call with ``FLOAT32_PARAMS`` rounded to float32 (``max_alpha``
+    defaulting to float32(0.99)), to hand to ``reference_rasterization``."""
+    out = {k: float(torch.tensor(v, dtype=torch.float32)) if k in FLOAT32_PARAMS else v for k, v in kwargs.items()}
+    out.setdefault("max_alpha", float(torch.tensor(0.99, dtype=torch.float32)))
+    return out
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:

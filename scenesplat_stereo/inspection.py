@@ -6,7 +6,8 @@ sha256 and holds the listed keys in order; every sample has ``json``, ``left.jpg
 ``target_<jj>.jpg`` and ``mask_<jj>.png`` per stored target (``left_depth.exr`` in all samples of a split
 or none); the JSON has the SPEC fields and its poses follow the protocol (rigid c2w, right =
 T_L Trans(B, 0, 0), target = T_L Trans(rho u_j) with the Fibonacci directions, all with the reference
-orientation); images decode at width x height (RGB JPEGs, single-channel 0/255 PNG masks); and
+orientation; a sample whose JSON lists ``target_frames``, as IRS samples do, has real frames as targets:
+rigid and within rho of the left camera); images decode at width x height (RGB JPEGs, single-channel 0/255 PNG masks); and
 ``OUT/stats.json`` agrees with the counts read from the shards. ``--quick`` decodes the images of the
 first sample of each shard only. Baselines and radii that differ from the teacher's PSNR tier are noted,
 not failed (``--baseline``/``--rho`` override them on purpose).
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,9 +27,10 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo import shards
-from scenesplat_stereo.cameras import fibonacci_directions, rigid_error, translation
+from scenesplat_stereo.cameras import fibonacci_directions, right_camera, rigid_error, translation
 from scenesplat_stereo.encode import decode_image, encode_png
 from scenesplat_stereo.protocol import NUM_TARGETS, SampleMeta, SampleMetaError, sample_key, tier_for_psnr
+from scenesplat_stereo.text import whole_number
 
 POSE_TOLERANCE = 1e-6  # world units / unitless, for poses stored as float64 JSON
 THUMB_WIDTH = 128  # pixels, contact-sheet thumbnails
@@ -90,8 +93,18 @@ def _check_poses(key: str, meta: SampleMeta) -> list[str]:
     B, rho = meta.baseline, meta.rho
     scale = max(1.0, float(np.abs(left[:3, 3]).max()))
     if meta.c2w_right is not None:
-        if np.abs(meta.c2w_right - left @ translation(np.array([B, 0.0, 0.0]))).max() > POSE_TOLERANCE * scale:
+        if np.abs(meta.c2w_right - right_camera(left, B)).max() > POSE_TOLERANCE * scale:
             problems.append(f"{key}.json: c2w_right is not c2w_left Trans(B={B}, 0, 0)")
+    if meta.target_frames is not None:  # real frames as targets (IRS, SPEC section 6): rigid, within rho
+        frames = meta.target_frames
+        if len(frames) != len(targets):
+            return problems + [f"{key}.json: target_frames does not list one frame per target"]
+        dist = np.linalg.norm(targets[:, :3, 3] - left[:3, 3], axis=1)
+        bad = [ids[i] for i, t in enumerate(targets)
+               if rigid_error(t) > POSE_TOLERANCE or dist[i] > rho + POSE_TOLERANCE * scale]
+        if bad:
+            problems.append(f"{key}.json: targets {bad} are not rigid or lie farther than rho={rho} from c2w_left")
+        return problems
     want = left[None] @ translation(rho * fibonacci_directions(NUM_TARGETS)[ids])
     bad = np.abs(targets - want).max(axis=(1, 2)) > POSE_TOLERANCE * scale
     if bad.any():
@@ -131,9 +144,16 @@ def inspect_dataset(out: Path, contact_sheet: Path | None = None, sheet_samples:
     if not splits:
         report.problems.append(f"{out}: no <split>/{shards.INDEX_NAME}; not a built dataset")
     for split in splits:
-        index = json.loads((out / split / shards.INDEX_NAME).read_text())
+        try:
+            index = json.loads((out / split / shards.INDEX_NAME).read_text())
+            entries = [e for e in index["shards"] if all(k in e for k in ("name", "bytes", "sha256", "keys"))]
+            if len(entries) != len(index["shards"]):
+                raise KeyError("shards[].name/bytes/sha256/keys")
+        except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as e:
+            report.problems.append(f"{out / split / shards.INDEX_NAME}: unreadable ({type(e).__name__}: {e})")
+            continue
         depth_in: set[bool] = set()
-        for entry in tqdm(index["shards"], desc=f"inspect {split}", unit="shard", disable=not progress):
+        for entry in tqdm(entries, desc=f"inspect {split}", unit="shard", disable=not progress):
             path = out / split / entry["name"]
             if not path.is_file():
                 report.problems.append(f"{path}: listed in index.json but missing")
@@ -188,7 +208,11 @@ def _check_stats(out: Path, report: InspectReport, scenes: dict) -> None:
     if not path.is_file():
         report.problems.append(f"{path}: missing")
         return
-    stats = json.loads(path.read_text())
+    try:
+        stats = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        report.problems.append(f"{path}: unreadable ({e})")
+        return
     for (subset, split), row in report.counts.items():
         got = stats.get("subsets", {}).get(subset, {}).get("splits", {}).get(split, {})
         want = {k: row[k] for k in ("scenes", "pairs", "targets")}
@@ -249,13 +273,16 @@ def add_arguments(p) -> None:
     p.add_argument("out", type=Path, help="a folder written by `scenesplat-stereo build`")
     p.add_argument("--contact-sheet", type=Path, default=None,
                    help="PNG to write: left, right, targets and masks of a few samples (default OUT/contact_sheet.png)")
-    p.add_argument("--sheet-samples", type=int, default=4, help="samples on the contact sheet, one per scene (default 4)")
+    p.add_argument("--sheet-samples", type=whole_number("--sheet-samples", 0), default=4, help="samples on the contact sheet, one per scene (default 4)")
     p.add_argument("--quick", action="store_true", help="decode only the first sample of each shard")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args) -> int:
-    """CLI entry: print the table, notes and problems; exit 1 when any check fails."""
+    """CLI entry: print the table, notes and problems; exit 1 when any check fails, 2 when OUT is no folder."""
+    if not Path(args.out).is_dir():
+        print(f"scenesplat-stereo inspect: error: OUT {args.out}: not a folder", file=sys.stderr)
+        return 2
     sheet = args.contact_sheet or Path(args.out) / "contact_sheet.png"
     report = inspect_dataset(args.out, sheet, args.sheet_samples, args.quick, progress=not args.no_progress)
     print(table(report))
