@@ -153,6 +153,13 @@ def test_no_gaussians_at_all() -> None:
     assert torch.equal(render, bgs[:, :, None, None, :].expand_as(render))
 
 
+def test_empty_batch() -> None:
+    """A batch of zero scenes renders zero images and back-propagates zero-size gradients."""
+    scene, viewmats, Ks, bgs = batch_inputs((2,), 10, 2, 2)
+    out = render_with_grads({k: v[:0] for k, v in scene.items()}, viewmats[:0], Ks[:0], bgs[:0], sh_degree=2)
+    assert out[0].shape == (0, 2, H, W, 3) and out[2]["colors"].shape == (0, 10, 9, 3)
+
+
 def test_mismatched_leading_dims_name_the_field() -> None:
     scene, viewmats, Ks, bgs = batch_inputs((2,), 10, 2, None)
     args = [scene[k] for k in PARAMS]
@@ -190,7 +197,8 @@ def test_batch_matches_float64_reference(rasterize_mode: str) -> None:
     render, alphas, meta = rasterization(*(leaves[k] for k in PARAMS), viewmats, Ks, Wr, Hr,
                                          backgrounds=leaves["backgrounds"], **kw)
     g = torch.Generator().manual_seed(3)
-    w_c, w_a = torch.randn(render.shape, generator=g, dtype=torch.float64), torch.randn(alphas.shape, generator=g, dtype=torch.float64)
+    w_c = torch.randn(render.shape, generator=g, dtype=torch.float64)
+    w_a = torch.randn(alphas.shape, generator=g, dtype=torch.float64)
     ((render.double() * w_c).sum() + (alphas.double() * w_a).sum()).backward()
     ref_kw = kw | {"max_alpha": float(np.float32(0.99))}
     for b in range(len(scenes)):

@@ -228,7 +228,7 @@ def project_gaussians(
     """Project ``scenes`` scenes of N Gaussians into their C cameras each (float32 tensors on one device;
     see module docstring). Scenes lie end to end: means [scenes * N, 3] (quats, scales, opacities alike),
     viewmats [scenes * C, 4, 4], Ks [scenes * C, 3, 3]; outputs have leading shape [scenes * C, N]."""
-    BC, N = viewmats.shape[0], means.shape[0] // scenes
+    BC, N = viewmats.shape[0], means.shape[0] // max(scenes, 1)  # an empty batch (scenes = 0): N = 0
     f32 = dict(device=means.device, dtype=torch.float32)
     i32 = dict(device=means.device, dtype=torch.int32)
     out = Projection(

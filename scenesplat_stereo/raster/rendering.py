@@ -3,8 +3,9 @@
 Same argument names, shapes and meaning as gsplat 1.5's ``rasterization`` for the subset used here.
 Pipeline: project (per camera and Gaussian) -> SH colours (only when colours are needed, compiled for the
 scene's degree) -> tile binning (key sort + scan) -> compositing (compiled for the channel count), then
-background and expected depth as plain torch ops; each stage is one launch for a whole batch of scenes. Differentiable with respect to means, quats, scales,
-opacities, colors and backgrounds through the stages' autograd Functions.
+background and expected depth as plain torch ops; each stage is one launch for a whole batch of scenes.
+Differentiable with respect to means, quats, scales, opacities, colors and backgrounds through the stages'
+autograd Functions.
 """
 
 from __future__ import annotations
@@ -157,7 +158,7 @@ def rasterization(
         depth = render[..., -1:] / alphas.clamp_min(1e-10)
         render = torch.cat([render[..., :-1], depth], dim=-1)
     if backgrounds is not None and with_rgb:
-        bg = backgrounds.reshape(B * C, -1)[:, None, None, :] * (1.0 - alphas)
+        bg = backgrounds.reshape(B * C, backgrounds.shape[-1])[:, None, None, :] * (1.0 - alphas)
         if with_depth:
             bg = torch.cat([bg, torch.zeros_like(alphas)], dim=-1)
         render = render + bg

@@ -118,7 +118,7 @@ def eval_sh_colors_backward(
     C, N = radii.shape[:2]
     f32 = dict(device=coeffs.device, dtype=torch.float32)
     v_coeffs = torch.zeros(coeffs.shape, **f32)
-    v_dirs = torch.zeros(C, N, 3, **f32) if degree > 0 else None
+    v_dirs = torch.zeros(dirs.shape, **f32) if degree > 0 else None
     if C == 0 or N == 0:
         return v_dirs, v_coeffs
     dirs_arg = dirs if degree > 0 else torch.zeros(1, 1, 3, **f32)
