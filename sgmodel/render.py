@@ -52,14 +52,8 @@ def render_views(gaussians: dict, viewmats: torch.Tensor, Ks: torch.Tensor, widt
         raise ValueError(f"Ks must be [{b}, {t}, 3, 3], got {tuple(Ks.shape)}")
     if backgrounds is not None and tuple(backgrounds.shape) != (b, t, 3):
         raise ValueError(f"backgrounds must be [{b}, {t}, 3], got {tuple(backgrounds.shape)}")
-    rgbs, alphas = [], []
-    # Per-scene loop over the batch: the one place to switch to the batched rasteriser call.
-    for i in range(b):
-        rgb, alpha, _ = rasterization(
-            gaussians["means"][i], gaussians["quats"][i], gaussians["scales"][i], gaussians["opacities"][i],
-            gaussians["sh"][i], viewmats[i], Ks[i], int(width), int(height), sh_degree=SH_DEGREE,
-            backgrounds=None if backgrounds is None else backgrounds[i], rasterize_mode="antialiased")
-        rgbs.append(rgb)
-        alphas.append(alpha)
-    rgb, alpha = torch.stack(rgbs), torch.stack(alphas)            # [B,T,H,W,3], [B,T,H,W,1]
+    rgb, alpha, _ = rasterization(
+        gaussians["means"], gaussians["quats"], gaussians["scales"], gaussians["opacities"], gaussians["sh"],
+        viewmats, Ks, int(width), int(height), sh_degree=SH_DEGREE, backgrounds=backgrounds,
+        rasterize_mode="antialiased")                               # one call for the batch: [B,T,H,W,C]
     return rgb.permute(0, 1, 4, 2, 3), alpha.permute(0, 1, 4, 2, 3)

@@ -8,6 +8,8 @@ Prints markdown tables (paste-ready for docs/benchmarks.md):
    against the float64 reference (``scenesplat_stereo.reference``) on a small frame;
 3. with ``--backward``: forward+backward time and peak memory against gsplat, for the two headline
    workloads and the model's (32 scenes x 4 targets at 256x256, 2 x 288^2 Gaussians per scene).
+With ``--batch``, only the model's workload instead, one batched call against a loop of calls, ours and
+gsplat's, forward and forward + backward (see ``bench/render_batch.py``).
 Times are medians of ``--repeats`` runs after warm-up, synchronised on CUDA. Peak memory is torch's
 allocator peak (Warp's radix-sort scratch is outside it, a few bytes per intersection).
 """
@@ -26,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from scenesplat_stereo.bench.render_batch import batch_table
 from scenesplat_stereo.cameras import look_at, viewmats_from_c2w
 from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.raster import rasterization
@@ -265,11 +268,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="small sizes (for a CPU): 200k -> 20k Gaussians, 320x180")
     p.add_argument("--repeats", type=int, default=None, help="timed runs per row (median); default 10 on CUDA, 3 on CPU")
     p.add_argument("--backward", action="store_true", help="also time forward+backward and peak memory")
+    p.add_argument("--batch", action="store_true",
+                   help="only the model workload (32 scenes x 4 targets at 256x256; --quick: 2 scenes at 16x16): "
+                        "batched vs looped calls, ours and gsplat, forward and forward+backward; default 20 "
+                        "repeats (--quick: 3), interleaved")
     p.add_argument("--no-gsplat", action="store_true", help="do not compare with gsplat even if installed")
     p.add_argument("--out", type=Path, default=None, help="also write the markdown tables to this file")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.batch:
+        return run_batch(args)
     quick = args.quick or args.device == "cpu"
     args.quick = quick
     args.repeats = args.repeats or (3 if quick else 10)
@@ -287,6 +296,21 @@ def run(args: argparse.Namespace) -> int:
     if args.backward:
         lines += ["", "### Forward + backward", ""]
         lines += backward_rows(args, gs)
+    text = "\n".join(lines)
+    print(text)
+    if args.out:
+        atomic_write_bytes(args.out, (text + "\n").encode())
+    return 0
+
+
+def run_batch(args: argparse.Namespace) -> int:
+    """``--batch``: the model workload table only."""
+    args.repeats = args.repeats or (3 if args.quick else 20)
+    args.batch_scenes, args.batch_side = (2, 16) if args.quick else (32, 256)
+    gs = None if args.no_gsplat else load_gsplat()
+    name = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"CPU ({torch.get_num_threads()} threads)"
+    lines = [f"Device: {name}; gsplat: {'installed' if gs else 'not installed'}.", "",
+             "### Model workload: batched against looped", ""] + batch_table(args, gs)
     text = "\n".join(lines)
     print(text)
     if args.out:

@@ -29,12 +29,12 @@ from .sh_backward import eval_sh_colors_backward
 class ProjectGaussians(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane,
-                eps2d, antialiased, tile_size):
+                eps2d, antialiased, tile_size, scenes):
         proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane,
-                                 far_plane, eps2d, antialiased, tile_size)
+                                 far_plane, eps2d, antialiased, tile_size, scenes)
         ctx.mark_non_differentiable(proj.radii, proj.tile_rects, proj.tiles_touched)
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, proj.radii)
-        ctx.config = (width, height, eps2d, antialiased)
+        ctx.config = (width, height, eps2d, antialiased, scenes)
         return (proj.means2d, proj.conics, proj.depths, proj.opacities, proj.radii, proj.tile_rects,
                 proj.tiles_touched)
 
@@ -42,31 +42,32 @@ class ProjectGaussians(torch.autograd.Function):
     def backward(ctx, v_means2d, v_conics, v_depths, v_opacities, _v_radii, _v_rects, _v_tiles):
         means, quats, scales, opacities, viewmats, Ks, radii = ctx.saved_tensors
         if not any(ctx.needs_input_grad[:4]):
-            return (None,) * 13
-        width, height, eps2d, antialiased = ctx.config
+            return (None,) * 14
+        width, height, eps2d, antialiased, scenes = ctx.config
         v_means, v_quats, v_scales, v_opac = project_gaussians_backward(
             means, quats, scales, opacities, viewmats, Ks, width, height, eps2d, antialiased, radii,
-            v_means2d, v_conics, v_depths, v_opacities,
+            v_means2d, v_conics, v_depths, v_opacities, scenes,
         )
         grads = [g if need else None for g, need in zip((v_means, v_quats, v_scales, v_opac), ctx.needs_input_grad)]
-        return (*grads, *(None,) * 9)
+        return (*grads, *(None,) * 10)
 
 
 class SHColors(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, degree, dirs, coeffs, radii):
+    def forward(ctx, degree, dirs, coeffs, radii, scenes):
         ctx.save_for_backward(dirs, coeffs, radii)
-        ctx.degree = degree
-        return eval_sh_colors(degree, dirs, coeffs, radii)
+        ctx.config = (degree, scenes)
+        return eval_sh_colors(degree, dirs, coeffs, radii, scenes)
 
     @staticmethod
     def backward(ctx, v_colors):
         dirs, coeffs, radii = ctx.saved_tensors
         if not (ctx.needs_input_grad[1] or ctx.needs_input_grad[2]):
-            return None, None, None, None
-        v_dirs, v_coeffs = eval_sh_colors_backward(ctx.degree, dirs, coeffs, radii, v_colors)
+            return None, None, None, None, None
+        degree, scenes = ctx.config
+        v_dirs, v_coeffs = eval_sh_colors_backward(degree, dirs, coeffs, radii, v_colors, scenes)
         return (None, v_dirs if ctx.needs_input_grad[1] else None,
-                v_coeffs if ctx.needs_input_grad[2] else None, None)
+                v_coeffs if ctx.needs_input_grad[2] else None, None, None)
 
 
 class CompositeTiles(torch.autograd.Function):
@@ -98,16 +99,17 @@ class CompositeTiles(torch.autograd.Function):
 
 
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
-            antialiased, tile_size) -> Projection:
-    """Differentiable projection (see projection.project_gaussians)."""
+            antialiased, tile_size, scenes: int = 1) -> Projection:
+    """Differentiable projection (see projection.project_gaussians; ``scenes`` scenes laid end to end)."""
     out = ProjectGaussians.apply(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane,
-                                 far_plane, eps2d, antialiased, tile_size)
+                                 far_plane, eps2d, antialiased, tile_size, scenes)
     return Projection(*out)
 
 
-def sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
-    """Differentiable SH colours (see sh.eval_sh_colors)."""
-    return SHColors.apply(degree, dirs, coeffs, radii)
+def sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor,
+              scenes: int = 1) -> torch.Tensor:
+    """Differentiable SH colours (see sh.eval_sh_colors; ``scenes`` scenes laid end to end)."""
+    return SHColors.apply(degree, dirs, coeffs, radii, scenes)
 
 
 def composite(means2d, conics, colors, opacities, bins: Bins, width, height, tile_size, max_alpha,

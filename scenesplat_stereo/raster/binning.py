@@ -21,7 +21,8 @@ from .projection import Projection
 
 @dataclass
 class Bins:
-    """Sorted tile lists. ``flatten_ids`` hold c * N + g; tile t of camera c is row c * tiles + t."""
+    """Sorted tile lists. ``flatten_ids`` hold c * N + g; tile t of camera c is row c * tiles + t (for a batch
+    of scenes, c is the flat camera index b * C + c of ``projection.project_gaussians``)."""
 
     tile_ranges: torch.Tensor  # [C * tiles_y * tiles_x, 2] int32 (start, end) into flatten_ids
     flatten_ids: torch.Tensor  # [M] int32

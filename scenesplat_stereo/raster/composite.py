@@ -43,12 +43,20 @@ def tile_pixel(tile: int, local: int, tile_size: int, tiles_x: int, tiles_per_ca
 
 
 @wp.func
+def conic_sigma(dx: float, dy: float, a: float, b: float, c: float) -> float:
+    """sigma = 0.5 delta^T [[a, b], [b, c]] delta at offset delta = (dx, dy) = mean2d - pixel centre, the
+    exponent of alpha = o exp(-sigma) (SPEC step 6). The one expression every compositing kernel, forward
+    and backward, evaluates, so they all make the same touch and stop decisions."""
+    return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+
+
+@wp.func
 def touch_alpha(splats: wp.array2d(dtype=float), i: int, fx: float, fy: float) -> float:
     """o exp(-sigma) of row i at pixel centre (fx, fy) when the splat touches the pixel (sigma >= 0 and
     o exp(-sigma) >= 1/255, SPEC step 6), else 0."""
     dx = splats[i, 0] - fx
     dy = splats[i, 1] - fy
-    sigma = 0.5 * (splats[i, 2] * dx * dx + splats[i, 4] * dy * dy) + splats[i, 3] * dx * dy
+    sigma = conic_sigma(dx, dy, splats[i, 2], splats[i, 3], splats[i, 4])
     if not (sigma >= 0.0):
         return 0.0
     alpha = splats[i, 5] * wp.exp(-sigma)
@@ -190,7 +198,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
                 for j in range(wp.min(block, end - b)):
                     dx = batch[j, 0] - fx
                     dy = batch[j, 1] - fy
-                    sigma = 0.5 * (batch[j, 2] * dx * dx + batch[j, 4] * dy * dy) + batch[j, 3] * dx * dy
+                    sigma = conic_sigma(dx, dy, batch[j, 2], batch[j, 3], batch[j, 4])
                     if not (sigma >= 0.0):
                         continue
                     vis = batch[j, 5] * wp.exp(-sigma)

@@ -45,7 +45,7 @@ import warp as wp
 
 from ._warp import ALPHA_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
-from .composite import COMPOSITE_OPTIONS, SPLAT_SLOTS, gather_splats, tile_pixel
+from .composite import COMPOSITE_OPTIONS, SPLAT_SLOTS, conic_sigma, gather_splats, tile_pixel
 
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
 # tiles are split into groups of this many pixels, each with its own row per list entry).
@@ -91,7 +91,7 @@ def _kernels(channels: int):
         grad = vecF()
         dx = m[0] - fx
         dy = m[1] - fy
-        sigma = 0.5 * (con[0] * dx * dx + con[2] * dy * dy) + con[1] * dx * dy
+        sigma = conic_sigma(dx, dy, con[0], con[1], con[2])
         if not (sigma >= 0.0):
             return T, S, grad
         vis = o * wp.exp(-sigma)

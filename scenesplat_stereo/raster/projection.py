@@ -26,7 +26,8 @@ EXTENT_MARGIN_PX = 1e-2
 
 @dataclass
 class Projection:
-    """Per (camera, Gaussian) screen-space quantities, torch float32/int32 tensors of leading shape [C, N]."""
+    """Per (camera, Gaussian) screen-space quantities, torch float32/int32 tensors of leading shape [C, N]
+    (a batch of scenes: [B * C, N], camera b * C + c with the N Gaussians of scene b)."""
 
     means2d: torch.Tensor  # [C, N, 2] pixels
     conics: torch.Tensor  # [C, N, 3] (a, b, c) of inverse(Sigma2d + eps2d I) = [[a, b], [b, c]]
@@ -90,7 +91,9 @@ def screen_covariance(cov_cam: wp.mat33, J0: wp.vec3, J1: wp.vec3) -> wp.vec3:
 
 @functools.cache
 def projection_kernel(antialiased: bool):
-    """The projection kernel, compiled per rasterize mode."""
+    """The projection kernel, compiled per rasterize mode. Thread (c, g) projects Gaussian g of camera c's
+    scene: cameras and Gaussians are batches of scenes laid end to end (``cameras_per_scene`` cameras and
+    N = out_depths.shape[1] Gaussians each), so camera c sees Gaussians (c / cameras_per_scene) * N + g."""
 
     @wp.kernel(enable_backward=False, module="unique")
     def project(
@@ -106,6 +109,7 @@ def projection_kernel(antialiased: bool):
         far_plane: float,
         eps2d: float,
         tile_size: int,
+        cameras_per_scene: int,
         out_means2d: wp.array2d(dtype=wp.vec2),
         out_conics: wp.array2d(dtype=wp.vec3),
         out_depths: wp.array2d(dtype=float),
@@ -122,8 +126,9 @@ def projection_kernel(antialiased: bool):
         out_rects[c, g] = wp.vec4i(0, 0, -1, -1)
         out_tiles[c, g] = 0
 
+        gi = (c / cameras_per_scene) * out_depths.shape[1] + g  # the Gaussian in the flat batch
         V = viewmats[c]
-        mean = means[g]
+        mean = means[gi]
         # Step 1: camera-space mean; near/far culling (also catches NaN depths: comparisons are false).
         p = wp.vec3(
             V[0, 0] * mean[0] + V[0, 1] * mean[1] + V[0, 2] * mean[2] + V[0, 3],
@@ -135,12 +140,12 @@ def projection_kernel(antialiased: bool):
             return
 
         # Step 2: world covariance R S S^T R^T, then camera covariance.
-        q = quats[g]
+        q = quats[gi]
         qn = wp.length(q)
         if not (qn > 0.0):
             return
         R = quat_to_rotation(q / qn)
-        s = scales[g]
+        s = scales[gi]
         M = R * wp.diag(s)
         W = view_rotation(V) * M
         cov_cam = W * wp.transpose(W)
@@ -167,7 +172,7 @@ def projection_kernel(antialiased: bool):
         det = a * d - b * b
         if not (det > 0.0):
             return
-        o = opacities[g]
+        o = opacities[gi]
         if wp.static(antialiased):
             o = o * wp.sqrt(wp.max(det_orig / det, 0.0))
         if not (o >= ALPHA_MIN):
@@ -218,30 +223,33 @@ def project_gaussians(
     eps2d: float,
     antialiased: bool,
     tile_size: int,
+    scenes: int = 1,
 ) -> Projection:
-    """Project N Gaussians into C cameras (float32 tensors on one device; see module docstring)."""
-    C, N = viewmats.shape[0], means.shape[0]
+    """Project ``scenes`` scenes of N Gaussians into their C cameras each (float32 tensors on one device;
+    see module docstring). Scenes lie end to end: means [scenes * N, 3] (quats, scales, opacities alike),
+    viewmats [scenes * C, 4, 4], Ks [scenes * C, 3, 3]; outputs have leading shape [scenes * C, N]."""
+    BC, N = viewmats.shape[0], means.shape[0] // max(scenes, 1)  # an empty batch (scenes = 0): N = 0
     f32 = dict(device=means.device, dtype=torch.float32)
     i32 = dict(device=means.device, dtype=torch.int32)
     out = Projection(
-        means2d=torch.empty(C, N, 2, **f32),
-        conics=torch.empty(C, N, 3, **f32),
-        depths=torch.empty(C, N, **f32),
-        opacities=torch.empty(C, N, **f32),
-        radii=torch.empty(C, N, 2, **i32),
-        tile_rects=torch.empty(C, N, 4, **i32),
-        tiles_touched=torch.empty(C, N, **i32),
+        means2d=torch.empty(BC, N, 2, **f32),
+        conics=torch.empty(BC, N, 3, **f32),
+        depths=torch.empty(BC, N, **f32),
+        opacities=torch.empty(BC, N, **f32),
+        radii=torch.empty(BC, N, 2, **i32),
+        tile_rects=torch.empty(BC, N, 4, **i32),
+        tiles_touched=torch.empty(BC, N, **i32),
     )
-    if C == 0 or N == 0:
+    if BC == 0 or N == 0:
         return out
     with on_device_of(means) as device:
         wp.launch(
             projection_kernel(bool(antialiased)),
-            dim=(C, N),
+            dim=(BC, N),
             inputs=[
                 to_wp(means, wp.vec3), to_wp(quats, wp.vec4), to_wp(scales, wp.vec3), to_wp(opacities),
                 to_wp(viewmats, wp.mat44), to_wp(Ks, wp.mat33), int(width), int(height),
-                float(near_plane), float(far_plane), float(eps2d), int(tile_size),
+                float(near_plane), float(far_plane), float(eps2d), int(tile_size), BC // scenes,
             ],
             outputs=[
                 to_wp(out.means2d, wp.vec2), to_wp(out.conics, wp.vec3), to_wp(out.depths),

@@ -1,7 +1,7 @@
 """Reverse of the projection of 3D Gaussians (SPEC section 2, steps 1-5): screen-space gradients to
 means, quaternions (wxyz, normalised inside), linear scales and opacities.
 
-One thread per Gaussian walks the C cameras in order and sums their contributions locally (no atomics,
+One thread per Gaussian walks the C cameras of its scene in order and sums their contributions locally (no atomics,
 so the result is reproducible bit for bit). Per camera, with p = R_view mean + t_view (OpenCV camera,
 z forward), Sigma2d = J Sigma_cam J^T = [[a, b], [b, d]], Sigma2d' = Sigma2d + eps2d I and
 conic = inverse(Sigma2d') = (d', -b, a') / det':
@@ -51,7 +51,8 @@ def rotation_vjp(q: wp.vec4, v_R: wp.mat33) -> wp.vec4:
 
 @functools.cache
 def projection_backward_kernel(antialiased: bool):
-    """The projection backward kernel, compiled per rasterize mode."""
+    """The projection backward kernel, compiled per rasterize mode. Thread (scene, g) owns Gaussian scene * N + g
+    of the flat batch and walks cameras scene * C .. scene * C + C - 1 (C = ``cameras_per_scene``)."""
 
     @wp.kernel(enable_backward=False, module="unique")
     def project_backward(
@@ -64,6 +65,7 @@ def projection_backward_kernel(antialiased: bool):
         width: int,
         height: int,
         eps2d: float,
+        cameras_per_scene: int,
         radii: wp.array2d(dtype=wp.vec2i),
         v_means2d: wp.array2d(dtype=wp.vec2),
         v_conics: wp.array2d(dtype=wp.vec3),
@@ -74,28 +76,29 @@ def projection_backward_kernel(antialiased: bool):
         out_v_scales: wp.array(dtype=wp.vec3),
         out_v_opacities: wp.array(dtype=float),
     ):
-        g = wp.tid()
+        scene, g = wp.tid()
+        gi = scene * radii.shape[1] + g  # the Gaussian in the flat batch
         v_mean = wp.vec3(0.0, 0.0, 0.0)
         v_opacity = float(0.0)
         v_cov = wp.mat33(0.0)  # d loss / d Sigma (world), symmetric
-        q = quats[g]
+        q = quats[gi]
         qn = wp.length(q)
         # A zero quaternion is culled in every camera by the forward pass (nothing to differentiate).
         if not (qn > 0.0):
-            out_v_means[g] = v_mean
-            out_v_quats[g] = wp.vec4(0.0, 0.0, 0.0, 0.0)
-            out_v_scales[g] = wp.vec3(0.0, 0.0, 0.0)
-            out_v_opacities[g] = 0.0
+            out_v_means[gi] = v_mean
+            out_v_quats[gi] = wp.vec4(0.0, 0.0, 0.0, 0.0)
+            out_v_scales[gi] = wp.vec3(0.0, 0.0, 0.0)
+            out_v_opacities[gi] = 0.0
             return
         qhat = q / qn
         R = quat_to_rotation(qhat)
-        s = scales[g]
+        s = scales[gi]
         M = R * wp.diag(s)
-        mean = means[g]
-        opacity = opacities[g]
+        mean = means[gi]
+        opacity = opacities[gi]
         fw = float(width)
         fh = float(height)
-        for c in range(viewmats.shape[0]):
+        for c in range(scene * cameras_per_scene, (scene + 1) * cameras_per_scene):
             r = radii[c, g]
             v_m2 = v_means2d[c, g]
             vc = v_conics[c, g]
@@ -191,10 +194,10 @@ def projection_backward_kernel(antialiased: bool):
             R[0, 2] * v_M[0, 2] + R[1, 2] * v_M[1, 2] + R[2, 2] * v_M[2, 2],
         )
         v_qhat = rotation_vjp(qhat, v_R)
-        out_v_means[g] = v_mean
-        out_v_quats[g] = (v_qhat - qhat * wp.dot(qhat, v_qhat)) / qn
-        out_v_scales[g] = v_s
-        out_v_opacities[g] = v_opacity
+        out_v_means[gi] = v_mean
+        out_v_quats[gi] = (v_qhat - qhat * wp.dot(qhat, v_qhat)) / qn
+        out_v_scales[gi] = v_s
+        out_v_opacities[gi] = v_opacity
 
     return project_backward
 
@@ -215,24 +218,27 @@ def project_gaussians_backward(
     v_conics: torch.Tensor,
     v_depths: torch.Tensor,
     v_opacities: torch.Tensor,
+    scenes: int = 1,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Gradients (means [N,3], quats [N,4], scales [N,3], opacities [N]) summed over the C cameras, from
     the cotangents of ``project_gaussians``' outputs means2d [C,N,2], conics [C,N,3], depths [C,N] and
-    effective opacities [C,N]; ``radii`` [C,N,2] is its output (culled pairs are skipped)."""
-    N = means.shape[0]
+    effective opacities [C,N]; ``radii`` [C,N,2] is its output (culled pairs are skipped). For a batch of
+    ``scenes`` scenes laid end to end (see ``project_gaussians``) every leading N is scenes * N and every
+    C is scenes * C; each Gaussian sums over its own scene's cameras."""
+    BN = means.shape[0]
     f32 = dict(device=means.device, dtype=torch.float32)
-    out = (torch.zeros(N, 3, **f32), torch.zeros(N, 4, **f32), torch.zeros(N, 3, **f32), torch.zeros(N, **f32))
-    if N == 0 or viewmats.shape[0] == 0:
+    out = (torch.zeros(BN, 3, **f32), torch.zeros(BN, 4, **f32), torch.zeros(BN, 3, **f32), torch.zeros(BN, **f32))
+    if BN == 0 or viewmats.shape[0] == 0:
         return out
     with on_device_of(means) as device:
         wp.launch(
             projection_backward_kernel(bool(antialiased)),
-            dim=N,
+            dim=(scenes, BN // scenes),
             inputs=[
                 to_wp(means, wp.vec3), to_wp(quats, wp.vec4), to_wp(scales, wp.vec3), to_wp(opacities),
                 to_wp(viewmats, wp.mat44), to_wp(Ks, wp.mat33), int(width), int(height), float(eps2d),
-                to_wp(radii, wp.vec2i), to_wp(v_means2d, wp.vec2), to_wp(v_conics, wp.vec3),
-                to_wp(v_depths), to_wp(v_opacities),
+                viewmats.shape[0] // scenes, to_wp(radii, wp.vec2i), to_wp(v_means2d, wp.vec2),
+                to_wp(v_conics, wp.vec3), to_wp(v_depths), to_wp(v_opacities),
             ],
             outputs=[to_wp(out[0], wp.vec3), to_wp(out[1], wp.vec4), to_wp(out[2], wp.vec3), to_wp(out[3])],
             device=device,

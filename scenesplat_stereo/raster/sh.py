@@ -71,7 +71,8 @@ def sh_basis_func(degree: int):
 
 @functools.cache
 def sh_kernel(degree: int):
-    """Per (camera, Gaussian) colour kernel, compiled per SH degree."""
+    """Per (camera, Gaussian) colour kernel, compiled per SH degree. For a batch of scenes laid end to end,
+    camera c reads the coefficients of Gaussian (c / cameras_per_scene) * N + g."""
     sh_basis = sh_basis_func(degree)
     K = num_sh_bases(degree)
 
@@ -80,9 +81,11 @@ def sh_kernel(degree: int):
         dirs: wp.array2d(dtype=wp.vec3),
         coeffs: wp.array2d(dtype=wp.vec3),
         radii: wp.array2d(dtype=wp.vec2i),
+        cameras_per_scene: int,
         out_colors: wp.array2d(dtype=wp.vec3),
     ):
         c, g = wp.tid()
+        gi = (c / cameras_per_scene) * radii.shape[1] + g
         r = radii[c, g]
         if r[0] <= 0 and r[1] <= 0:
             out_colors[c, g] = wp.vec3(0.0, 0.0, 0.0)
@@ -96,7 +99,7 @@ def sh_kernel(degree: int):
         basis = sh_basis(v)
         rgb = wp.vec3(0.0, 0.0, 0.0)
         for k in range(K):
-            rgb = rgb + basis[k] * coeffs[g, k]
+            rgb = rgb + basis[k] * coeffs[gi, k]
         out_colors[c, g] = wp.vec3(
             wp.max(rgb[0] + 0.5, 0.0), wp.max(rgb[1] + 0.5, 0.0), wp.max(rgb[2] + 0.5, 0.0)
         )
@@ -104,9 +107,11 @@ def sh_kernel(degree: int):
     return eval_sh
 
 
-def eval_sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
+def eval_sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor,
+                   scenes: int = 1) -> torch.Tensor:
     """Colours [C, N, 3] from SH ``coeffs`` [N, K, 3] (K >= (degree+1)^2; extra bands are ignored) viewed
-    along ``dirs`` [C, N, 3] (mean - camera centre, any length); zero for culled pairs."""
+    along ``dirs`` [C, N, 3] (mean - camera centre, any length); zero for culled pairs. A batch of
+    ``scenes`` scenes lies end to end: coeffs [scenes * N, K, 3], dirs and radii [scenes * C, N, ...]."""
     if not 0 <= degree <= 3:
         raise ValueError(f"sh_degree must be 0..3, got {degree}")
     C, N = radii.shape[:2]
@@ -121,7 +126,7 @@ def eval_sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii:
         wp.launch(
             sh_kernel(degree),
             dim=(C, N),
-            inputs=[to_wp(dirs, wp.vec3), to_wp(coeffs, wp.vec3), to_wp(radii, wp.vec2i)],
+            inputs=[to_wp(dirs, wp.vec3), to_wp(coeffs, wp.vec3), to_wp(radii, wp.vec2i), C // scenes],
             outputs=[to_wp(out, wp.vec3)],
             device=device,
         )

@@ -4,8 +4,8 @@ d = normalise(dir), dir = mean - camera centre (world units), real SH in the INR
 Gradients: d rgb / d coeff_k = Y_k(d) per channel (zero in channels where the clamp at 0 binds);
 d rgb / d d = sum_k coeff_k dY_k/dd, taken through the normalisation, d dir = (g - d (d . g)) / |dir|
 (a zero direction, a Gaussian at the camera centre, gets a zero gradient). One thread per Gaussian walks
-the cameras in order, so the coefficient gradients are summed without atomics (reproducible). Compiled per
-degree: degree 0 never reads or writes directions. Culled (camera, Gaussian) pairs contribute nothing.
+the cameras of its scene in order, so the coefficient gradients are summed without atomics (reproducible).
+Compiled per degree: degree 0 never reads or writes directions. Culled (camera, Gaussian) pairs contribute nothing.
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ from .sh import SH_C1, SH_C2, SH_C3, num_sh_bases, sh_basis_func
 
 @functools.cache
 def sh_backward_kernel(degree: int):
-    """Per-Gaussian SH backward kernel, compiled per SH degree."""
+    """Per-Gaussian SH backward kernel, compiled per SH degree. Thread (b, g) owns Gaussian b * N + g of
+    the flat batch and walks its scene's cameras b * C .. b * C + C - 1 (C = ``cameras_per_scene``)."""
     C2_0, C2_1, C2_2, C2_3, C2_4 = SH_C2
     C3_0, C3_1, C3_2, C3_3, C3_4, C3_5, C3_6 = SH_C3
     sh_basis = sh_basis_func(degree)
@@ -33,11 +34,13 @@ def sh_backward_kernel(degree: int):
         coeffs: wp.array2d(dtype=wp.vec3),
         radii: wp.array2d(dtype=wp.vec2i),
         v_colors: wp.array2d(dtype=wp.vec3),
+        cameras_per_scene: int,
         out_v_coeffs: wp.array2d(dtype=wp.vec3),
         out_v_dirs: wp.array2d(dtype=wp.vec3),
     ):
-        g = wp.tid()
-        for c in range(radii.shape[0]):
+        b, g = wp.tid()
+        gi = b * radii.shape[1] + g
+        for c in range(b * cameras_per_scene, (b + 1) * cameras_per_scene):
             r = radii[c, g]
             if r[0] <= 0 and r[1] <= 0:
                 continue
@@ -52,7 +55,7 @@ def sh_backward_kernel(degree: int):
             basis = sh_basis(v)
             rgb = wp.vec3(0.0, 0.0, 0.0)
             for k in range(K):
-                rgb = rgb + basis[k] * coeffs[g, k]
+                rgb = rgb + basis[k] * coeffs[gi, k]
             vc = v_colors[c, g]
             vc = wp.vec3(
                 wp.where(rgb[0] + 0.5 >= 0.0, vc[0], 0.0),
@@ -60,12 +63,12 @@ def sh_backward_kernel(degree: int):
                 wp.where(rgb[2] + 0.5 >= 0.0, vc[2], 0.0),
             )
             for k in range(K):
-                out_v_coeffs[g, k] += basis[k] * vc
+                out_v_coeffs[gi, k] += basis[k] * vc
             if wp.static(degree >= 1):
                 # d rgb / d v, contracted with vc: sum_k (coeff_k . vc) grad Y_k(v)
-                w1 = wp.dot(coeffs[g, 1], vc)
-                w2 = wp.dot(coeffs[g, 2], vc)
-                w3 = wp.dot(coeffs[g, 3], vc)
+                w1 = wp.dot(coeffs[gi, 1], vc)
+                w2 = wp.dot(coeffs[gi, 2], vc)
+                w3 = wp.dot(coeffs[gi, 3], vc)
                 v_v = SH_C1 * wp.vec3(-w3, -w1, w2)
                 if wp.static(degree >= 2):
                     x = v[0]
@@ -74,24 +77,24 @@ def sh_backward_kernel(degree: int):
                     xx = x * x
                     yy = y * y
                     zz = z * z
-                    w4 = wp.dot(coeffs[g, 4], vc)
-                    w5 = wp.dot(coeffs[g, 5], vc)
-                    w6 = wp.dot(coeffs[g, 6], vc)
-                    w7 = wp.dot(coeffs[g, 7], vc)
-                    w8 = wp.dot(coeffs[g, 8], vc)
+                    w4 = wp.dot(coeffs[gi, 4], vc)
+                    w5 = wp.dot(coeffs[gi, 5], vc)
+                    w6 = wp.dot(coeffs[gi, 6], vc)
+                    w7 = wp.dot(coeffs[gi, 7], vc)
+                    w8 = wp.dot(coeffs[gi, 8], vc)
                     v_v += w4 * C2_0 * wp.vec3(y, x, 0.0)
                     v_v += w5 * C2_1 * wp.vec3(0.0, z, y)
                     v_v += w6 * C2_2 * wp.vec3(-2.0 * x, -2.0 * y, 4.0 * z)
                     v_v += w7 * C2_3 * wp.vec3(z, 0.0, x)
                     v_v += w8 * C2_4 * wp.vec3(2.0 * x, -2.0 * y, 0.0)
                     if wp.static(degree >= 3):
-                        w9 = wp.dot(coeffs[g, 9], vc)
-                        w10 = wp.dot(coeffs[g, 10], vc)
-                        w11 = wp.dot(coeffs[g, 11], vc)
-                        w12 = wp.dot(coeffs[g, 12], vc)
-                        w13 = wp.dot(coeffs[g, 13], vc)
-                        w14 = wp.dot(coeffs[g, 14], vc)
-                        w15 = wp.dot(coeffs[g, 15], vc)
+                        w9 = wp.dot(coeffs[gi, 9], vc)
+                        w10 = wp.dot(coeffs[gi, 10], vc)
+                        w11 = wp.dot(coeffs[gi, 11], vc)
+                        w12 = wp.dot(coeffs[gi, 12], vc)
+                        w13 = wp.dot(coeffs[gi, 13], vc)
+                        w14 = wp.dot(coeffs[gi, 14], vc)
+                        w15 = wp.dot(coeffs[gi, 15], vc)
                         v_v += w9 * C3_0 * wp.vec3(6.0 * x * y, 3.0 * (xx - yy), 0.0)
                         v_v += w10 * C3_1 * wp.vec3(y * z, x * z, x * y)
                         v_v += w11 * C3_2 * wp.vec3(-2.0 * x * y, 4.0 * zz - xx - 3.0 * yy, 8.0 * y * z)
@@ -106,23 +109,25 @@ def sh_backward_kernel(degree: int):
 
 
 def eval_sh_colors_backward(
-    degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor, v_colors: torch.Tensor
+    degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor, v_colors: torch.Tensor,
+    scenes: int = 1,
 ) -> tuple[torch.Tensor | None, torch.Tensor]:
     """Gradients (dirs [C,N,3] or None for degree 0, coeffs [N,K,3]) of ``sh.eval_sh_colors`` from the
-    cotangent ``v_colors`` [C,N,3]; bands beyond ``degree`` get zero gradient."""
+    cotangent ``v_colors`` [C,N,3]; bands beyond ``degree`` get zero gradient. For a batch of ``scenes``
+    scenes laid end to end, C and the coefficients' N are scenes times larger (see ``eval_sh_colors``)."""
     C, N = radii.shape[:2]
     f32 = dict(device=coeffs.device, dtype=torch.float32)
     v_coeffs = torch.zeros(coeffs.shape, **f32)
-    v_dirs = torch.zeros(C, N, 3, **f32) if degree > 0 else None
+    v_dirs = torch.zeros(dirs.shape, **f32) if degree > 0 else None
     if C == 0 or N == 0:
         return v_dirs, v_coeffs
     dirs_arg = dirs if degree > 0 else torch.zeros(1, 1, 3, **f32)
     with on_device_of(coeffs) as device:
         wp.launch(
             sh_backward_kernel(degree),
-            dim=N,
+            dim=(scenes, N),
             inputs=[to_wp(dirs_arg, wp.vec3), to_wp(coeffs, wp.vec3), to_wp(radii, wp.vec2i),
-                    to_wp(v_colors, wp.vec3)],
+                    to_wp(v_colors, wp.vec3), C // scenes],
             outputs=[to_wp(v_coeffs, wp.vec3), to_wp(v_dirs if v_dirs is not None else dirs_arg, wp.vec3)],
             device=device,
         )
