@@ -45,7 +45,8 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("model (defaults: the paper's values, or the preset's)")
     g.add_argument("--preset", choices=sorted(PRESETS), default="paper",
                    help="'paper' (default): the paper's sizes and schedule; 'cpu-small': 64x64, padding 4, "
-                        "32-channel decoder/predictor, sgbm encoder, batch 4, 300 steps (minutes on 2 CPU cores)")
+                        "32-channel decoder/predictor, sgbm encoder, batch 4, 2 targets, 200 steps (minutes on 2 "
+                        "CPU cores)")
     g.add_argument("--encoder", help="frozen stereo encoder (default psmnet-kitti; see `sgmodel weights`)")
     g.add_argument("--encoder-weights", help="local weights file of the encoder (default: the fetched cache)")
     g.add_argument("--encoder-repo", help="the encoder's code checkout (foundation-stereo variants)")

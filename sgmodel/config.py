@@ -126,7 +126,6 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "cpu-small": {
         "model": {"resolution": 64, "padding": 4, "encoder": {"name": "sgbm"},
                   "decoder": {"channels": 32}, "predictor": {"channels": 32}},
-        "train": {"steps": 300, "batch_size": 4, "val_every": 100, "log_every": 10, "workers": 0,
-                  "lpips_weight": 0.05},
+        "train": {"steps": 200, "batch_size": 4, "targets": 2, "val_every": 50, "log_every": 10, "workers": 0},
     },
 }

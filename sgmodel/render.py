@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.raster import rasterization, tile_size_for
 
 #: SH degree of every Gaussian the model predicts (SPEC section 7 "Rendering").
 SH_DEGREE = 2
@@ -39,7 +39,9 @@ def check_gaussians(gaussians: dict) -> tuple[int, int]:
 
 def render_views(gaussians: dict, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                  backgrounds: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Render each scene of the batch into its T cameras, antialiased, SH degree 2.
+    """Render each scene of the batch into its T cameras, SH degree 2, in the rasteriser's default "classic"
+    mode (SPEC section 7 names no other; in "antialiased" mode a grid of pixel-footprint Gaussians covers a
+    surface to alpha 0.83 only, tests/test_baselines.py).
 
     viewmats [B,T,4,4] world(= left camera)-to-target; Ks [B,T,3,3] pixels; backgrounds [B,T,3] or None
     (black). Returns rgb [B,T,3,H,W] (not clipped) and alpha [B,T,1,H,W], differentiable.
@@ -55,5 +57,5 @@ def render_views(gaussians: dict, viewmats: torch.Tensor, Ks: torch.Tensor, widt
     rgb, alpha, _ = rasterization(
         gaussians["means"], gaussians["quats"], gaussians["scales"], gaussians["opacities"], gaussians["sh"],
         viewmats, Ks, int(width), int(height), sh_degree=SH_DEGREE, backgrounds=backgrounds,
-        rasterize_mode="antialiased")                               # one call for the batch: [B,T,H,W,C]
+        tile_size=tile_size_for(str(viewmats.device)))              # one call for the batch: [B,T,H,W,C]
     return rgb.permute(0, 1, 4, 2, 3), alpha.permute(0, 1, 4, 2, 3)

@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# The model on the lent GPU (see docs/benchmarks.md and docs/results.md). Here, once (git-ignored folders):
+#   bash ../shared/tools/warp-gpu-kit .gpukit
+#   pip download --no-deps -d .whl gsplat==1.5.3
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 -d .whl OpenImageIO lpips==0.1.4
+#   mkdir -p .devdata && cp ~/.cache/sgmodel/* .devdata/ && cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
+# Device call 1 (carry .gpukit/a, .whl): bash .gpukit/a/stash.sh && python3 -m pip install -q --no-index --no-deps --target /root/site .whl/*.whl
+# Device call 2 (carry .devdata):        mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
+# Device call 3 (carry .gpukit/b):       bash scripts/gpu_model.sh main      (data, parity, benches, training, eval, predict)
+# Device call 4 (carry .gpukit/b):       bash scripts/gpu_model.sh ablate    (Table 4 with a short schedule)
+# STEPS, ABLATE_STEPS, FRAMES override the sizes; DEVICE=cpu runs the same steps tiny on a CPU (a dry run).
+set -uo pipefail
+what=${1:-main}
+out=${OUT:-/tmp/out}; mkdir -p "$out"
+dev=${DEVICE:-cuda}
+if [[ $dev == cuda ]]; then
+  source .gpukit/b/install.sh || exit 1
+  export PYTHONPATH=/root/site:$PWD:$PYTHONPATH SGMODEL_CACHE=/root/sgcache
+  guitar=/root/sgcache/guitar.ply
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+  S=256 BATCH=32 STEPS=${STEPS:-600} VAL=${VAL:-150} FRAMES=${FRAMES:-100} RES=340x256 ENC=psmnet-kitti WORKERS=8
+else  # a CPU dry run of every command below, tiny
+  guitar=${GUITAR:-../shared/data/teachers/playcanvas-guitar/point_cloud.ply}
+  S=64 BATCH=2 STEPS=${STEPS:-4} VAL=${VAL:-2} FRAMES=${FRAMES:-6} RES=86x64 ENC=sgbm WORKERS=0
+fi
+export PYTHONUNBUFFERED=1
+data=/tmp/sgdata; rc=0
+run() { echo "+ $*"; "$@" || { echo "FAILED ($?): $*"; rc=1; }; }
+
+if [[ $what == main ]]; then
+  # 1. the demo rooms and the real guitar (orbit) rendered into shards, with depth for the encoder bench
+  if [[ ! -f $data/dataset/val/index.json ]]; then
+    rm -rf $data; mkdir -p $data/teachers/guitar
+    run python3 -m scenesplat_stereo.cli demo-teachers $data/teachers --frames $FRAMES --no-progress
+    cp "$guitar" $data/teachers/guitar/point_cloud.ply
+    run python3 -m scenesplat_stereo.cli build --teachers $data/teachers --out $data/dataset --device $dev \
+      --val-scenes 1 --min-psnr none --orbit "radius=6,frames=$FRAMES" --resolution $RES --with-depth --no-progress
+  fi
+  # 2. the batched rasteriser on CUDA against the float64 reference, and the model-workload bench (issue 9)
+  if [[ $dev == cuda ]]; then
+    run python3 scripts/gpu_parity.py 2>&1 | tail -5
+    run python3 -m scenesplat_stereo.bench.render --batch --device cuda --out "$out/bench_render_batch.md"
+    run python3 scripts/gpu_lpips_check.py 2>&1 | tail -5
+  fi
+  # 3. a training step split by stage, and the encoders' time and disparity error
+  run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
+    --repeats 5 --warmup 2 --out "$out/bench_train.md"
+  run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
+    --repeats 5 --warmup 2 --data $data/dataset --workers $WORKERS --out "$out/bench_train_data.md"
+  run python3 -m sgmodel.cli bench encoders --device $dev --data $data/dataset --resolution $S \
+    --encoders $ENC --out "$out/bench_encoders.md"
+  # 4. a short training run, evaluated with its baselines, then one prediction from a rendered guitar pair
+  run python3 -m sgmodel.cli train --data $data/dataset --out $out/run --device $dev --resolution $S \
+    --batch-size $BATCH --steps $STEPS --val-every $VAL --encoder $ENC --workers $WORKERS --no-progress
+  run python3 -m sgmodel.cli eval --data $data/dataset --split val --checkpoint $out/run/checkpoints/best.pt \
+    --device $dev --out $out/eval --no-progress
+  for m in naive-gs forward-splat; do
+    run python3 -m sgmodel.cli eval --data $data/dataset --split val --method $m --encoder $ENC --resolution $S \
+      --device $dev --out $out/eval-$m --no-progress
+  done
+  run python3 scripts/guitar_pair.py "$guitar" $data/pair
+  run python3 -m sgmodel.cli predict --left $data/pair/left.png --right $data/pair/right.png \
+    --calib $data/pair/K.txt --checkpoint $out/run/checkpoints/best.pt --out $out/predict --device $dev
+  rm -f $out/run/checkpoints/last.pt
+fi
+if [[ $what == ablate ]]; then
+  run python3 -m sgmodel.cli ablate --data $data/dataset --out $out/ablate --device $dev --resolution $S \
+    --batch-size $BATCH --steps ${ABLATE_STEPS:-$STEPS} --val-every ${ABLATE_STEPS:-$STEPS} --encoder $ENC \
+    --workers $WORKERS --no-progress
+  find $out/ablate -name "*.pt" -delete
+fi
+exit $rc
