@@ -27,20 +27,22 @@ export PYTHONUNBUFFERED=1
 data=/tmp/sgdata; rc=0
 run() { echo "+ $*"; "$@" || { echo "FAILED ($?): $*"; rc=1; }; }
 
+dataset() {  # the demo rooms and the real guitar (orbit) rendered into shards, with depth for the encoder bench
+  [[ -f $data/dataset/val/index.json ]] && return
+  rm -rf $data; mkdir -p $data/teachers/guitar
+  run python3 -m scenesplat_stereo.cli demo-teachers $data/teachers --frames $FRAMES --no-progress
+  cp "$guitar" $data/teachers/guitar/point_cloud.ply
+  run python3 -m scenesplat_stereo.cli build --teachers $data/teachers --out $data/dataset --device $dev \
+    --val-scenes 1 --min-psnr none --orbit "radius=6,frames=$FRAMES" --resolution $RES --with-depth --no-progress
+}
+
 if [[ $what == main ]]; then
-  # 1. the demo rooms and the real guitar (orbit) rendered into shards, with depth for the encoder bench
-  if [[ ! -f $data/dataset/val/index.json ]]; then
-    rm -rf $data; mkdir -p $data/teachers/guitar
-    run python3 -m scenesplat_stereo.cli demo-teachers $data/teachers --frames $FRAMES --no-progress
-    cp "$guitar" $data/teachers/guitar/point_cloud.ply
-    run python3 -m scenesplat_stereo.cli build --teachers $data/teachers --out $data/dataset --device $dev \
-      --val-scenes 1 --min-psnr none --orbit "radius=6,frames=$FRAMES" --resolution $RES --with-depth --no-progress
-  fi
+  dataset
   # 2. the batched rasteriser on CUDA against the float64 reference, and the model-workload bench (issue 9)
   if [[ $dev == cuda ]]; then
-    run python3 scripts/gpu_parity.py 2>&1 | tail -5
+    run python3 scripts/gpu_parity.py
     run python3 -m scenesplat_stereo.bench.render --batch --device cuda --out "$out/bench_render_batch.md"
-    run python3 scripts/gpu_lpips_check.py 2>&1 | tail -5
+    run python3 scripts/gpu_lpips_check.py
   fi
   # 3. a training step split by stage, and the encoders' time and disparity error
   run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
@@ -61,9 +63,12 @@ if [[ $what == main ]]; then
   run python3 scripts/guitar_pair.py "$guitar" $data/pair
   run python3 -m sgmodel.cli predict --left $data/pair/left.png --right $data/pair/right.png \
     --calib $data/pair/K.txt --checkpoint $out/run/checkpoints/best.pt --out $out/predict --device $dev
+  run python3 scripts/model_figure.py $out/run/checkpoints/best.pt $data/pair/left.png $data/pair/right.png \
+    $data/pair/K.txt $out/prediction.png --device $dev
   rm -f $out/run/checkpoints/last.pt
 fi
 if [[ $what == ablate ]]; then
+  dataset
   run python3 -m sgmodel.cli ablate --data $data/dataset --out $out/ablate --device $dev --resolution $S \
     --batch-size $BATCH --steps ${ABLATE_STEPS:-$STEPS} --val-every ${ABLATE_STEPS:-$STEPS} --encoder $ENC \
     --workers $WORKERS --no-progress

@@ -102,8 +102,9 @@ def run(args: argparse.Namespace) -> int:
         torch.cuda.reset_peak_memory_stats(device)
     for i in range(args.warmup + args.repeats):
         t0 = now()
-        batch = to_device(next(loader), device) if loader else synthetic_batch(args.batch_size, args.targets, S, device, i)
-        data_s = now() - t0 if loader else float("nan")
+        real = loader is not None
+        batch = to_device(next(loader), device) if real else synthetic_batch(args.batch_size, args.targets, S, device, i)
+        data_s = now() - t0 if real else float("nan")
         split = staged_step(model, objective, optimizer, batch, amp, now)
         t0 = now()
         train_step(model, batch, objective, optimizer, scheduler, amp)
