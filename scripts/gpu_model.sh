@@ -6,19 +6,22 @@
 #   mkdir -p .devdata && cp ~/.cache/sgmodel/* .devdata/ && cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
 # Device call 1 (carry .gpukit/a, .whl): bash .gpukit/a/stash.sh && python3 -m pip install -q --no-index --no-deps --target /root/site .whl/*.whl
 # Device call 2 (carry .devdata):        mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
-# Device call 3 (carry .gpukit/b):       bash scripts/gpu_model.sh main      (data, parity, benches, training, eval, predict)
-# Device call 4 (carry .gpukit/b):       bash scripts/gpu_model.sh ablate    (Table 4 with a short schedule)
-# STEPS, ABLATE_STEPS, FRAMES override the sizes; DEVICE=cpu runs the same steps tiny on a CPU (a dry run).
+# Device call 3 (carry .gpukit/b):       bash scripts/gpu_model.sh main      (data, benches, training, eval, predict)
+# Device call 4 (carry .gpukit/b):       bash scripts/gpu_model.sh raster    (raster parity, batch bench, LPIPS parity)
+# Device call 5 (carry .gpukit/b):       bash scripts/gpu_model.sh ablate    (Table 4 with a short schedule)
+# Each phase packs its results (no checkpoints) into $OUT/<phase>.tgz.
+# STEPS, ABLATE_STEPS, FRAMES override the sizes, SKIP_BENCH=1 skips the benches; DEVICE=cpu runs the same steps tiny on a CPU (a dry run).
 set -uo pipefail
 what=${1:-main}
-out=${OUT:-/tmp/out}; mkdir -p "$out"
+OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
+out=/tmp/sgrun; mkdir -p $out  # results; packed into $OUT/<phase>.tgz at the end (no checkpoints, .ply, .gif, .csv: 16 MiB a file comes back)
 dev=${DEVICE:-cuda}
 if [[ $dev == cuda ]]; then
   source .gpukit/b/install.sh || exit 1
   export PYTHONPATH=/root/site:$PWD:$PYTHONPATH SGMODEL_CACHE=/root/sgcache
   guitar=/root/sgcache/guitar.ply
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
-  S=256 BATCH=32 STEPS=${STEPS:-600} VAL=${VAL:-150} FRAMES=${FRAMES:-100} RES=340x256 ENC=psmnet-kitti WORKERS=8
+  S=256 BATCH=32 STEPS=${STEPS:-400} VAL=${VAL:-100} FRAMES=${FRAMES:-100} RES=340x256 ENC=psmnet-kitti WORKERS=8
 else  # a CPU dry run of every command below, tiny
   guitar=${GUITAR:-../shared/data/teachers/playcanvas-guitar/point_cloud.ply}
   S=64 BATCH=2 STEPS=${STEPS:-4} VAL=${VAL:-2} FRAMES=${FRAMES:-6} RES=86x64 ENC=sgbm WORKERS=0
@@ -38,19 +41,14 @@ dataset() {  # the demo rooms and the real guitar (orbit) rendered into shards, 
 
 if [[ $what == main ]]; then
   dataset
-  # 2. the batched rasteriser on CUDA against the float64 reference, and the model-workload bench (issue 9)
-  if [[ $dev == cuda ]]; then
-    run python3 scripts/gpu_parity.py
-    run python3 -m scenesplat_stereo.bench.render --batch --device cuda --out "$out/bench_render_batch.md"
-    run python3 scripts/gpu_lpips_check.py
-  fi
-  # 3. a training step split by stage, and the encoders' time and disparity error
+  # 3. a training step split by stage, and the encoders' time and disparity error (SKIP_BENCH=1: not now)
+  [[ -n ${SKIP_BENCH:-} ]] || {
   run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
     --repeats 5 --warmup 2 --out "$out/bench_train.md"
   run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
     --repeats 5 --warmup 2 --data $data/dataset --workers $WORKERS --out "$out/bench_train_data.md"
   run python3 -m sgmodel.cli bench encoders --device $dev --data $data/dataset --resolution $S \
-    --encoders $ENC --out "$out/bench_encoders.md"
+    --encoders $ENC --out "$out/bench_encoders.md"; }
   # 4. a short training run, evaluated with its baselines, then one prediction from a rendered guitar pair
   run python3 -m sgmodel.cli train --data $data/dataset --out $out/run --device $dev --resolution $S \
     --batch-size $BATCH --steps $STEPS --val-every $VAL --encoder $ENC --workers $WORKERS --no-progress
@@ -65,13 +63,18 @@ if [[ $what == main ]]; then
     --calib $data/pair/K.txt --checkpoint $out/run/checkpoints/best.pt --out $out/predict --device $dev
   run python3 scripts/model_figure.py $out/run/checkpoints/best.pt $data/pair/left.png $data/pair/right.png \
     $data/pair/K.txt $out/prediction.png --device $dev
-  rm -f $out/run/checkpoints/last.pt
+fi
+if [[ $what == raster && $dev == cuda ]]; then  # the batched rasteriser against the float64 reference,
+  # its model-workload bench, and LPIPS against the lpips package
+  run python3 scripts/gpu_parity.py
+  run python3 -m scenesplat_stereo.bench.render --batch --device cuda --out "$out/bench_render_batch.md"
+  run python3 scripts/gpu_lpips_check.py
 fi
 if [[ $what == ablate ]]; then
   dataset
   run python3 -m sgmodel.cli ablate --data $data/dataset --out $out/ablate --device $dev --resolution $S \
-    --batch-size $BATCH --steps ${ABLATE_STEPS:-$STEPS} --val-every ${ABLATE_STEPS:-$STEPS} --encoder $ENC \
+    --batch-size $((BATCH / 2)) --steps ${ABLATE_STEPS:-100} --val-every ${ABLATE_STEPS:-100} --encoder $ENC \
     --workers $WORKERS --no-progress
-  find $out/ablate -name "*.pt" -delete
 fi
+tar -czf "$OUT/$what.tgz" -C $out --exclude="*.pt" --exclude="*.ply" --exclude="*.gif" --exclude="*.csv" . && ls -la "$OUT"
 exit $rc

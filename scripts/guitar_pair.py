@@ -32,10 +32,12 @@ def render_pair(ply: Path, out: Path) -> tuple[np.ndarray, torch.Tensor, torch.T
     K = np.array([[FX, 0, W / 2], [0, FX, H / 2], [0, 0, 1]])
     views = torch.tensor(np.stack([np.linalg.inv(c2w), np.linalg.inv(right_camera(c2w, BASELINE))]),
                          dtype=torch.float32)
-    g = scene.to_torch()
-    img, alpha, _ = rasterization(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], views,
-                                  torch.tensor(K, dtype=torch.float32).expand(2, 3, 3), W, H,
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    g = scene.to_torch(device)
+    img, alpha, _ = rasterization(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], views.to(device),
+                                  torch.tensor(K, dtype=torch.float32, device=device).expand(2, 3, 3), W, H,
                                   sh_degree=scene.sh_degree, render_mode="RGB+ED", rasterize_mode="antialiased")
+    img, alpha = img.cpu(), alpha.cpu()
     out.mkdir(parents=True, exist_ok=True)
     for name, i in (("left", 0), ("right", 1)):
         atomic_write_bytes(out / f"{name}.png", encode_png(to_uint8(img[i, ..., :3].clamp(0, 1).numpy())))

@@ -22,7 +22,7 @@ from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.text import markdown_table
 
 from . import evaluate
-from .config import ModelParams, TrainParams
+from .config import ConfigurationError, ModelParams, TrainParams
 from .train import train
 
 
@@ -75,7 +75,11 @@ def ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, devi
             continue
         folder = out / _slug(name)
         print(f"== {name} ==", flush=True)
-        train(params, copy.deepcopy(schedule), data, folder / "run", device, lpips_vgg, progress)
+        try:
+            train(params, copy.deepcopy(schedule), data, folder / "run", device, lpips_vgg, progress)
+        except ConfigurationError as e:  # e.g. no RGB-D with an encoder that has no features
+            rows.append((block, name, {"not_applicable": str(e)}))
+            continue
         result = _evaluated(folder / "eval", lambda: evaluate.checkpoint_method(
             folder / "run" / "checkpoints" / "best.pt", device, params.encoder.weights), data, device, lpips_vgg,
             progress)
@@ -102,6 +106,9 @@ def table(rows: list[tuple[str, str, dict]], schedule: TrainParams, base: ModelP
         if block != current and block:
             body.append([f"**{block}**", "", "", "", "", ""])
         current = block
+        if "not_applicable" in result:
+            body.append([name, "n/a", "", "", "", result["not_applicable"]])
+            continue
         m = result["mean"]
         lpips = f"{m['lpips']:.4f}" if "lpips" in m else "n/a"
         body.append([f"**{name}**" if not block else name, f"{m['psnr']:.3f}", f"{m['ssim']:.4f}", lpips,

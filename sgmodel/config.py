@@ -15,6 +15,10 @@ from typing import Any
 EDGE_MASKS = ("none", "hard", "soft")
 
 
+class ConfigurationError(ValueError):
+    """A combination of settings that cannot be built (the message names the settings)."""
+
+
 @dataclass
 class EncoderParams:
     name: str = "psmnet-kitti"  # registry name, see `sgmodel.encoders.available_encoders()`
@@ -70,19 +74,19 @@ class ModelParams:
                    composer=ComposerParams(**d.pop("composer", {})), **d)
 
     def validate(self) -> None:
-        """Raise ValueError naming the field for a configuration that cannot be built."""
+        """Raise ConfigurationError naming the field for a configuration that cannot be built."""
         if self.resolution < 16 or self.resolution % 16:
-            raise ValueError(f"resolution must be a multiple of 16 and >= 16, got {self.resolution}")
+            raise ConfigurationError(f"resolution must be a multiple of 16 and >= 16, got {self.resolution}")
         if self.padding < 0:
-            raise ValueError(f"padding must be >= 0, got {self.padding}")
+            raise ConfigurationError(f"padding must be >= 0, got {self.padding}")
         if self.composer.edge_mask not in EDGE_MASKS:
-            raise ValueError(f"edge_mask must be one of {EDGE_MASKS}, got {self.composer.edge_mask!r}")
+            raise ConfigurationError(f"edge_mask must be one of {EDGE_MASKS}, got {self.composer.edge_mask!r}")
         if self.composer.edge_mask != "none" and not self.composer.back_layer:
-            raise ValueError("an edge mask gates the back layer: it needs back_layer=True")
+            raise ConfigurationError("an edge mask gates the back layer: it needs back_layer=True")
         for name, width, groups in (("decoder", self.decoder.channels, self.decoder.groups),
                                     ("predictor", self.predictor.channels, self.predictor.groups)):
             if width < 1 or groups < 1 or width % groups:
-                raise ValueError(f"{name}.channels ({width}) must be a positive multiple of {name}.groups ({groups})")
+                raise ConfigurationError(f"{name}.channels ({width}) must be a positive multiple of {name}.groups ({groups})")
 
 
 @dataclass

@@ -279,5 +279,8 @@ def make_loader(root: Path, split: str, batch_size: int, resolution: int = RESOL
     ``targets=None`` for all stored targets)."""
     dataset = ShardStream(root, split, resolution, targets, seed, train, batch_size, rank, world_size,
                           shuffle_buffer, start_step)
-    return DataLoader(dataset, batch_size=batch_size, collate_fn=collate, num_workers=num_workers,
-                      worker_init_fn=_init_worker if num_workers > 0 else None)
+    # Workers are spawned, not forked: a fork after the parent has used OpenImageIO (contact sheets) or
+    # CUDA inherits their locked thread pools, and the workers hang at their first decode.
+    workers = dict(worker_init_fn=_init_worker, multiprocessing_context="spawn",
+                   persistent_workers=not train) if num_workers > 0 else {}
+    return DataLoader(dataset, batch_size=batch_size, collate_fn=collate, num_workers=num_workers, **workers)

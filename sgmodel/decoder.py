@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .config import ConfigurationError
+
 
 class ResidualConvUnit(nn.Module):
     """x + conv3x3(GELU(conv3x3(GELU(x)))), DPT's refinement unit."""
@@ -65,7 +67,7 @@ class DPTDecoder(nn.Module):
             raise ValueError("one scale per encoder feature map")
         if not feature_channels:
             if not rgbd:
-                raise ValueError("an encoder without features needs RGB-D conditioning (rgbd=True)")
+                raise ConfigurationError("an encoder without features needs RGB-D conditioning (rgbd=True)")
             feature_channels, feature_scales = (0,) * len(rgbd_scales), tuple(rgbd_scales)
         extra = 4 if rgbd else 0
         order = sorted(range(len(feature_scales)), key=lambda i: -feature_scales[i])  # coarse to fine

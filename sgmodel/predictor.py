@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .config import PredictorParams
+from .config import ConfigurationError, PredictorParams
 
 # channel ranges of a 37-channel layer output (SPEC section 7 "Branch channels")
 CHANNELS = {
@@ -52,7 +52,7 @@ class GaussianPredictor(nn.Module):
         self.rgbd = rgbd
         self.use_descriptor = descriptor_channels > 0
         if not rgbd and not self.use_descriptor:
-            raise ValueError("the predictor needs RGB-D or the descriptor as input")
+            raise ConfigurationError("the predictor needs RGB-D or the descriptor as input")
         C = params.channels
         cin = (4 if rgbd else 0) + descriptor_channels
         branch_in = C + (3 if rgbd else 0) + descriptor_channels
