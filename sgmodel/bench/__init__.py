@@ -1,3 +1,16 @@
 """Model benchmarks (``sgmodel bench ...``), each a module with ``add_arguments(parser)`` and ``run(args)``
 that prints a markdown table: ``train`` (one training step split by stage, peak memory) and ``encoders``
 (each encoder's time per pair and disparity error against rendered depth)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from scenesplat_stereo.files import atomic_write_bytes
+
+
+def report(text: str, out: Path | None) -> None:
+    """Print a benchmark's markdown and, with ``--out``, write it there too (atomically)."""
+    print(text)
+    if out:
+        atomic_write_bytes(Path(out), text.encode())

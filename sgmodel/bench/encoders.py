@@ -17,7 +17,9 @@ from pathlib import Path
 
 import torch
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.text import markdown_table
+
+from . import report
 
 from ..data import make_loader
 from ..encoders import create_encoder
@@ -68,15 +70,11 @@ def run(args: argparse.Namespace) -> int:
         loader = make_loader(args.data, args.split, args.batch_size, args.resolution, None, 0, 0, 0, 1, train=False)
         rows.append(bench_encoder(name, loader, device, args.encoder_weights if name == args.encoders[0] else None))
     dev = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    lines = [f"Encoders on {args.data} ({args.split} split, {rows[0]['pairs']} pairs at "
-             f"{args.resolution}x{args.resolution}, batch {args.batch_size}) on {dev}.", "",
-             "| encoder | ms / pair | EPE (px) | D1 (%) | depth rel. error (%) |", "|---|---|---|---|---|"]
-    lines += [f"| {r['encoder']} | {r['ms_per_pair']:.1f} | {r['epe']:.2f} | {r['d1']:.1f} | {r['depth_rel']:.1f} |"
-              for r in rows]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        atomic_write_bytes(Path(args.out), text.encode())
+    table = markdown_table(["encoder", "ms / pair", "EPE (px)", "D1 (%)", "depth rel. error (%)"],
+                           [[r["encoder"], f"{r['ms_per_pair']:.1f}", f"{r['epe']:.2f}", f"{r['d1']:.1f}",
+                             f"{r['depth_rel']:.1f}"] for r in rows])
+    report(f"Encoders on {args.data} ({args.split} split, {rows[0]['pairs']} pairs at {args.resolution}x"
+           f"{args.resolution}, batch {args.batch_size}) on {dev}.\n\n{table}\n", args.out)
     return 0
 
 

@@ -17,7 +17,9 @@ from pathlib import Path
 
 import torch
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.text import markdown_table
+
+from . import report
 
 from ..cli import add_model_arguments, params_from_args
 from ..data import make_loader
@@ -100,9 +102,9 @@ def run(args: argparse.Namespace) -> int:
     free: list[float] = []
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
+    real = loader is not None
     for i in range(args.warmup + args.repeats):
         t0 = now()
-        real = loader is not None
         batch = to_device(next(loader), device) if real else synthetic_batch(args.batch_size, args.targets, S, device, i)
         data_s = now() - t0 if real else float("nan")
         split = staged_step(model, objective, optimizer, batch, amp, now)
@@ -116,23 +118,19 @@ def run(args: argparse.Namespace) -> int:
             free.append(step_s)
     peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    lines = [f"One training step: {S}x{S}, batch {args.batch_size}, {args.targets} targets, encoder "
-             f"{model_params.encoder.name}, loss {objective.description}, {'bf16 autocast' if amp else 'float32'}, "
-             f"on {name}; medians of {args.repeats} steps after {args.warmup} warm-up "
-             f"({'real shards: ' + str(args.data) if args.data else 'synthetic batches'}).", "",
-             "| stage | median ms | share |", "|---|---|---|"]
     med = {k: statistics.median(v) * 1e3 for k, v in stages.items()}
     total = sum(v for v in med.values() if v == v)
-    for k in STAGES:
-        lines.append(f"| {k} | {med[k]:.1f} | {100 * med[k] / total:.0f}% |" if med[k] == med[k] else f"| {k} | n/a | |")
-    lines += [f"| **sum of stages (synchronised)** | {total:.1f} | |",
-              f"| **free-running step** (`train_step`, data excluded) | {statistics.median(free) * 1e3:.1f} | |",
-              "", f"Peak memory: {peak:.0f} MiB; Gaussians per scene: "
-              f"{(2 if model_params.composer.back_layer else 1) * (S + 2 * model_params.padding) ** 2:,}."]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        atomic_write_bytes(Path(args.out), text.encode())
+    rows = [[k, f"{med[k]:.1f}", f"{100 * med[k] / total:.0f}%"] if med[k] == med[k] else [k, "n/a", ""]
+            for k in STAGES]
+    rows += [["**sum of stages (synchronised)**", f"{total:.1f}", ""],
+             ["**free-running step** (`train_step`, data excluded)", f"{statistics.median(free) * 1e3:.1f}", ""]]
+    gaussians = (2 if model_params.composer.back_layer else 1) * (S + 2 * model_params.padding) ** 2
+    report(f"One training step: {S}x{S}, batch {args.batch_size}, {args.targets} targets, encoder "
+           f"{model_params.encoder.name}, loss {objective.description}, {'bf16 autocast' if amp else 'float32'}, "
+           f"on {name}; medians of {args.repeats} steps after {args.warmup} warm-up "
+           f"({'real shards: ' + str(args.data) if args.data else 'synthetic batches'}).\n\n"
+           f"{markdown_table(['stage', 'median ms', 'share'], rows)}\n\n"
+           f"Peak memory: {peak:.0f} MiB; Gaussians per scene: {gaussians:,}.\n", args.out)
     return 0
 
 
