@@ -122,3 +122,22 @@ def test_cli_bad_input_exits_2_and_writes_nothing(demo_dataset, tmp_path, capsys
     assert code == 2
     assert re.search(match, capsys.readouterr().err)
     assert not out.exists()
+
+
+def test_torchrun_two_ranks_split_the_batch_and_only_rank_0_writes(demo_dataset, tmp_path):
+    """DDP on the CPU (gloo): two processes, batch 4 split 2 + 2; validation sums both ranks' targets."""
+    import subprocess
+    import sys
+
+    run = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29531", "-m",
+           "sgmodel.cli", "train", "--data", str(demo_dataset), "--out", str(run), "--device", "cpu",
+           "--preset", "cpu-small", "--resolution", "32", "--padding", "2", "--batch-size", "4", "--steps", "2",
+           "--val-every", "2", "--workers", "0", "--no-progress"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("sgmodel train: new run") == 1  # rank 0 alone speaks
+    assert "2 rank(s)" in done.stdout and "(2 per rank)" in done.stdout
+    vals = [r for r in _records(run) if "val_psnr" in r]
+    assert [r["step"] for r in vals] == [0, 2] and all(r["val_targets"] == 20 for r in vals)
+    assert (run / "checkpoints/best.pt").is_file()
