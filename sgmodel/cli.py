@@ -31,10 +31,14 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--encoder", help="frozen stereo encoder (default psmnet-kitti; see `sgmodel weights`)")
     g.add_argument("--encoder-weights", help="local weights file of the encoder (default: the fetched cache)")
     g.add_argument("--encoder-repo", help="the encoder's code checkout (foundation-stereo variants)")
-    g.add_argument("--resolution", type=whole_number("--resolution"), help="S: square input and target size, pixels (default 256)")
-    g.add_argument("--padding", type=whole_number("--padding", 0), help="P: canvas padding per side, pixels (default 16)")
-    g.add_argument("--decoder-channels", type=whole_number("--decoder-channels"), help="DPT descriptor width (default 128)")
-    g.add_argument("--predictor-channels", type=whole_number("--predictor-channels"), help="predictor width (default 128)")
+    g.add_argument("--resolution", type=whole_number("--resolution"),
+                   help="S: square input and target size, pixels (default 256)")
+    g.add_argument("--padding", type=whole_number("--padding", 0),
+                   help="P: canvas padding per side, pixels (default 16)")
+    g.add_argument("--decoder-channels", type=whole_number("--decoder-channels"),
+                   help="DPT descriptor width (default 128)")
+    g.add_argument("--predictor-channels", type=whole_number("--predictor-channels"),
+                   help="predictor width (default 128)")
     g.add_argument("--no-back-layer", action="store_true", help="ablation: front layer only")
     g.add_argument("--no-descriptor", action="store_true", help="ablation: no DPT descriptor in the predictor")
     g.add_argument("--no-rgbd", action="store_true", help="ablation: no RGB-D in the decoder and predictor inputs")
@@ -47,15 +51,18 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     """Flags of TrainParams (defaults: the paper's schedule, or the --preset's)."""
     g = p.add_argument_group("training (defaults: the paper's values, or the preset's)")
     g.add_argument("--steps", type=whole_number("--steps"), help="optimiser steps (default 30000)")
-    g.add_argument("--batch-size", type=whole_number("--batch-size"), help="stereo pairs per step over all ranks (default 32)")
-    g.add_argument("--targets", type=whole_number("--targets"), help="targets per pair per step, of the stored 10 (default 4)")
+    g.add_argument("--batch-size", type=whole_number("--batch-size"),
+                   help="stereo pairs per step over all ranks (default 32)")
+    g.add_argument("--targets", type=whole_number("--targets"),
+                   help="targets per pair per step, of the stored 10 (default 4)")
     g.add_argument("--lr", type=positive_number("--lr"), help="AdamW peak learning rate (default 4e-4)")
     g.add_argument("--weight-decay", type=float, help="AdamW weight decay (default 0.01)")
     g.add_argument("--warmup", type=float, help="OneCycleLR warm-up fraction (default 0.09)")
     g.add_argument("--lpips-weight", type=float, help="weight of the LPIPS (or 1 - SSIM) term (default 0.05)")
     g.add_argument("--val-every", type=whole_number("--val-every"), help="steps between validations (default 3000)")
     g.add_argument("--val-samples", type=whole_number("--val-samples"), help="cap on validation samples (default: all)")
-    g.add_argument("--log-every", type=whole_number("--log-every"), help="steps between metrics.jsonl records (default 10)")
+    g.add_argument("--log-every", type=whole_number("--log-every"),
+                   help="steps between metrics.jsonl records (default 10)")
     g.add_argument("--seed", type=int, help="data order, target draws and initialisation (default 0)")
     g.add_argument("--workers", type=whole_number("--workers", 0), help="DataLoader workers per rank (default 4)")
     g.add_argument("--no-amp", action="store_true", help="float32 convolutions on CUDA (default: bf16 autocast)")
