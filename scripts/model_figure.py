@@ -19,7 +19,7 @@ from sgmodel.calib import read_calib
 from sgmodel.export import depth_png, novel_view_cameras
 from sgmodel.model import load_predictor
 from sgmodel.render import render_views
-from sgmodel.sheets import _image, _row, _stack
+from sgmodel.sheets import labelled_row, stack_rows, tile
 
 
 def _read(path: str, device: str) -> torch.Tensor:
@@ -50,11 +50,11 @@ def main() -> None:
         view = torch.tensor(np.stack([views[v] for v in names]), dtype=torch.float32,
                             device=args.device)[None]
         novel = render_views(g, view, K[:, None].expand(1, 4, 3, 3), W, H)[0][0]
-    rows = [_row([_image(left[0]), _image(right[0]), depth_png(out.depth[0, 0].cpu().numpy())],
+    rows = [labelled_row([tile(left[0]), tile(right[0]), depth_png(out.depth[0, 0].cpu().numpy())],
                  "input left | input right | stereo depth (near red, far blue)"),
-            _row([_image(x) for x in layers], "front layer | back layer | both (left camera)"),
-            _row([_image(x) for x in novel], "novel views: " + " | ".join(names))]
-    atomic_write_bytes(Path(args.out), encode_png(_stack(rows)))
+            labelled_row([tile(x) for x in layers], "front layer | back layer | both (left camera)"),
+            labelled_row([tile(x) for x in novel], "novel views: " + " | ".join(names))]
+    atomic_write_bytes(Path(args.out), encode_png(stack_rows(rows)))
 
 
 if __name__ == "__main__":

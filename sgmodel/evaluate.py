@@ -176,10 +176,6 @@ def run(args: argparse.Namespace, device: str) -> int:
         baseline_method(args.method, args.encoder, args.encoder_weights, args.resolution, device)
     result = evaluate(method, args.data, args.split, args.out, device, args.lpips_vgg, args.batch_size,
                       not args.no_progress)
-    print(scene_table_from(args.out))
+    print((args.out / "scenes.md").read_text())
     print(f"{result['targets']} targets; report in {args.out}")
     return 0
-
-
-def scene_table_from(out: Path) -> str:
-    return (out / "scenes.md").read_text()

@@ -19,7 +19,7 @@ GAP = 2  # pixels between tiles
 LABEL_H = 14  # pixels of the caption band above each row
 
 
-def _image(t: torch.Tensor) -> np.ndarray:
+def tile(t: torch.Tensor) -> np.ndarray:
     """[3, H, W] in [0, 1] -> uint8 [H, W, 3]."""
     return (t.detach().float().clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
@@ -30,14 +30,14 @@ def _caption(width: int, text: str) -> np.ndarray:
     return band
 
 
-def _row(tiles: list[np.ndarray], text: str) -> np.ndarray:
+def labelled_row(tiles: list[np.ndarray], text: str) -> np.ndarray:
     h = max(t.shape[0] for t in tiles)
     pad = [np.pad(t, ((0, h - t.shape[0]), (0, GAP), (0, 0)), constant_values=255) for t in tiles]
     body = np.concatenate(pad, axis=1)
     return np.concatenate([_caption(body.shape[1], text), body], axis=0)
 
 
-def _stack(rows: list[np.ndarray]) -> np.ndarray:
+def stack_rows(rows: list[np.ndarray]) -> np.ndarray:
     w = max(r.shape[1] for r in rows)
     return np.concatenate([np.pad(r, ((0, GAP), (0, w - r.shape[1]), (0, 0)), constant_values=255) for r in rows])
 
@@ -48,15 +48,15 @@ def validation_sheet(samples: list[dict]) -> bytes:
         raise ValueError("validation_sheet: no samples")
     rows = []
     for s in samples:
-        tiles = [_image(s["left"]), depth_png(s["depth"][0].cpu().numpy())]
+        tiles = [tile(s["left"]), depth_png(s["depth"][0].cpu().numpy())]
         for target, render in zip(s["targets"], s["renders"]):
-            tiles += [_image(target), _image(render)]
-        rows.append(_row(tiles, f"{s['key']}: left | depth | (target | render) x {len(s['targets'])}"))
-    return encode_png(_stack(rows))
+            tiles += [tile(target), tile(render)]
+        rows.append(labelled_row(tiles, f"{s['key']}: left | depth | (target | render) x {len(s['targets'])}"))
+    return encode_png(stack_rows(rows))
 
 
 def target_sheet(entries: list[dict]) -> bytes:
     """PNG bytes of single targets (eval's worst and best): each entry target, render [3,H,W], caption."""
     if not entries:
         raise ValueError("target_sheet: no entries")
-    return encode_png(_stack([_row([_image(e["target"]), _image(e["render"])], e["caption"]) for e in entries]))
+    return encode_png(stack_rows([labelled_row([tile(e["target"]), tile(e["render"])], e["caption"]) for e in entries]))
