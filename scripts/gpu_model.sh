@@ -76,5 +76,7 @@ if [[ $what == ablate ]]; then
     --batch-size $((BATCH / 2)) --steps ${ABLATE_STEPS:-100} --val-every ${ABLATE_STEPS:-100} --encoder $ENC \
     --workers $WORKERS --no-progress
 fi
-tar -czf "$OUT/$what.tgz" -C $out --exclude="*.pt" --exclude="*.ply" --exclude="*.gif" --exclude="*.csv" . && ls -la "$OUT"
+skip=(--exclude="*.pt" --exclude="*.ply" --exclude="*.gif" --exclude="*.csv")
+[[ $what == ablate ]] && skip+=(--exclude="*.png")  # ten runs' contact sheets are over the 16 MiB a file
+tar -czf "$OUT/$what.tgz" -C $out "${skip[@]}" . && ls -la "$OUT"
 exit $rc
