@@ -1,8 +1,9 @@
-"""StereoGaussians model: frozen stereo encoder + DPT decoder + two-layer Gaussian predictor.
+"""StereoGaussians model: frozen stereo encoder + DPT decoder + two-layer Gaussian predictor on a padded
+canvas + residual attribute composer, trained by rendering targets through
+``scenesplat_stereo.raster.rasterization`` (the same function the dataset uses).
 
-The model's rooms (data, encoders, decoder, predictor, composer, losses, train) arrive with their own
-issues; today this package holds the command-line entry point, which lists what is available.
-It renders through ``scenesplat_stereo.raster.rasterization``, the same function the dataset uses.
+Entry points: ``sgmodel.model.create_model`` / ``load_predictor``, ``sgmodel.train.train``, and the
+``sgmodel`` command (train, eval, predict, ablate, weights, bench). The rooms are listed in docs/model.md.
 """
 
 __version__ = "0.1.0"
