@@ -11,7 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
+
+from .layers import replicate_pad
 
 
 @dataclass
@@ -35,6 +36,4 @@ def canvas_intrinsics(K: torch.Tensor, padding: int) -> torch.Tensor:
 def extend(x: torch.Tensor, padding: int) -> torch.Tensor:
     """[B, C, H, W] -> [B, C, H + 2P, W + 2P] by edge replication (each padded pixel copies the nearest
     border pixel)."""
-    if padding == 0:
-        return x
-    return F.pad(x, (padding, padding, padding, padding), mode="replicate")
+    return replicate_pad(x, padding)

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import ConfigurationError
+from .layers import GroupNorm, compute_dtype
 
 
 class ResidualConvUnit(nn.Module):
@@ -75,7 +76,7 @@ class DPTDecoder(nn.Module):
         self.scales = tuple(feature_scales)
         self.rgbd = rgbd
         self.project = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(c + extra, channels, 1), nn.GroupNorm(groups, channels), nn.GELU())
+            nn.Sequential(nn.Conv2d(c + extra, channels, 1), GroupNorm(groups, channels), nn.GELU())
             for c in feature_channels)
         self.fuse = nn.ModuleList(FusionBlock(channels) for _ in feature_channels)
         self.head = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1), nn.GELU(),
@@ -84,10 +85,12 @@ class DPTDecoder(nn.Module):
     def forward(self, features: list[torch.Tensor], rgb: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """features as the encoder gives them; rgb [B,3,H,W] in [0,1]; z [B,1,H,W] metres -> [B,C,H,W]."""
         H, W = rgb.shape[-2:]
+        dtype = compute_dtype(rgb.device)  # cast once, concatenate in the convolutions' dtype
+        rgb, z = rgb.to(dtype), z.to(dtype)
         fused = None
         for i in self.order:
             size = features[i].shape[-2:] if features else _scaled_size(H, W, self.scales[i])
-            parts = [features[i].to(rgb.dtype)] if features else []
+            parts = [features[i].to(dtype)] if features else []
             if self.rgbd:
                 parts += [F.interpolate(rgb, size=size, mode="bilinear", align_corners=False, antialias=True),
                           F.interpolate(z, size=size, mode="nearest")]

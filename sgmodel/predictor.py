@@ -5,6 +5,12 @@ read [h, RGB~, Phi~], each conv3x3 -> GroupNorm -> GELU -> conv3x3: front (37 ch
 dz (1). All convolutions pad by replication. Ablations drop inputs: ``descriptor=False`` removes Phi~,
 ``rgbd=False`` removes RGB~ and z~ (the composer still uses them as anchors).
 
+The branches read the same input, so their first layers run as one: the shared input is padded once,
+convolved once with the branches' first-conv weights stacked (3C outputs), and normalised by one
+GroupNorm of 3x the groups (groups are contiguous channel blocks, so this is exactly each branch's own
+GroupNorm). The parameters stay per branch (``front``, ``back``, ``dz``): the same state_dict and the
+same function as three separate branches, with one read of the wide input instead of three.
+
 Output channels of the front/back branches (SPEC section 7), named in ``CHANNELS``; the final convs
 start at exactly zero for scale, SH and the whole dz branch, and small and non-zero for opacity, offset
 and quaternion (ml-sharp's zero-initialised heads, with the paper's exception).
@@ -13,9 +19,11 @@ and quaternion (ml-sharp's zero-initialised heads, with the paper's exception).
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from .config import ConfigurationError, PredictorParams
+from .layers import GroupNorm, ReplicateConv2d, compute_dtype, group_norm, replicate_pad
 
 # channel ranges of a 37-channel layer output (SPEC section 7 "Branch channels")
 CHANNELS = {
@@ -29,19 +37,38 @@ LAYER_CHANNELS = 37
 ZERO_INIT = ("scale", "sh")  # exactly zero at initialisation (appendix A)
 
 
-def _conv3(cin: int, cout: int) -> nn.Conv2d:
-    return nn.Conv2d(cin, cout, 3, padding=1, padding_mode="replicate")
+def _conv3(cin: int, cout: int) -> ReplicateConv2d:
+    return ReplicateConv2d(cin, cout, 3)
 
 
 class Branch(nn.Sequential):
     """conv3x3 -> GroupNorm -> GELU -> conv3x3."""
 
     def __init__(self, cin: int, hidden: int, cout: int, groups: int) -> None:
-        super().__init__(_conv3(cin, hidden), nn.GroupNorm(groups, hidden), nn.GELU(), _conv3(hidden, cout))
+        super().__init__(_conv3(cin, hidden), GroupNorm(groups, hidden), nn.GELU(), _conv3(hidden, cout))
+
+    @property
+    def first(self) -> nn.Conv2d:
+        return self[0]
+
+    @property
+    def norm(self) -> GroupNorm:
+        return self[1]
 
     @property
     def final(self) -> nn.Conv2d:
         return self[-1]
+
+
+def fused_branches(branches: list[Branch], x: torch.Tensor) -> list[torch.Tensor]:
+    """Every branch applied to the same input ``x`` [B,Cin,H,W], first layers as one (module docstring)."""
+    if len(branches) == 1:
+        return [branches[0](x)]
+    firsts, norms = [b.first for b in branches], [b.norm for b in branches]
+    hidden = F.conv2d(replicate_pad(x, 1), torch.cat([c.weight for c in firsts]), torch.cat([c.bias for c in firsts]))
+    hidden = F.gelu(group_norm(hidden, sum(n.num_groups for n in norms), torch.cat([n.weight for n in norms]),
+                               torch.cat([n.bias for n in norms]), norms[0].eps))
+    return [b.final(h) for b, h in zip(branches, hidden.split([c.out_channels for c in firsts], dim=1))]
 
 
 class GaussianPredictor(nn.Module):
@@ -79,9 +106,12 @@ class GaussianPredictor(nn.Module):
                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """Canvas inputs rgb [B,3,Hc,Wc] in [0,1], z [B,1,Hc,Wc] metres, phi [B,C,Hc,Wc] or None.
         back and dz are None without a back layer."""
+        dtype = compute_dtype(rgb.device)  # cast once, concatenate in the convolutions' dtype
+        rgb, z, phi = rgb.to(dtype), z.to(dtype), None if phi is None else phi.to(dtype)
         inputs = ([rgb, z] if self.rgbd else []) + ([phi] if self.use_descriptor else [])
         h = self.regressor(torch.cat(inputs, dim=1))
         shared = torch.cat([h] + ([rgb] if self.rgbd else []) + ([phi] if self.use_descriptor else []), dim=1)
         if self.back is None:
             return self.front(shared), None, None
-        return self.front(shared), self.back(shared), self.dz(shared)
+        front, back, dz = fused_branches([self.front, self.back, self.dz], shared)
+        return front, back, dz

@@ -1,0 +1,84 @@
+"""Building blocks shared by the decoder, the canvas and the predictor, written for a fast bf16 step.
+
+- ``replicate_pad``: edge replication (each padded pixel copies the nearest border pixel) with a
+  backward that sums the padded border into the edge pixels in a few slice operations. PyTorch's own
+  ``replication_pad2d_backward`` scatters with atomics and was the largest single cost of a training step
+  on an H100 (40 ms of 400 at 256x256, batch 32); this one is a copy of the gradient plus border sums.
+- ``ReplicateConv2d``: a 3x3 convolution on the replicate-padded input (the predictor's convolutions).
+  Same parameters and state_dict keys as ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
+- ``GroupNorm``: ``nn.GroupNorm`` that keeps its input's dtype. Under autocast PyTorch runs GroupNorm in
+  float32 (an up-cast copy in, a float32 tensor out and a down-cast before the next convolution); the
+  CUDA kernel accumulates its statistics in float32 for bf16 inputs anyway, so running it in bf16 gives
+  the same statistics with a third of the memory traffic. Same parameters and state_dict keys.
+- ``compute_dtype``: the dtype convolutions run in here (autocast's, else float32), so that inputs are
+  cast once before they are concatenated instead of concatenated in float32 and cast by every consumer.
+
+On the CPU (no autocast) every block computes exactly what its PyTorch counterpart computes.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class _ReplicatePad(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, p: int) -> torch.Tensor:
+        ctx.p = p
+        return F.pad(x, (p, p, p, p), mode="replicate")
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        p = ctx.p
+        g = grad[..., p:-p, p:-p].clone()
+        # edges (without corners): the padded rows/columns sum into the border row/column
+        g[..., 0, :] += grad[..., :p, p:-p].sum(-2)
+        g[..., -1, :] += grad[..., -p:, p:-p].sum(-2)
+        g[..., :, 0] += grad[..., p:-p, :p].sum(-1)
+        g[..., :, -1] += grad[..., p:-p, -p:].sum(-1)
+        # corners: each p x p padded corner block sums into the corner pixel
+        g[..., 0, 0] += grad[..., :p, :p].sum((-2, -1))
+        g[..., 0, -1] += grad[..., :p, -p:].sum((-2, -1))
+        g[..., -1, 0] += grad[..., -p:, :p].sum((-2, -1))
+        g[..., -1, -1] += grad[..., -p:, -p:].sum((-2, -1))
+        return g, None
+
+
+def replicate_pad(x: torch.Tensor, p: int) -> torch.Tensor:
+    """[B, C, H, W] (or [C, H, W]) -> [..., H + 2p, W + 2p] by edge replication; ``p = 0`` returns ``x``."""
+    if p < 0:
+        raise ValueError(f"padding must be >= 0, got {p}")
+    return _ReplicatePad.apply(x, p) if p else x
+
+
+class ReplicateConv2d(nn.Conv2d):
+    """kxk convolution (odd k, stride 1) of the input padded by edge replication to keep its size."""
+
+    def __init__(self, cin: int, cout: int, kernel: int = 3) -> None:
+        super().__init__(cin, cout, kernel, padding=0)
+        self.pad = kernel // 2
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(replicate_pad(x, self.pad), self.weight, self.bias)
+
+
+def compute_dtype(device: torch.device) -> torch.dtype:
+    """The dtype convolutions run in on ``device`` now: autocast's when it is on, else float32."""
+    if torch.is_autocast_enabled(device.type):
+        return torch.get_autocast_dtype(device.type)
+    return torch.float32
+
+
+def group_norm(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.Tensor, eps: float) -> torch.Tensor:
+    """``F.group_norm`` in ``x``'s dtype (statistics accumulate in float32 on CUDA for bf16/fp16)."""
+    with torch.autocast(x.device.type, enabled=False):
+        return F.group_norm(x, groups, weight.to(x.dtype), bias.to(x.dtype), eps)
+
+
+class GroupNorm(nn.GroupNorm):
+    """``nn.GroupNorm`` that runs in its input's dtype (see the module docstring)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return group_norm(x, self.num_groups, self.weight, self.bias, self.eps)
