@@ -1,7 +1,7 @@
 """``sgmodel`` command line: parse, call, print. Each command's work lives in its room.
 
 Commands: ``train``, ``eval``, ``predict``, ``ablate``, ``weights fetch``, ``bench train``,
-``bench encoders``. Errors in what the user typed (a bad flag value, a missing file, weights that are
+``bench encoders``, ``bench predict``. Errors in what the user typed (a bad flag value, a missing file, weights that are
 not there) print one line naming the flag or file and exit 2; nothing is written before the inputs are
 checked.
 """
@@ -205,11 +205,13 @@ def _add_ablate(sub) -> None:
 
 def _add_bench(sub) -> None:
     from .bench import encoders as bench_encoders
+    from .bench import predict as bench_predict
     from .bench import train as bench_train
 
-    p = sub.add_parser("bench", help="benchmarks: a training step by stage; encoders' time and accuracy")
+    p = sub.add_parser("bench", help="benchmarks: a training step by stage; encoders' time and accuracy; one "
+                                     "prediction by stage")
     bsub = p.add_subparsers(dest="bench_command", required=True)
-    for name, module in (("train", bench_train), ("encoders", bench_encoders)):
+    for name, module in (("train", bench_train), ("encoders", bench_encoders), ("predict", bench_predict)):
         b = bsub.add_parser(name, help=module.__doc__.splitlines()[0], description=module.__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(b)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 
 import numpy as np
 import OpenImageIO as oiio
@@ -16,6 +17,7 @@ from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
 from sgmodel import predict as predict_mod
 from sgmodel.baselines import naive_gs
+from sgmodel.cli import main as sgmodel_main
 from sgmodel.export import depth_png, orbit_cameras, write_ply
 from scripts.guitar_pair import H, W, render_pair
 
@@ -183,3 +185,17 @@ def test_small_pair_at_another_size_and_forward_splat(small_pair, capsys, monkey
     assert rc == 0 and "model size 32x16" in log and "fx=33.33" in log, log
     assert not (out / "scene.ply").exists() and (out / "views" / "left.png").is_file()
     assert decode_image((out / "views" / "center.png").read_bytes(), "png").shape == (16, 32, 3)
+
+
+def test_bench_predict_times_every_stage_on_the_cpu(tmp_path, capsys):
+    from sgmodel.bench.predict import STAGES
+
+    out = tmp_path / "bench.md"
+    assert sgmodel_main(["bench", "predict", "--preset", "cpu-small", "--device", "cpu", "--size", "48x32",
+                         "--warmup", "0", "--repeats", "1", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "One pair of 48x32" in text
+    for stage in STAGES:
+        assert re.search(rf"\| {re.escape(stage)} \| \d+\.\d \|", text), stage
+    n = (48 + 2 * 4) * (32 + 2 * 4) * 2  # two layers on the padded canvas (cpu-small: padding 4)
+    assert f"to {n:,} Gaussians" in text

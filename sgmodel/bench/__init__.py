@@ -1,6 +1,7 @@
 """Model benchmarks (``sgmodel bench ...``), each a module with ``add_arguments(parser)`` and ``run(args)``
-that prints a markdown table: ``train`` (one training step split by stage, peak memory) and ``encoders``
-(each encoder's time per pair and disparity error against rendered depth)."""
+that prints a markdown table: ``train`` (one training step split by stage, peak memory), ``encoders``
+(each encoder's time per pair and disparity error against rendered depth) and ``predict`` (one pair to a
+scene in a warm process, split by stage)."""
 
 from __future__ import annotations
 
