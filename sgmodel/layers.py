@@ -4,8 +4,9 @@
   backward that sums the padded border into the edge pixels in a few slice operations. PyTorch's own
   ``replication_pad2d_backward`` scatters with atomics and was the largest single cost of a training step
   on an H100 (40 ms of 400 at 256x256, batch 32); this one is a copy of the gradient plus border sums.
-- ``ReplicateConv2d``: a 3x3 convolution on the replicate-padded input (the predictor's convolutions).
-  Same parameters and state_dict keys as ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
+- ``replicate_conv3x3`` / ``ReplicateConv2d``: a 3x3 convolution of the replicate-padded input (the
+  predictor's convolutions) without the padded copy: a zero-padded convolution plus the ring's
+  difference. Same parameters and state_dict keys as ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
 - ``GroupNorm``: ``nn.GroupNorm`` that keeps its input's dtype. Under autocast PyTorch runs GroupNorm in
   float32 (an up-cast copy in, a float32 tensor out and a down-cast before the next convolution); the
   CUDA kernel accumulates its statistics in float32 for bf16 inputs anyway, so running it in bf16 gives
@@ -53,15 +54,35 @@ def replicate_pad(x: torch.Tensor, p: int) -> torch.Tensor:
     return _ReplicatePad.apply(x, p) if p else x
 
 
-class ReplicateConv2d(nn.Conv2d):
-    """kxk convolution (odd k, stride 1) of the input padded by edge replication to keep its size."""
+def replicate_conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """3x3 convolution of ``x`` [B,Cin,H,W] padded by one pixel of edge replication -> [B,Cout,H,W].
 
-    def __init__(self, cin: int, cout: int, kernel: int = 3) -> None:
-        super().__init__(cin, cout, kernel, padding=0)
-        self.pad = kernel // 2
+    Computed as cuDNN's zero-padded convolution (which pads inside the kernel, without a padded copy of
+    the input) plus the difference replication makes, which lives on the one-pixel ring only: the ring's
+    top row (row 0 of ``x`` replicated in width) meets the kernel's first row and adds a 1D convolution of
+    it to output row 0; likewise the bottom row, and the left and right columns (zero-padded in height,
+    so that each corner of the ring is counted once, by its row)."""
+    out = F.conv2d(x, weight, bias, padding=1)
+    x = x.to(out.dtype)  # autocast casts the weights of each 1D convolution below alike
+    row_top = F.conv1d(F.pad(x[:, :, 0, :], (1, 1), mode="replicate"), weight[:, :, 0, :])
+    row_bottom = F.conv1d(F.pad(x[:, :, -1, :], (1, 1), mode="replicate"), weight[:, :, 2, :])
+    col_left = F.conv1d(x[:, :, :, 0], weight[:, :, :, 0], padding=1)
+    col_right = F.conv1d(x[:, :, :, -1], weight[:, :, :, 2], padding=1)
+    out[:, :, 0, :] += row_top
+    out[:, :, -1, :] += row_bottom
+    out[:, :, :, 0] += col_left
+    out[:, :, :, -1] += col_right
+    return out
+
+
+class ReplicateConv2d(nn.Conv2d):
+    """3x3 convolution of the input padded by edge replication to keep its size (``replicate_conv3x3``)."""
+
+    def __init__(self, cin: int, cout: int) -> None:
+        super().__init__(cin, cout, 3, padding=1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(replicate_pad(x, self.pad), self.weight, self.bias)
+        return replicate_conv3x3(x, self.weight, self.bias)
 
 
 def compute_dtype(device: torch.device) -> torch.dtype:

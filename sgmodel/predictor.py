@@ -5,8 +5,8 @@ read [h, RGB~, Phi~], each conv3x3 -> GroupNorm -> GELU -> conv3x3: front (37 ch
 dz (1). All convolutions pad by replication. Ablations drop inputs: ``descriptor=False`` removes Phi~,
 ``rgbd=False`` removes RGB~ and z~ (the composer still uses them as anchors).
 
-The branches read the same input, so their first layers run as one: the shared input is padded once,
-convolved once with the branches' first-conv weights stacked (3C outputs), and normalised by one
+The branches read the same input, so their first layers run as one: the shared input is convolved once
+with the branches' first-conv weights stacked (3C outputs), and normalised by one
 GroupNorm of 3x the groups (groups are contiguous channel blocks, so this is exactly each branch's own
 GroupNorm). The parameters stay per branch (``front``, ``back``, ``dz``): the same state_dict and the
 same function as three separate branches, with one read of the wide input instead of three.
@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import ConfigurationError, PredictorParams
-from .layers import GroupNorm, ReplicateConv2d, compute_dtype, group_norm, replicate_pad
+from .layers import GroupNorm, ReplicateConv2d, compute_dtype, group_norm, replicate_conv3x3
 
 # channel ranges of a 37-channel layer output (SPEC section 7 "Branch channels")
 CHANNELS = {
@@ -38,7 +38,7 @@ ZERO_INIT = ("scale", "sh")  # exactly zero at initialisation (appendix A)
 
 
 def _conv3(cin: int, cout: int) -> ReplicateConv2d:
-    return ReplicateConv2d(cin, cout, 3)
+    return ReplicateConv2d(cin, cout)
 
 
 class Branch(nn.Sequential):
@@ -65,7 +65,7 @@ def fused_branches(branches: list[Branch], x: torch.Tensor) -> list[torch.Tensor
     if len(branches) == 1:
         return [branches[0](x)]
     firsts, norms = [b.first for b in branches], [b.norm for b in branches]
-    hidden = F.conv2d(replicate_pad(x, 1), torch.cat([c.weight for c in firsts]), torch.cat([c.bias for c in firsts]))
+    hidden = replicate_conv3x3(x, torch.cat([c.weight for c in firsts]), torch.cat([c.bias for c in firsts]))
     hidden = F.gelu(group_norm(hidden, sum(n.num_groups for n in norms), torch.cat([n.weight for n in norms]),
                                torch.cat([n.bias for n in norms]), norms[0].eps))
     return [b.final(h) for b, h in zip(branches, hidden.split([c.out_channels for c in firsts], dim=1))]

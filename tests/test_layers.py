@@ -33,18 +33,31 @@ def test_replicate_pad_zero_and_negative():
         replicate_pad(x, -1)
 
 
-def test_replicate_conv_matches_torch_conv():
+@pytest.mark.parametrize("size", [(6, 7), (6, 1), (1, 5), (1, 1), (2, 2), (3, 40)])
+def test_replicate_conv_matches_torch_conv(size):
     torch.manual_seed(0)
-    ours = ReplicateConv2d(5, 4, 3).double()
+    ours = ReplicateConv2d(5, 4).double()
     ref = nn.Conv2d(5, 4, 3, padding=1, padding_mode="replicate").double()
     ref.load_state_dict(ours.state_dict())  # same keys and shapes
-    x = torch.randn(2, 5, 6, 1, dtype=torch.float64, requires_grad=True)
+    x = torch.randn(2, 5, *size, dtype=torch.float64, requires_grad=True)
     a, b = ours(x), ref(x)
     torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     ga = torch.autograd.grad(a.square().sum(), [x, ours.weight, ours.bias])
     gb = torch.autograd.grad(b.square().sum(), [x, ref.weight, ref.bias])
     for u, v in zip(ga, gb):
         torch.testing.assert_close(u, v, rtol=1e-10, atol=1e-10)
+
+
+def test_replicate_conv_under_bf16_autocast_stays_close():
+    torch.manual_seed(0)
+    ours = ReplicateConv2d(8, 6)
+    ref = nn.Conv2d(8, 6, 3, padding=1, padding_mode="replicate")
+    ref.load_state_dict(ours.state_dict())
+    x = torch.rand(2, 8, 9, 10)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = ours(x)
+    assert y.dtype == torch.bfloat16
+    torch.testing.assert_close(y.float(), ref(x), rtol=3e-2, atol=3e-2)
 
 
 def test_group_norm_matches_torch_and_keeps_dtype():

@@ -89,6 +89,7 @@ def staged_step(model, objective, optimizer, batch: dict, amp: bool, now) -> dic
 def run(args: argparse.Namespace) -> int:
     model_params, train_params = params_from_args(args)
     device = torch.device(args.device)
+    torch.backends.cudnn.benchmark = device.type == "cuda"  # as `sgmodel train` does
     model = create_model(model_params, device)
     objective = create_objective(args.lpips_vgg, device=device)
     params = [p for p in model.parameters() if p.requires_grad]
