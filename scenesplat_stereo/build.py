@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from scenesplat_stereo import shards
 from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import SampleEncoder, default_encoder_threads
+from scenesplat_stereo.encode import SampleEncoder, default_encoder_workers
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.protocol import (
     JPEG_QUALITY,
@@ -137,7 +137,7 @@ class BuildSettings:
         type=argtype(check_device, "--device")))
     samples_per_shard: int = field(default=64, metadata=_flag(
         "samples (pairs) per tar shard (default 64)", type=whole_number("--samples-per-shard")))
-    workers: int = field(default_factory=default_encoder_threads, metadata=_flag(
+    workers: int = field(default_factory=default_encoder_workers, metadata=_flag(
         "JPEG/PNG encoder threads per renderer (default: half the CPU cores; 0 encodes inline)",
         type=whole_number("--workers", 0)))
     batch_pairs: int = field(default=4, metadata=_flag(

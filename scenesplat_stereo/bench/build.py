@@ -35,7 +35,7 @@ from scenesplat_stereo.build import BuildSettings
 from scenesplat_stereo.cameras import intrinsics_matrix
 from scenesplat_stereo.demo import make_room, room_trajectory
 from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import SampleEncoder, default_encoder_threads, encode_sample
+from scenesplat_stereo.encode import SampleEncoder, default_encoder_workers, encode_sample
 from scenesplat_stereo.protocol import JPEG_QUALITY, SamplePlan, plan_scene
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.render_pairs import start_render, stream_samples
@@ -171,7 +171,7 @@ def add_arguments(p) -> None:
     p.add_argument("--pairs", type=int, default=32, help="timed pairs per setting (12 renders each; default 32)")
     p.add_argument("--frames", type=int, default=64, help="trajectory frames the pairs cycle through (default 64)")
     p.add_argument("--batch-pairs", type=int, default=4, help="pairs per rasterisation call (default 4)")
-    p.add_argument("--workers", type=int, default=default_encoder_threads(),
+    p.add_argument("--workers", type=int, default=default_encoder_workers(),
                    help="encoder threads (default: half the CPU cores)")
     p.add_argument("--qualities", default="75,100", help="extra JPEG qualities timed at the first size (default 75,100)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")
