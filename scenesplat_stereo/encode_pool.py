@@ -9,6 +9,8 @@ pure-Python thread. Encoder processes do not share it.
 
 Each process is started once per worker count and process (``spawn``: safe after CUDA or Warp have
 started; it imports numpy and OpenImageIO only) and serves every ``SampleEncoder`` of that process.
+Like any ``spawn`` start, a script that builds in this mode needs the ``if __name__ == "__main__":``
+guard (the console scripts and ``python -m`` entries have it).
 Images reach a worker through a ``Slot``: a file in the encoder's private scratch folder (``/dev/shm``
 when it has room), mapped in both processes, into which the calling thread copies a sample (one
 ``memcpy`` per array, no pickling); only the slot's name and the arrays' layout cross the pipe, and the
