@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from scenesplat_stereo import shards
 from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import SampleEncoder, default_encoder_threads
+from scenesplat_stereo.encode import DEFAULT_ENCODER_MODE, ENCODER_MODES, SampleEncoder, default_encoder_workers
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.protocol import (
     JPEG_QUALITY,
@@ -55,25 +55,12 @@ from scenesplat_stereo.teachers import (
     resolve_trajectory,
     summary_table,
 )
-from scenesplat_stereo.text import argtype, format_table, parse_number, parse_size, positive_number, whole_number
+from scenesplat_stereo.text import (argtype, format_table, parse_counts, parse_number_or_none, parse_size,
+                                   positive_number, whole_number)
 
 SPLITS_OF_MODE = {"trainval": ("train", "val"), "test": ("test",)}
 BUILD_JSON = "build.json"
 EXIT_TEACHER_FAILED = 3  # exit status when some teachers failed at build time (the rest is complete)
-
-
-def _val_scenes(text: str, flag: str) -> dict[str, int] | int:
-    try:
-        if "=" not in text:
-            return parse_number(text, flag, int, 0)
-        return {k.strip(): parse_number(v, f"{flag} {k.strip()}", int, 0)
-                for k, v in (item.split("=") for item in text.split(",") if item.strip())}
-    except ValueError as e:
-        raise ValueError(f"{flag} {text!r}: expected 'Subset=k,...' or one integer >= 0 ({e})") from None
-
-
-def _min_psnr(text: str, flag: str) -> float | None:
-    return None if text.strip().lower() == "none" else parse_number(text, flag, float)
 
 
 def _effects(text: str, flag: str) -> str:
@@ -120,11 +107,11 @@ class BuildSettings:
         "first 4)", type=whole_number("--targets")))
     val_scenes: dict[str, int] | int | None = field(default=None, metadata=_flag(
         "validation scenes per subset, e.g. 'ScanNetGS=30,ScanNetPPGS-V2=20' (the default; 0 for other "
-        "subsets) or one integer for every subset", type=argtype(_val_scenes, "--val-scenes"),
+        "subsets) or one integer for every subset", type=argtype(parse_counts, "--val-scenes"),
         metavar="SUBSET=K,...|K"))
     min_psnr: float | None = field(default=MIN_TEACHER_PSNR, metadata=_flag(
         f"keep teachers with PSNR strictly above this (dB, default {MIN_TEACHER_PSNR}); 'none' keeps all, "
-        "including teachers without a PSNR", type=argtype(_min_psnr, "--min-psnr"), metavar="DB|none"))
+        "including teachers without a PSNR", type=argtype(parse_number_or_none, "--min-psnr"), metavar="DB|none"))
     with_depth: bool = field(default=False, metadata=_flag(
         "also store the left camera's expected depth (world units along z) as float16 EXR "
         "<key>.left_depth.exr", action="store_true"))
@@ -137,9 +124,12 @@ class BuildSettings:
         type=argtype(check_device, "--device")))
     samples_per_shard: int = field(default=64, metadata=_flag(
         "samples (pairs) per tar shard (default 64)", type=whole_number("--samples-per-shard")))
-    workers: int = field(default_factory=default_encoder_threads, metadata=_flag(
-        "JPEG/PNG encoder threads per renderer (default: half the CPU cores; 0 encodes inline)",
+    workers: int = field(default_factory=default_encoder_workers, metadata=_flag(
+        "JPEG/PNG encoders per renderer (default: half the CPU cores; 0 encodes inline)",
         type=whole_number("--workers", 0)))
+    encoder_mode: str = field(default=DEFAULT_ENCODER_MODE, metadata=_flag(
+        f"threads or processes (spawned, fed through shared memory): the same bytes (default "
+        f"{DEFAULT_ENCODER_MODE}; `bench encode` compares them)", choices=list(ENCODER_MODES)))
     batch_pairs: int = field(default=4, metadata=_flag(
         "pairs rendered per rasterisation call (12 cameras each)", type=whole_number("--batch-pairs")))
     backend: str = field(default="local", metadata=_flag(
@@ -176,6 +166,8 @@ class BuildSettings:
                 raise bad(flag, value, f"must be >= {low}")
         if not 1 <= self.jpeg_quality <= 100:
             raise bad("jpeg_quality", self.jpeg_quality, "must be in 1..100")
+        if self.encoder_mode not in ENCODER_MODES:
+            raise bad("--encoder-mode", repr(self.encoder_mode), f"must be one of {list(ENCODER_MODES)}")
         if self.backend not in ("local", "ray"):
             raise bad("--backend", repr(self.backend), "must be 'local' or 'ray'")
         check_device(self.device)
@@ -271,8 +263,8 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
         batches = [todo[s:s + settings.batch_pairs] for s in range(0, len(todo), settings.batch_pairs)]
         rendered = stream_samples(batches, lambda b: start_render(
             gaussians, scene.sh_degree, b, settings.device, settings.with_depth, settings.effects))
-        encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality)  # threads start here ...
-        with encoder:  # ... and are joined when this block ends, whatever happens in it
+        encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality, mode=settings.encoder_mode)
+        with encoder:  # its threads are joined when this block ends, whatever happens in it
             for batch in batches:
                 t0 = time.perf_counter()
                 samples = next(rendered)

@@ -1,7 +1,7 @@
 """``scenesplat-stereo`` command line: parse, call, print. Each command's work lives in its room.
 
 Commands: ``render`` (a teacher to PNG images), ``build``, ``inspect``, ``demo-teachers``,
-``bench render``, ``bench build``. Units and conventions are stated in each command's ``--help``.
+``bench render``, ``bench build``, ``bench encode``. Units and conventions are stated in each command's ``--help``.
 """
 
 from __future__ import annotations
@@ -72,6 +72,7 @@ def _add_demo_teachers(sub: argparse._SubParsersAction) -> None:
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     from scenesplat_stereo.bench import build as bench_build
+    from scenesplat_stereo.bench import encode as bench_encode
     from scenesplat_stereo.bench import render as bench_render
 
     p = sub.add_parser("bench", help="benchmarks: what accuracy costs in time (markdown tables)")
@@ -85,6 +86,10 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
                            description=bench_build.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     bench_build.add_arguments(b)
     b.set_defaults(func=bench_build.run)
+    e = benches.add_parser("encode", help="host JPEG/PNG encoding: per-image cost, threads against processes (no GPU)",
+                           description=bench_encode.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    bench_encode.add_arguments(e)
+    e.set_defaults(func=bench_encode.run)
 
 
 # Each entry adds one sub-command. Kept as a list so that each room registers its own command here

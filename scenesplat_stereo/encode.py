@@ -12,11 +12,11 @@ memory, so each call goes through a per-thread scratch file in a private folder 
 has 1 GiB free, else the system temp folder), read back and removed.
 
 ``SampleEncoder`` keeps the renderer from waiting on the encoder: a bounded queue of samples encoded by
-worker *threads*, and a writer thread that hands them, in submission order, to the shard writer.
-OpenImageIO releases the GIL while it encodes (measured on a 2-core CPU: 2 threads encode 616x456 JPEGs
-1.91x and 1752x1168 JPEGs 1.95x faster than one, while a pure-Python loop in the main thread kept
-99-102% of its speed), so threads give process-level parallelism without copying images between
-processes.
+worker threads, or by worker processes that those threads feed (``encode_pool``: the same bytes, outside
+the caller's GIL), and a writer thread that hands them, in submission order, to the shard writer.
+OpenImageIO releases the GIL while it encodes, but every call takes it back, and with a busy Python
+thread beside them encoder threads wait for it (``encode_pool`` has the measurement); ``python -m
+scenesplat_stereo.bench.encode`` compares the two modes on the machine at hand.
 """
 
 from __future__ import annotations
@@ -30,12 +30,16 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import numpy as np
 import OpenImageIO as oiio
 
+from scenesplat_stereo import encode_pool
 from scenesplat_stereo.protocol import JPEG_QUALITY
+
+ENCODER_MODES = ("threads", "processes")
 
 # Fixed so that EXR files do not carry the wall-clock time (byte-identical rebuilds).
 _EXR_DATETIME = "1970:01:01 00:00:00"
@@ -231,26 +235,37 @@ def encode_sample(sample: SampleImages, quality: int = JPEG_QUALITY) -> dict[str
     return members
 
 
-def default_encoder_threads() -> int:
-    """Encoder threads by default: half the CPU cores (at least 1). Measured on a 16-core GPU host
+def default_encoder_workers() -> int:
+    """Encoder workers by default: half the CPU cores (at least 1). Measured on a 16-core GPU host
     (docs/benchmarks.md, bench build): JPEG throughput peaks at 8 threads and falls at 16, where the
     encoders compete with the renderer's own thread and OpenImageIO's I/O for the cores."""
     return max(1, (os.cpu_count() or 1) // 2)
 
 
+# Threads measured best on the 2-core development machine (bench encode: 616x456, 2 workers, 72.7 against
+# 70.5 samples/s; 1752x1168, 13.5 against 9.1); the 16-core GPU host's table decides for that host.
+DEFAULT_ENCODER_MODE = "threads"
+
+
 class SampleEncoder:
-    """Encoder threads behind a bounded queue, and one writer thread that hands the results to
+    """Encoder workers behind a bounded queue, and one writer thread that hands the results to
     ``sink(key, members)`` in submission order.
+
+    ``mode`` "threads": ``workers`` threads encode. "processes": ``workers`` threads each copy a sample
+    into a shared slot and wait while one of ``workers`` encoder processes (``encode_pool``, started once
+    per process and reused) encodes it; the bytes are the same. ``workers=0`` encodes and writes inline
+    (no threads, no processes), whatever the mode.
 
     The renderer calls ``submit`` and goes back to rendering: it blocks only while ``max_pending``
     samples are queued (encoding, or encoded and waiting for the writer). Writing (tar, checksum) runs in
     the writer thread, one sample at a time, in order, whatever the encoder timing. An error in encoding
-    or in the sink stops the writer and is raised by the next ``submit`` or by ``close``. ``close`` (or
-    leaving the ``with`` block normally) drains the queue; leaving it with an exception drops the queued
-    samples without handing them to the sink. ``workers=0`` encodes and writes inline (no threads).
+    (in a thread or a process) or in the sink stops the writer and is raised by the next ``submit`` or by
+    ``close``. ``close`` (or leaving the ``with`` block normally) drains the queue; leaving it with an
+    exception drops the queued samples without handing them to the sink.
 
-    Timings (seconds): ``encode_s`` summed over encoder threads, ``wait_s`` the caller's time blocked on
-    the queue, ``sink_s`` time spent in the sink.
+    Timings (seconds): ``encode_s`` summed over encoder threads (processes mode: copy to the slot, the
+    worker's encoding and the bytes' way back), ``wait_s`` the caller's time blocked on the queue,
+    ``sink_s`` time spent in the sink.
     """
 
     def __init__(
@@ -259,15 +274,24 @@ class SampleEncoder:
         workers: int,
         quality: int = JPEG_QUALITY,
         max_pending: int | None = None,
+        mode: str = DEFAULT_ENCODER_MODE,
     ) -> None:
         if workers < 0:
             raise ValueError(f"SampleEncoder: workers must be >= 0, got {workers}")
-        self.sink, self.quality = sink, quality
+        if mode not in ENCODER_MODES:
+            raise ValueError(f"SampleEncoder: mode must be one of {ENCODER_MODES}, got {mode!r}")
+        self.sink, self.quality, self.workers = sink, quality, workers
         self.max_pending = max_pending if max_pending is not None else max(2, 3 * workers)
         self.encode_s = self.wait_s = self.sink_s = 0.0
         self._time_lock = threading.Lock()
         self._error: BaseException | None = None
         self._stop = threading.Event()
+        self._procs = encode_pool.process_pool(workers) if workers and mode == "processes" else None
+        # one slot per thread: a free slot is always there for a running thread
+        self._all_slots = encode_pool.take_slots(workers, _scratch_dir()) if self._procs is not None else []
+        self._slots: queue.SimpleQueue = queue.SimpleQueue()
+        for slot in self._all_slots:
+            self._slots.put(slot)
         self._pool = ThreadPoolExecutor(workers, thread_name_prefix="encode") if workers else None
         self._queue: queue.Queue = queue.Queue(maxsize=self.max_pending)
         self._writer = None
@@ -277,10 +301,25 @@ class SampleEncoder:
 
     def _encode(self, sample: SampleImages) -> dict[str, bytes]:
         t0 = time.perf_counter()
-        members = encode_sample(sample, self.quality)
+        members = encode_sample(sample, self.quality) if self._procs is None else self._encode_in_process(sample)
         with self._time_lock:
             self.encode_s += time.perf_counter() - t0
         return members
+
+    def _encode_in_process(self, sample: SampleImages) -> dict[str, bytes]:
+        slot = self._slots.get()
+        try:
+            arrays = [sample.left, sample.right, sample.targets, sample.masks]
+            path, layout = slot.put(arrays + ([] if sample.depth is None else [sample.depth]))
+            future = self._procs.submit(encode_pool.encode_in_worker, path, layout, sample.key,
+                                        tuple(sample.target_ids), sample.meta, self.quality)
+            try:
+                return future.result()
+            except BrokenProcessPool:
+                encode_pool.discard_pool(self.workers, self._procs)
+                raise
+        finally:
+            self._slots.put(slot)
 
     def _write(self, key: str, members: dict[str, bytes]) -> None:
         t0 = time.perf_counter()
@@ -328,6 +367,8 @@ class SampleEncoder:
             self._writer.join()
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
+        encode_pool.give_back_slots(self._all_slots)
+        self._all_slots = []
 
     def __enter__(self) -> SampleEncoder:
         return self

@@ -103,3 +103,19 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> s
     lines = ["| " + " | ".join(str(c) for c in header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return "\n".join(lines)
+
+
+def parse_counts(text: str, flag: str) -> dict[str, int] | int:
+    """``'A=3,B=0'`` -> {"A": 3, "B": 0}, or one integer >= 0 for every name (e.g. ``--val-scenes``)."""
+    try:
+        if "=" not in text:
+            return parse_number(text, flag, int, 0)
+        return {k.strip(): parse_number(v, f"{flag} {k.strip()}", int, 0)
+                for k, v in (item.split("=") for item in text.split(",") if item.strip())}
+    except ValueError as e:
+        raise ValueError(f"{flag} {text!r}: expected 'Subset=k,...' or one integer >= 0 ({e})") from None
+
+
+def parse_number_or_none(text: str, flag: str) -> float | None:
+    """A float, or None for ``'none'`` (e.g. ``--min-psnr``)."""
+    return None if text.strip().lower() == "none" else parse_number(text, flag, float)

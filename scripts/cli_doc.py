@@ -20,6 +20,7 @@ COMMANDS = [
     ("scenesplat-stereo demo-teachers", "write the bundled procedural indoor teachers"),
     ("scenesplat-stereo bench render", "rasteriser speed/accuracy knobs against gsplat and the float64 reference"),
     ("scenesplat-stereo bench build", "dataset build throughput, split into render/encode/write, projected to the paper's size"),
+    ("scenesplat-stereo bench encode", "host JPEG/PNG/EXR encoding without a GPU: per-image cost, encoder threads against processes"),
     ("sgmodel train", "train the model on shards (AdamW/OneCycle, validation, best checkpoint, resume, torchrun)"),
     ("sgmodel eval", "PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split, with a report folder"),
     ("sgmodel predict", "a rectified stereo pair to a 3DGS scene (.ply), depth, novel views and an orbit"),

@@ -151,7 +151,8 @@ def test_masks_and_images_match_the_rasteriser(built, teachers):
 
 def test_rebuild_is_byte_identical(built, teachers, tmp_path):
     out, _ = built
-    report = build(settings(teachers, tmp_path / "again", workers=1, batch_pairs=3))
+    # encoder processes, 1 worker, other batches: the same bytes as the fixture's 2 encoder threads
+    report = build(settings(teachers, tmp_path / "again", workers=1, batch_pairs=3, encoder_mode="processes"))
     assert not report.failed
     assert tree(tmp_path / "again") == tree(out)
     # a rerun in place keeps every shard and writes nothing
@@ -335,13 +336,17 @@ def test_real_guitar_teacher_builds_at_tiny_size(guitar_ply, tmp_path):
         assert json.loads(members["json"])["teacher_psnr"] is None
 
 
-def test_bench_build_runs_small_and_prints_the_tables(capsys):
+def test_bench_build_runs_small_and_prints_the_tables(capsys, tmp_path):
     from scenesplat_stereo.cli import main
 
+    out = tmp_path / "bench.md"
     assert main(["bench", "build", "--gaussians", "2000", "--sh-degree", "1", "--sizes", "32x24,48x36", "--pairs", "2",
-                 "--frames", "3", "--workers", "2", "--batch-pairs", "2", "--qualities", "75", "--device", "cpu"]) == 0
+                 "--frames", "3", "--workers", "2", "--batch-pairs", "2", "--qualities", "75", "--device", "cpu",
+                 "--repeats", "2", "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    for row in ("| base (RGB, q92, no effects, no depth) | 32x24 |", "| base (RGB, q92, no effects, no depth) | 48x36 |",
-                "| JPEG quality 75 | 32x24 |", "| + left depth", "| + effects", "| 1 |", "| 2 |",
-                "| 616x456 | 174,621 |", "| 1752x1168 | 149,196 |", "| **total** | 323,817 |"):
+    for row in ("| base (RGB, q92, no effects, no depth), threads | 32x24 |",
+                "| base (RGB, q92, no effects, no depth), processes | 48x36 |",
+                "| JPEG quality 75 | 32x24 |", "| + left depth", "| + effects", "| threads | 1 |", "| processes | 2 |",
+                "| 616x456 | 174,621 |", "| 1752x1168 | 149,196 |", "| **total** | 323,817 |", "encoder processes, from medians"):
         assert row in text, row
+        assert row in out.read_text(), row

@@ -186,7 +186,10 @@ def test_scratch_files_do_not_accumulate():
     with ThreadPoolExecutor(3) as ex:
         list(ex.map(lambda i: (encode_jpeg(smooth_image(seed=i)), decode_image(encode_mask_png(np.eye(4, dtype=bool)), "png")),
                     range(9)))
-    assert os.listdir(encode._scratch_dir()) == []
+    # only the shared slots that encoder processes reuse stay (one per worker of an earlier encoder)
+    left = os.listdir(encode._scratch_dir())
+    assert [f for f in left if not f.startswith("slot-")] == []
+    assert len(left) <= 2
 
 
 # IJG / JPEG Annex K.1 luminance quantisation table (natural row order) and libjpeg's quality scaling,
@@ -236,3 +239,42 @@ def test_written_jpeg_bytes_are_quality_92():
     for name in ("left.jpg", "right.jpg", "target_00.jpg"):
         assert _luma_table(members[name]) == _ijg_table(92), name
     assert _ijg_table(92) != _ijg_table(91) and _ijg_table(92) != _ijg_table(93)
+
+
+def test_sample_encoder_processes_same_bytes_order_and_errors():
+    """Processes mode (spawned workers, shared slots): submission order, the same bytes as inline encoding,
+    a worker's error raised in the caller, and abort dropping the queued samples."""
+    keys = [f"s__{i:06d}" for i in range(12)]
+    samples = [_sample(k, i, targets=2, depth=i % 3 == 0) for i, k in enumerate(keys)]
+    inline: list[tuple[str, dict]] = []
+    with SampleEncoder(lambda k, m: inline.append((k, m)), workers=0) as enc:
+        for s in samples:
+            enc.submit(s)
+    got: list[tuple[str, dict]] = []
+    with SampleEncoder(lambda k, m: got.append((k, m)), workers=2, max_pending=3, mode="processes") as enc:
+        for s in samples:
+            enc.submit(s)
+    assert got == inline and enc.encode_s > 0
+
+    bad = _sample("s__000099", 0)
+    bad.masks = bad.masks.astype(np.uint8)  # refused by encode_mask_png, in the worker
+    with pytest.raises(ValueError, match="bool"):
+        with SampleEncoder(lambda k, m: None, workers=2, mode="processes") as enc:
+            enc.submit(bad)
+
+    written, gate = [], threading.Event()
+
+    def sink(key, members):
+        gate.wait()
+        written.append(key)
+
+    threading.Timer(0.3, gate.set).start()
+    with pytest.raises(RuntimeError, match="boom"):
+        with SampleEncoder(sink, workers=2, max_pending=100, mode="processes") as enc:
+            for s in samples[:5]:
+                enc.submit(s)
+            time.sleep(0.2)  # the writer holds the first sample
+            raise RuntimeError("boom")
+    assert written == [keys[0]]
+    with pytest.raises(ValueError, match="mode"):
+        SampleEncoder(lambda k, m: None, workers=1, mode="fibers")

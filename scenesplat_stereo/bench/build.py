@@ -3,19 +3,21 @@
 A synthetic teacher (``demo.make_room`` with ``--gaussians`` Gaussians, SH degree ``--sh-degree``) is
 rendered along ``demo.room_trajectory`` through the build's own pipeline (``render_pairs``: all 12 cameras
 of ``--batch-pairs`` pairs per rasterisation call, host copies overlapped with the next call -> encoder
-threads -> ``ShardWriter`` into a temporary folder). Per configuration, after an untimed warm-up run of
-the same pairs through the whole pipeline (kernels, pinned host buffers, encoder threads), ``--pairs``
-pairs are timed; the table reports pairs/s and renders/s of the whole pipeline (wall clock) and the split:
-render (waiting for the rasteriser and the device-to-host copy, s), encode (summed over encoder threads,
-worker-s), write (tar + marker, s), and how long the renderer waited for the encoders.
+threads or processes -> ``ShardWriter`` into a temporary folder). Per configuration, after an untimed
+warm-up run of the same pairs through the whole pipeline (kernels, pinned host buffers, the encoder pool
+and its shared slots), ``--pairs`` pairs are timed ``--repeats`` times; the table reports the median
+pairs/s with min-max and the spread ((max - min) / median), and, from the median run, renders/s and the
+split: render (waiting for the rasteriser and the device-to-host copy, s), encode (summed over encoder
+threads, worker-s), write (tar + marker, s), and how long the renderer waited for the encoders.
 
-Rows: the base setting at each ``--sizes`` entry; at the first size, JPEG quality ``--qualities``, then
-``--with-depth`` and ``--effects`` on (off, they are skipped code paths: the base row is the "off" cost),
-and with ``--gsplat`` the same pipeline rendering with gsplat's ``rasterization`` (CUDA only). A second
-table measures encoder-thread scaling (OpenImageIO releases the GIL). Last, the projected time of the
-paper's training set (appendix B: 174,621 ScanNetGS pairs at 616x456 and 149,196 ScanNetPPGS-V2 pairs at
-1752x1168, 12 images each) on this device, from the base rows at those sizes (or, for a size not measured,
-scaled by pixel count from the nearest measured one, and labelled so).
+Rows: the base setting at each ``--sizes`` entry for each ``--encoder-modes`` entry; at the first size
+and the first mode, JPEG quality ``--qualities``, then ``--with-depth`` and ``--effects`` on (off, they
+are skipped code paths: the base row is the "off" cost), and with ``--gsplat`` the same pipeline rendering
+with gsplat's ``rasterization`` (CUDA only). A second table measures encoder scaling (workers, each mode).
+Last, per mode, the projected time of the paper's training set (appendix B: 174,621 ScanNetGS pairs at
+616x456 and 149,196 ScanNetPPGS-V2 pairs at 1752x1168, 12 images each) on this device, from the medians of
+the base rows at those sizes (or, for a size not measured, scaled by pixel count from the nearest measured
+one, and labelled so).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import statistics
 import tempfile
 import time
 from dataclasses import dataclass, replace
@@ -35,7 +38,8 @@ from scenesplat_stereo.build import BuildSettings
 from scenesplat_stereo.cameras import intrinsics_matrix
 from scenesplat_stereo.demo import make_room, room_trajectory
 from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import SampleEncoder, default_encoder_threads, encode_sample
+from scenesplat_stereo.encode import ENCODER_MODES, SampleEncoder, default_encoder_workers
+from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.protocol import JPEG_QUALITY, SamplePlan, plan_scene
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.render_pairs import start_render, stream_samples
@@ -50,8 +54,8 @@ FOV_X_DEG = 70.0  # synthetic camera
 
 @dataclass
 class Timing:
-    label: str
-    size: tuple[int, int]
+    """One timed run: counts, wall clock and its split (seconds), megabytes written."""
+
     pairs: int
     renders: int
     wall_s: float
@@ -61,16 +65,36 @@ class Timing:
     wait_s: float
     mbytes: float
 
+    @property
+    def rate(self) -> float:
+        """Pairs per second of the whole pipeline."""
+        return self.pairs / self.wall_s
+
+
+@dataclass
+class Row:
+    """One setting measured several times (``runs``, in order)."""
+
+    label: str
+    size: tuple[int, int]
+    runs: list[Timing]
+
+    @property
+    def median(self) -> Timing:
+        return sorted(self.runs, key=lambda t: t.rate)[len(self.runs) // 2]
+
     def row(self) -> str:
         w, h = self.size
-        return (f"| {self.label} | {w}x{h} | {self.pairs / self.wall_s:.3f} | {self.renders / self.wall_s:.2f} | "
-                f"{1e3 * self.render_s / self.pairs:.1f} | {1e3 * self.encode_s / self.pairs:.1f} | "
-                f"{1e3 * self.write_s / self.pairs:.1f} | {1e3 * self.wait_s / self.pairs:.1f} | "
-                f"{self.mbytes / self.pairs:.2f} |")
+        m, rates = self.median, [t.rate for t in self.runs]
+        spread = (max(rates) - min(rates)) / m.rate
+        return (f"| {self.label} | {w}x{h} | {m.rate:.3f} | {min(rates):.1f}-{max(rates):.1f} | {100 * spread:.0f}% | "
+                f"{m.renders / m.wall_s:.2f} | {1e3 * m.render_s / m.pairs:.1f} | {1e3 * m.encode_s / m.pairs:.1f} | "
+                f"{1e3 * m.write_s / m.pairs:.1f} | {1e3 * m.wait_s / m.pairs:.1f} | {m.mbytes / m.pairs:.2f} |")
 
 
-HEADER = ("| setting | size | pairs/s | renders/s | render ms/pair | encode worker-ms/pair | write ms/pair | "
-          "wait-for-encoder ms/pair | MB/pair |\n|---|---|---:|---:|---:|---:|---:|---:|---:|")
+HEADER = ("| setting | size | pairs/s (median) | min-max | spread | renders/s | render ms/pair | "
+          "encode worker-ms/pair | write ms/pair | wait-for-encoder ms/pair | MB/pair |\n"
+          "|---|---|---:|---|---:|---:|---:|---:|---:|---:|---:|")
 
 
 def synthetic_teacher(n: int, sh_degree: int, frames: int, size: tuple[int, int], device: str) -> tuple[Teacher, dict]:
@@ -92,7 +116,7 @@ def _pipeline(plans: list[SamplePlan], render, settings: BuildSettings, folder: 
     sync()
     t0, render_s, renders = time.perf_counter(), 0.0, 0
     with ShardWriter(folder, "bench", len(plans)) as writer:
-        with SampleEncoder(writer.add, settings.workers, settings.jpeg_quality) as enc:
+        with SampleEncoder(writer.add, settings.workers, settings.jpeg_quality, mode=settings.encoder_mode) as enc:
             batches = [plans[s:s + settings.batch_pairs] for s in range(0, len(plans), settings.batch_pairs)]
             rendered = stream_samples(batches, render)
             for batch in batches:
@@ -106,9 +130,10 @@ def _pipeline(plans: list[SamplePlan], render, settings: BuildSettings, folder: 
 
 
 def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: BuildSettings, size: tuple[int, int],
-                  pairs: int, rasterize=rasterization) -> Timing:
-    """Warm the whole pipeline up (kernels, pinned host buffers, encoder threads and scratch files at this
-    size: the first run at a new size is otherwise much slower), then time ``pairs`` pairs."""
+                  pairs: int, repeats: int, rasterize=rasterization) -> Row:
+    """Warm the whole pipeline up (kernels, pinned host buffers, the encoder pool and its slots at this
+    size: the first run at a new size is otherwise much slower), then time ``pairs`` pairs ``repeats``
+    times."""
     plans = plan_scene(teacher, "train", resolution=size)
     plans = (plans * math.ceil(pairs / len(plans)))[:pairs]
     plans = [replace(p, key=f"bench__{i:06d}") for i, p in enumerate(plans)]
@@ -117,47 +142,54 @@ def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: Build
         return start_render(gaussians, teacher.sh_degree, batch, settings.device, settings.with_depth,
                             settings.effects, rasterize)
 
+    runs = []
     with tempfile.TemporaryDirectory() as tmp:
-        # As many pairs as the timed run: the pinned host buffers of samples still queued for the encoders
+        # As many pairs as a timed run: the pinned host buffers of samples still queued for the encoders
         # are allocated (slowly, cudaHostAlloc) until torch's host cache holds enough of them.
         _pipeline(plans, render, settings, Path(tmp) / "warm-up")
-        wall, render_s, renders, enc = _pipeline(plans, render, settings, Path(tmp) / "timed")
-        mbytes = sum(f.stat().st_size for f in (Path(tmp) / "timed").rglob("*.tar")) / 1e6
-    return Timing(label, size, len(plans), renders, wall, render_s, enc.encode_s, enc.sink_s, enc.wait_s, mbytes)
+        for r in range(repeats):
+            folder = Path(tmp) / f"timed-{r}"
+            wall, render_s, renders, enc = _pipeline(plans, render, settings, folder)
+            mbytes = sum(f.stat().st_size for f in folder.rglob("*.tar")) / 1e6
+            runs.append(Timing(len(plans), renders, wall, render_s, enc.encode_s, enc.sink_s, enc.wait_s, mbytes))
+    return Row(label, size, runs)
 
 
 def encoder_scaling(teacher: Teacher, gaussians: dict, settings: BuildSettings, size: tuple[int, int],
-                    pairs: int) -> list[tuple[int, float]]:
-    """Encode the same rendered samples with 1, 2, 4, ... up to all CPU cores: (threads, pairs/s)."""
+                    pairs: int, repeats: int) -> list[tuple[int, list[float]]]:
+    """Encode the same rendered samples with 1, 2, 4, 8, 12, 16 and all-cores workers (up to the CPU
+    cores) in ``settings.encoder_mode``, each after one untimed run: (workers, pairs/s of each run)."""
     plans = plan_scene(teacher, "train", resolution=size)[:max(1, pairs)]
     samples = start_render(gaussians, teacher.sh_degree, plans, settings.device).samples()
-    encode_sample(samples[0], settings.jpeg_quality)  # warm-up
     out = []
     cores = os.cpu_count() or 1
-    for threads in sorted({1, *range(2, cores + 1, 2), cores}):
-        t0 = time.perf_counter()
-        with SampleEncoder(lambda k, m: None, threads, settings.jpeg_quality) as enc:
-            for s in samples:
-                enc.submit(s)
-        out.append((threads, len(samples) / (time.perf_counter() - t0)))
+    for workers in sorted({n for n in (1, 2, 4, 8, 12, 16) if n <= cores} | {cores}):
+        rates = []
+        for _ in range(repeats + 1):
+            t0 = time.perf_counter()
+            with SampleEncoder(lambda k, m: None, workers, settings.jpeg_quality, mode=settings.encoder_mode) as enc:
+                for s in samples:
+                    enc.submit(s)
+            rates.append(len(samples) / (time.perf_counter() - t0))
+        out.append((workers, rates[1:]))
     return out
 
 
-def projection(base: dict[tuple[int, int], Timing]) -> list[str]:
-    """Projected hours for the paper's training set from the base rows."""
+def projection(base: dict[tuple[int, int], Row]) -> list[str]:
+    """Projected hours for the paper's training set from the medians of the base rows."""
     lines, total = [], 0.0
     for size, n_pairs in PAPER_TRAIN_PAIRS.items():
         if size in base:
-            rate, how = base[size].pairs / base[size].wall_s, "measured"
+            rate, how = base[size].median.rate, "measured"
         else:
             ref = min(base, key=lambda s: abs(math.log(s[0] * s[1] / (size[0] * size[1]))))
-            rate = base[ref].pairs / base[ref].wall_s * (ref[0] * ref[1]) / (size[0] * size[1])
+            rate = base[ref].median.rate * (ref[0] * ref[1]) / (size[0] * size[1])
             how = f"scaled by pixel count from {ref[0]}x{ref[1]}"
         hours = n_pairs / rate / 3600
         total += hours
         lines.append(f"| {size[0]}x{size[1]} | {n_pairs:,} | {rate:.3f} ({how}) | {hours:.2f} |")
     lines.append(f"| **total** | {sum(PAPER_TRAIN_PAIRS.values()):,} | | **{total:.2f}** |")
-    return ["| size | pairs (x12 images) | pairs/s | hours |", "|---|---:|---|---:|"] + lines
+    return ["| size | pairs (x12 images) | pairs/s (median) | hours |", "|---|---:|---|---:|"] + lines
 
 
 def _sizes(text: str) -> list[tuple[int, int]]:
@@ -168,51 +200,75 @@ def add_arguments(p) -> None:
     p.add_argument("--gaussians", type=int, default=1_000_000, help="Gaussians in the synthetic room (default 1M)")
     p.add_argument("--sh-degree", type=int, default=3, help="SH degree of the synthetic teacher (default 3)")
     p.add_argument("--sizes", default="616x456,1752x1168", help="WxH render sizes, comma-separated (pixels)")
-    p.add_argument("--pairs", type=int, default=32, help="timed pairs per setting (12 renders each; default 32)")
+    p.add_argument("--pairs", type=int, default=32, help="timed pairs per run (12 renders each; default 32)")
+    p.add_argument("--repeats", type=int, default=3, help="timed runs per row, after one untimed (default 3)")
     p.add_argument("--frames", type=int, default=64, help="trajectory frames the pairs cycle through (default 64)")
     p.add_argument("--batch-pairs", type=int, default=4, help="pairs per rasterisation call (default 4)")
-    p.add_argument("--workers", type=int, default=default_encoder_threads(),
-                   help="encoder threads (default: half the CPU cores)")
+    p.add_argument("--workers", type=int, default=default_encoder_workers(),
+                   help="encoder workers (default: half the CPU cores)")
+    p.add_argument("--encoder-modes", default=",".join(ENCODER_MODES),
+                   help=f"encoder modes of the base rows and the scaling table, the first for the other rows "
+                   f"(default {','.join(ENCODER_MODES)})")
     p.add_argument("--qualities", default="75,100", help="extra JPEG qualities timed at the first size (default 75,100)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")
     p.add_argument("--gsplat", action="store_true", help="also time the pipeline rendering with gsplat (if importable)")
+    p.add_argument("--out", type=Path, help="also write the markdown to this file")
 
 
 def run(args) -> int:
     sizes = _sizes(args.sizes)
+    modes = [m.strip() for m in args.encoder_modes.split(",") if m.strip()]
+    if not modes or any(m not in ENCODER_MODES for m in modes) or args.repeats < 1:
+        raise SystemExit(f"bench build: --encoder-modes from {','.join(ENCODER_MODES)}; --repeats >= 1")
     settings = BuildSettings(teachers=Path("-"), out=Path("-"), device=args.device, workers=args.workers,
-                             batch_pairs=args.batch_pairs, progress=False)
+                             batch_pairs=args.batch_pairs, progress=False, encoder_mode=modes[0])
     teacher, gaussians = synthetic_teacher(args.gaussians, args.sh_degree, args.frames, sizes[0], args.device)
     device = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"CPU ({torch.get_num_threads()} threads)"
-    print(f"bench build: {args.gaussians:,} Gaussians, SH {args.sh_degree}, {args.pairs} pairs per row, "
-          f"{args.batch_pairs} pairs per call, {args.workers} encoder threads, device {device}\n")
-    rows, base = [], {}
-    for size in sizes:
-        base[size] = time_pipeline("base (RGB, q92, no effects, no depth)", teacher, gaussians, settings, size, args.pairs)
-        rows.append(base[size])
+    out = [f"bench build: {args.gaussians:,} Gaussians, SH {args.sh_degree}, {args.pairs} pairs per run, "
+           f"{args.repeats} timed runs per row after one untimed, {args.batch_pairs} pairs per call, "
+           f"{args.workers} encoder workers, {os.cpu_count()} CPU cores, device {device}\n"]
+    print(out[0], flush=True)
+    n, rows, base = args.pairs, [], {m: {} for m in modes}
+
+    def timed(label: str, s: BuildSettings, size: tuple[int, int], rasterize=rasterization) -> Row:
+        rows.append(time_pipeline(label, teacher, gaussians, s, size, n, args.repeats, rasterize))
+        print(rows[-1].row(), flush=True)
+        return rows[-1]
+
+    for mode in modes:
+        for size in sizes:
+            base[mode][size] = timed(f"base (RGB, q92, no effects, no depth), {mode}",
+                                     replace(settings, encoder_mode=mode), size)
     first = sizes[0]
     for q in (int(v) for v in args.qualities.split(",") if v.strip()):
-        rows.append(time_pipeline(f"JPEG quality {q}", teacher, gaussians, replace(settings, jpeg_quality=q), first, args.pairs))
-    rows.append(time_pipeline("+ left depth (RGB+ED, EXR)", teacher, gaussians, replace(settings, with_depth=True),
-                              first, args.pairs))
-    all_fx = CameraEffects.parse("noise,vignetting,exposure")
-    rows.append(time_pipeline("+ effects (noise, vignetting, exposure)", teacher, gaussians,
-                              replace(settings, effects=all_fx), first, args.pairs))
+        timed(f"JPEG quality {q}", replace(settings, jpeg_quality=q), first)
+    timed("+ left depth (RGB+ED, EXR)", replace(settings, with_depth=True), first)
+    timed("+ effects (noise, vignetting, exposure)", replace(settings, effects=CameraEffects.parse(
+        "noise,vignetting,exposure")), first)
     if args.gsplat:
         if importlib.util.find_spec("gsplat") is None or not args.device.startswith("cuda"):
-            print("(--gsplat: gsplat is not importable or the device is not CUDA; skipped)\n")
+            out.append("(--gsplat: gsplat is not importable or the device is not CUDA; skipped)\n")
         else:
             from gsplat import rasterization as gsplat_rasterization
 
             for size in sizes:
-                rows.append(time_pipeline("gsplat renderer, base", teacher, gaussians, settings, size, args.pairs,
-                                          gsplat_rasterization))
-    print(HEADER)
-    print("\n".join(r.row() for r in rows))
-    print(f"\nEncoder threads at {first[0]}x{first[1]} (q{JPEG_QUALITY}, same rendered samples):\n")
-    print("| threads | pairs/s encoded |\n|---:|---:|")
-    for threads, rate in encoder_scaling(teacher, gaussians, settings, first, args.pairs):
-        print(f"| {threads} | {rate:.2f} |")
-    print(f"\nProjected time of the paper's training set on this device ({device}):\n")
-    print("\n".join(projection(base)))
+                timed(f"gsplat renderer, base, {modes[0]}", settings, size, gsplat_rasterization)
+    out += [HEADER, *(r.row() for r in rows)]
+    out.append(f"\nEncoder workers at {first[0]}x{first[1]} (q{JPEG_QUALITY}, same rendered samples, "
+               f"{args.repeats} runs after one untimed):\n")
+    out.append("| mode | workers | pairs/s encoded (median) | min-max | spread |\n|---|---:|---:|---|---:|")
+    for mode in modes:
+        for workers, rates in encoder_scaling(teacher, gaussians, replace(settings, encoder_mode=mode), first,
+                                              args.pairs, args.repeats):
+            med = statistics.median(rates)
+            out.append(f"| {mode} | {workers} | {med:.2f} | {min(rates):.1f}-{max(rates):.1f} | "
+                       f"{100 * (max(rates) - min(rates)) / med:.0f}% |")
+    for mode in modes:
+        out.append(f"\nProjected time of the paper's training set on this device ({device}), encoder {mode}, "
+                   "from medians:\n")
+        out += projection(base[mode])
+    doc = "\n".join(out) + "\n"
+    print(doc)
+    if args.out is not None:
+        atomic_write_bytes(args.out, doc.encode())
     return 0
