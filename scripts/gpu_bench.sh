@@ -35,6 +35,10 @@ if [[ $what == backward || $what == all ]]; then  # the forward tables, then for
   python3 -m scenesplat_stereo.bench.render --device cuda --backward --out "$out/bench_render_backward.md" || rc=1
 fi
 if [[ $what == build || $what == all ]]; then
-  python3 -m scenesplat_stereo.cli bench build --device cuda --gsplat --pairs 64 2>&1 | tee "$out/bench_build.md" || rc=1
+  # host encoding alone (threads against processes, per-image cost), then the whole build, rows repeated
+  python3 -m scenesplat_stereo.bench.encode --sizes 616x456,1752x1168 --workers 4,8,12,16 \
+    --modes threads,processes,threads-oiio1 --repeats 3 --samples 32 --out "$out/bench_encode.md" || rc=1
+  python3 -m scenesplat_stereo.cli bench build --device cuda --gsplat --pairs 64 --sizes 616x456,1752x1168 \
+    --repeats 3 --out "$out/bench_build.md" || rc=1
 fi
 exit $rc

@@ -21,10 +21,10 @@ if [[ $dev == cuda ]]; then
   export PYTHONPATH=/root/site:$PWD:$PYTHONPATH SGMODEL_CACHE=/root/sgcache
   guitar=/root/sgcache/guitar.ply
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
-  S=256 BATCH=32 STEPS=${STEPS:-400} VAL=${VAL:-100} FRAMES=${FRAMES:-100} RES=340x256 ENC=psmnet-kitti WORKERS=8
+  S=256 BATCH=32 STEPS=${STEPS:-400} VAL=${VAL:-100} FRAMES=${FRAMES:-100} RES=340x256 ENC=psmnet-kitti WORKERS=8 PAIR=320x256
 else  # a CPU dry run of every command below, tiny
   guitar=${GUITAR:-../shared/data/teachers/playcanvas-guitar/point_cloud.ply}
-  S=64 BATCH=2 STEPS=${STEPS:-4} VAL=${VAL:-2} FRAMES=${FRAMES:-6} RES=86x64 ENC=sgbm WORKERS=0
+  S=64 BATCH=2 STEPS=${STEPS:-4} VAL=${VAL:-2} FRAMES=${FRAMES:-6} RES=86x64 ENC=sgbm WORKERS=0 PAIR=96x64
 fi
 export PYTHONUNBUFFERED=1
 data=/tmp/sgdata; rc=0
@@ -41,14 +41,22 @@ dataset() {  # the demo rooms and the real guitar (orbit) rendered into shards, 
 
 if [[ $what == main ]]; then
   dataset
-  # 3. a training step split by stage, and the encoders' time and disparity error (SKIP_BENCH=1: not now)
+  # 3. a training step split by stage (with the SSIM and the LPIPS term), the encoders' time and disparity
+  # error, one warm prediction by stage (SKIP_BENCH=1: not now)
   [[ -n ${SKIP_BENCH:-} ]] || {
   run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
     --repeats 5 --warmup 2 --out "$out/bench_train.md"
   run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
     --repeats 5 --warmup 2 --data $data/dataset --workers $WORKERS --out "$out/bench_train_data.md"
   run python3 -m sgmodel.cli bench encoders --device $dev --data $data/dataset --resolution $S \
-    --encoders $ENC --out "$out/bench_encoders.md"; }
+    --encoders $ENC --out "$out/bench_encoders.md"
+  # the step with the paper's LPIPS-VGG term: random VGG16 weights in torchvision's format (the time does not
+  # depend on their values; the ImageNet weights cannot be had here)
+  run python3 -c "import torch; from tests.test_lpips import random_vgg_state; torch.save(random_vgg_state(), '/tmp/vgg16-random.pth')"
+  run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
+    --repeats 5 --warmup 2 --lpips-vgg /tmp/vgg16-random.pth --out "$out/bench_train_lpips.md"
+  run python3 -m sgmodel.cli bench predict --device $dev --encoder $ENC --size $PAIR --repeats 20 \
+    --out "$out/bench_predict.md"; }
   # 4. a short training run, evaluated with its baselines, then one prediction from a rendered guitar pair
   run python3 -m sgmodel.cli train --data $data/dataset --out $out/run --device $dev --resolution $S \
     --batch-size $BATCH --steps $STEPS --val-every $VAL --encoder $ENC --workers $WORKERS --no-progress
