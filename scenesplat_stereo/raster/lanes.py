@@ -1,5 +1,6 @@
-"""Cross-lane operations of a thread block of exactly one warp (``LANES`` = 32 threads, launched with
-``wp.launch_tiled(..., block_dim=LANES)``), for the compositing backward's per-warp reductions.
+"""Cross-thread votes and sums of cooperative compositing blocks (``wp.launch_tiled``): ``block_all`` for
+any block, the ``lanes_*`` functions for blocks of exactly one warp (``LANES`` = 32 threads,
+``block_dim=LANES``), the compositing backward's per-warp reductions.
 
 On CUDA they are bare warp intrinsics (a vote, register shuffles), with no shared memory and no block
 barrier; Warp's tile reductions, by contrast, go through a shared-memory tile and ``__syncthreads`` per
@@ -30,6 +31,15 @@ return __any_sync(0xffffffffu, flag != 0) ? 1 : 0;
 #else
 auto t = wp::tile<wp::int32>(flag);
 return wp::tile_max(t).data[0] != 0 ? 1 : 0;
+#endif
+"""
+
+_ALL = """
+#if defined(__CUDA_ARCH__)
+return __syncthreads_and(flag != 0) ? 1 : 0;
+#else
+auto t = wp::tile<wp::int32>(flag != 0 ? 1 : 0);
+return wp::tile_min(t).data[0];
 #endif
 """
 
@@ -80,6 +90,13 @@ if (lane == 0)
 @wp.func_native(_ANY)
 def lanes_any(flag: int) -> int:
     """1 when ``flag`` is non-zero in any lane of the warp, else 0 (in every lane)."""
+    ...
+
+
+@wp.func_native(_ALL)
+def block_all(flag: int) -> int:
+    """1 when ``flag`` is non-zero in every thread of the block, else 0 (in every thread); a block barrier
+    (every thread of the block must call it)."""
     ...
 
 
