@@ -21,10 +21,13 @@ Gradients come out packed per (camera, Gaussian) as F = 6 + D floats:
 Three reductions over pixels (``reduction``), one source for CPU and CUDA:
 - "pixel" (default on the CPU): one thread per pixel, ``wp.atomic_add`` into the packed gradients. Warp's
   CPU launches are one serial loop, so there this is contention-free and bit-reproducible;
-- "warp" (default on CUDA): blocks of one warp (``WARP_GROUP`` pixels of a tile) walk the list in lock
-  step; an entry that touches any of the warp's pixels is summed over the warp and added with one atomic
-  per warp instead of one per pixel (float atomics add in a run-dependent order, so the last bits of the
-  gradients can change between runs);
+- "warp" (default on CUDA): blocks of one warp (``lanes.LANES`` pixels of a tile) walk the list in lock
+  step from the warp's largest ``last_ids``, batches of 32 rows copied to shared memory; one warp vote
+  skips an entry that none of the warp's pixels composited, and an entry that some pixel did is summed
+  over the warp with register shuffles (a reduce-scatter, ``lanes.lanes_sum_add``) and added with one
+  atomic instruction per warp (lane 2k adds component k) instead of one per pixel (float atomics add in
+  a run-dependent order, so the last bits of the gradients can change between runs). No shared-memory
+  reduction or block barrier per entry (the CPU runs the same kernel on fibers through Warp's tile sums);
 - "rows" (``deterministic=True``): one block per tile (or per group of at most ``DETERMINISTIC_BLOCK`` pixels of a tile)
   walks the list in lock step; every entry's gradient is summed over the block's pixels with a
   cooperative block reduction (fixed order) and written, without atomics, to that entry's own row; rows
