@@ -23,6 +23,7 @@ import warp as wp
 
 from ._warp import ALPHA_MIN, T_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
+from .lanes import block_all
 
 # CUDA compile options of the compositing kernels (forward and backward alike, so both make the same
 # touch / stop decisions): fast math turns exp into the hardware approximation gsplat uses (__expf);
@@ -191,7 +192,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
         end = tile_ranges[tile, 1]
         while b < end:
             # Every thread reaches the cooperative calls; the block stops once all its pixels are done.
-            if wp.tile_sum(wp.tile(done))[0] == block:
+            if block_all(done) != 0:
                 break
             batch = wp.tile_load(splats, shape=(block, row), offset=(b, 0), storage="shared")
             if done == 0:

@@ -21,10 +21,13 @@ Gradients come out packed per (camera, Gaussian) as F = 6 + D floats:
 Three reductions over pixels (``reduction``), one source for CPU and CUDA:
 - "pixel" (default on the CPU): one thread per pixel, ``wp.atomic_add`` into the packed gradients. Warp's
   CPU launches are one serial loop, so there this is contention-free and bit-reproducible;
-- "warp" (default on CUDA): blocks of one warp (``WARP_GROUP`` pixels of a tile) walk the list in lock
-  step; an entry that touches any of the warp's pixels is summed over the warp and added with one atomic
-  per warp instead of one per pixel (float atomics add in a run-dependent order, so the last bits of the
-  gradients can change between runs);
+- "warp" (default on CUDA): blocks of one warp (``lanes.LANES`` pixels of a tile) walk the list in lock
+  step from the warp's largest ``last_ids``, batches of 32 rows copied to shared memory; one warp vote
+  skips an entry that none of the warp's pixels composited, and an entry that some pixel did is summed
+  over the warp with register shuffles (a reduce-scatter, ``lanes.lanes_sum_add``) and added with one
+  atomic instruction per warp (lane 2k adds component k) instead of one per pixel (float atomics add in
+  a run-dependent order, so the last bits of the gradients can change between runs). No shared-memory
+  reduction or block barrier per entry (the CPU runs the same kernel on fibers through Warp's tile sums);
 - "rows" (``deterministic=True``): one block per tile (or per group of at most ``DETERMINISTIC_BLOCK`` pixels of a tile)
   walks the list in lock step; every entry's gradient is summed over the block's pixels with a
   cooperative block reduction (fixed order) and written, without atomics, to that entry's own row; rows
@@ -39,6 +42,7 @@ Three reductions over pixels (``reduction``), one source for CPU and CUDA:
 # No ``from __future__ import annotations`` here: Warp evaluates kernel annotations, and those naming the
 # per-D vector types of the kernel factory must be real objects, not strings.
 import functools
+import os
 
 import torch
 import warp as wp
@@ -46,19 +50,22 @@ import warp as wp
 from ._warp import ALPHA_MIN, cpu_blocks, on_device_of, to_wp, vector_type
 from .binning import Bins
 from .composite import COMPOSITE_OPTIONS, SPLAT_SLOTS, conic_sigma, gather_splats, tile_pixel
+from .lanes import LANES, lanes_any, lanes_max, lanes_sum_add
 
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
 # tiles are split into groups of this many pixels, each with its own row per list entry).
 DETERMINISTIC_BLOCK = 256
-# Pixels per block of the default CUDA reduction: one warp, so the block sums are warp-level.
-WARP_GROUP = 32
+# A/B switch for the GPU benchmark of issue 9 only (to be removed before merging): "1" runs the previous
+# CUDA default, block reductions through Warp's tile sums, instead of the warp-intrinsic kernel.
+_BLOCK_REDUCE_AB = "SCENESPLAT_BWD_BLOCK_REDUCE"
 # Leading packed slots before the D colour channels: d mean2d (2), d conic (3), d opacity (1).
 SPLAT_GRAD_SLOTS = 6
 
 
 @functools.cache
 def _kernels(channels: int):
-    """(per-pixel atomic kernel, block kernel factory (atomic?, group size), row-gather kernel) for D channels."""
+    """(per-pixel atomic kernel, block kernel factory (atomic?, group size), warp kernel, row-gather kernel)
+    for D channels."""
     vecD = vector_type(channels)
     vecF = vector_type(channels + SPLAT_GRAD_SLOTS)
 
@@ -87,16 +94,16 @@ def _kernels(channels: int):
         v_alpha: float,
     ):
         """Undo one list entry (mean2d m, conic, opacity o, colour) at pixel centre (fx, fy): (T in front of
-        it, S updated, its gradient)."""
+        it, S updated, its gradient, 1 if it was composited at this pixel else 0)."""
         grad = vecF()
         dx = m[0] - fx
         dy = m[1] - fy
         sigma = conic_sigma(dx, dy, con[0], con[1], con[2])
         if not (sigma >= 0.0):
-            return T, S, grad
+            return T, S, grad, 0
         vis = o * wp.exp(-sigma)
         if not (vis >= ALPHA_MIN):
-            return T, S, grad
+            return T, S, grad, 0
         alpha = wp.min(max_alpha, vis)
         ra = 1.0 / (1.0 - alpha)
         T = T * ra
@@ -113,7 +120,7 @@ def _kernels(channels: int):
             grad[3] = v_sigma * dx * dy
             grad[4] = v_sigma * 0.5 * dy * dy
             grad[5] = v_a * wp.exp(-sigma)
-        return T, S, grad
+        return T, S, grad, 1
 
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_backward_atomic(
@@ -150,7 +157,7 @@ def _kernels(channels: int):
         i = last_ids[pix]
         while i >= start:
             m, con, o, col = array_row(splats, i)
-            T, S, grad = reverse_step(m, con, o, col, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
+            T, S, grad, touched = reverse_step(m, con, o, col, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
             wp.atomic_add(out_grads, flatten_ids[i], grad)
             i -= 1
 
@@ -212,7 +219,7 @@ def _kernels(channels: int):
                         col = vecD()
                         for k in range(channels):
                             col[k] = batch[r, SPLAT_SLOTS + k]
-                        T, S, grad = reverse_step(wp.vec2(batch[r, 0], batch[r, 1]),
+                        T, S, grad, touched = reverse_step(wp.vec2(batch[r, 0], batch[r, 1]),
                                                   wp.vec3(batch[r, 2], batch[r, 3], batch[r, 4]), batch[r, 5],
                                                   col, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
                         if wp.length_sq(grad) > 0.0:
@@ -228,6 +235,65 @@ def _kernels(channels: int):
                     i -= 1
 
         return composite_backward_blocks
+
+    sum_add = lanes_sum_add(channels + SPLAT_GRAD_SLOTS)
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
+    def composite_backward_lanes(
+        splats: wp.array2d(dtype=float),
+        tile_ranges: wp.array2d(dtype=wp.int32),
+        flatten_ids: wp.array(dtype=wp.int32),
+        width: int,
+        height: int,
+        tile_size: int,
+        tiles_x: int,
+        tiles_per_camera: int,
+        max_alpha: float,
+        alphas: wp.array(dtype=float),
+        last_ids: wp.array(dtype=wp.int32),
+        v_render: wp.array(dtype=vecD),
+        v_alphas: wp.array(dtype=float),
+        groups: int,
+        out_grads: wp.array(dtype=vecF),
+    ):
+        # One block = one warp = LANES pixels of a tile; see the module docstring ("warp").
+        block, lane = wp.tid()
+        tile = block / groups
+        local = (block - tile * groups) * LANES + lane
+        c, px, py = tile_pixel(tile, local, tile_size, tiles_x, tiles_per_camera)
+        # Every lane takes part in the warp operations; lanes off the image or the tile stay idle.
+        last = int(-1)
+        pix = int(0)
+        if local < tile_size * tile_size and px < width and py < height:
+            pix = (c * height + py) * width + px
+            last = last_ids[pix]
+        T_final = 1.0 - alphas[pix]
+        T = T_final
+        S = vecD()
+        v_rgb = v_render[pix]
+        v_alpha = v_alphas[pix]
+        fx = float(px) + 0.5
+        fy = float(py) + 0.5
+        start = tile_ranges[tile, 0]
+        i = lanes_max(last)
+        while i >= start:
+            base = wp.max(start, i - (LANES - 1))
+            batch = wp.tile_load(splats, shape=(LANES, row), offset=(base, 0), storage="shared")
+            while i >= base:
+                grad = vecF()
+                touched = int(0)
+                if i <= last:
+                    r = i - base
+                    col = vecD()
+                    for k in range(channels):
+                        col[k] = batch[r, SPLAT_SLOTS + k]
+                    T, S, grad, touched = reverse_step(wp.vec2(batch[r, 0], batch[r, 1]),
+                                                       wp.vec3(batch[r, 2], batch[r, 3], batch[r, 4]), batch[r, 5],
+                                                       col, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
+                # Most entries touch none of a warp's pixels: one vote skips their reduction and atomics.
+                if lanes_any(touched) != 0:
+                    sum_add(grad, out_grads, flatten_ids[i], lane)
+                i -= 1
 
     @wp.kernel(enable_backward=False, module="unique")
     def gather_rows(
@@ -245,7 +311,7 @@ def _kernels(channels: int):
                 acc = acc + rows[base + s]
         out_grads[gid] = acc
 
-    return composite_backward_atomic, block_kernel, gather_rows
+    return composite_backward_atomic, block_kernel, composite_backward_lanes, gather_rows
 
 
 def composite_backward(
@@ -278,7 +344,7 @@ def composite_backward(
     M = bins.flatten_ids.numel()
     if C == 0 or N == 0 or M == 0:
         return grads
-    atomic_kernel, block_kernel, gather_kernel = _kernels(D)
+    atomic_kernel, block_kernel, lanes_kernel, gather_kernel = _kernels(D)
     vecD, vecF = vector_type(D), vector_type(F)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
     HW = C * height * width
@@ -298,11 +364,11 @@ def composite_backward(
             return grads
         area = tile_size * tile_size
         if reduction == "warp":
-            groups = -(-area // WARP_GROUP)
+            groups = -(-area // LANES)
+            kernel = block_kernel(True, LANES) if os.environ.get(_BLOCK_REDUCE_AB) == "1" else lanes_kernel
             with cpu_blocks(device):
-                wp.launch_tiled(block_kernel(True, WARP_GROUP), dim=[C * tiles_per_camera * groups],
-                                inputs=common + [groups], outputs=[to_wp(grads, vecF, (C * N,))],
-                                block_dim=WARP_GROUP, device=device)
+                wp.launch_tiled(kernel, dim=[C * tiles_per_camera * groups], inputs=common + [groups],
+                                outputs=[to_wp(grads, vecF, (C * N,))], block_dim=LANES, device=device)
             return grads
         group_size = min(area, DETERMINISTIC_BLOCK)
         groups = -(-area // group_size)

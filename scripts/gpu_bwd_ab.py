@@ -1,0 +1,156 @@
+"""Issue 9 A/B on the GPU: the compositing backward's warp-intrinsic reduction ("new") against the previous
+block reduction through Warp's tile sums ("old", ``SCENESPLAT_BWD_BLOCK_REDUCE=1``), and gsplat.
+
+Temporary, with the switch it flips (both go before merging). Per workload: forward ms (ours, gsplat),
+forward + backward ms of mean(render^2) (ours new, ours old, gsplat), the compositing backward alone
+(new, old: cotangents of ones), and the largest difference between the new and old gradients relative to
+their largest magnitude (float atomics add in a run-dependent order: about 1e-6 expected). Medians (min-max)
+of interleaved runs, synchronised. Workloads: the model's (32 scenes x 4 targets at 256x256, SH 2, one
+batched call), 1M random SH3 1280x720, and the guitar teacher when ``SCENESPLAT_GUITAR_PLY`` exists.
+``--quick``: tiny sizes, runs on the CPU too (a smoke test of this script).
+
+    python3 scripts/gpu_bwd_ab.py [--quick] [--repeats N] [--out FILE.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import statistics
+import sys
+import time
+
+import torch
+
+from scenesplat_stereo.bench import render_batch as rb
+from scenesplat_stereo.bench.render import GUITAR, guitar_scene, identity_camera, load_gsplat, random_scene
+from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.raster.binning import bin_gaussians
+from scenesplat_stereo.raster.composite import composite_forward
+from scenesplat_stereo.raster.composite_backward import _BLOCK_REDUCE_AB, composite_backward
+from scenesplat_stereo.raster.projection import project_gaussians
+from scenesplat_stereo.raster.sh import eval_sh_colors
+
+KEYS = ("means", "quats", "scales", "opacities", "colors")
+
+
+@contextlib.contextmanager
+def old(on: bool):
+    """The previous kernel while ``on``."""
+    if on:
+        os.environ[_BLOCK_REDUCE_AB] = "1"
+    try:
+        yield
+    finally:
+        os.environ.pop(_BLOCK_REDUCE_AB, None)
+
+
+def call(impl, data, W, H, sh, grad):
+    leaves = {k: data[k].detach().requires_grad_(grad) for k in KEYS}
+    kw = dict(sh_degree=sh, rasterize_mode="antialiased")
+    if impl is rasterization:
+        kw["max_alpha"] = 0.999
+    with torch.set_grad_enabled(grad):
+        out = impl(*(leaves[k] for k in KEYS), data["viewmats"], data["Ks"], W, H, **kw)[0]
+        if grad:
+            out.square().mean().backward()
+    return leaves
+
+
+def composite_bwd_fn(data, W, H, sh, ts, dev):
+    """The compositing backward alone on the (flattened) workload, cotangents of ones."""
+    batched = data["means"].dim() == 3
+    m, q, sc, o, col = (data[k] if batched else data[k][None] for k in KEYS)
+    B = m.shape[0]
+    vm, Ks = data["viewmats"].reshape(B, -1, 4, 4), data["Ks"].reshape(B, -1, 3, 3)
+    fns = []
+    for b in range(1 if B == 1 else 2):  # two scenes are enough for the relative timing of one stage
+        proj = project_gaussians(m[b], q[b], sc[b], o[b], vm[b], Ks[b], W, H, 0.01, 1e10, 0.3, True, ts)
+        campos = -(vm[b, :, :3, :3].transpose(1, 2) @ vm[b, :, :3, 3:])[..., 0]
+        colors = eval_sh_colors(sh, m[b][None] - campos[:, None], col[b], proj.radii)
+        bins = bin_gaussians(proj, W, H, ts)
+        args = (proj.means2d, proj.conics, colors, proj.opacities, bins, W, H, ts, 0.999)
+        _, alphas, last = composite_forward(*args)
+        fns.append(lambda a=args, al=alphas, la=last: composite_backward(*a, al, la, torch.ones(
+            *al.shape[:-1], colors.shape[-1], device=dev), torch.ones_like(al)))
+    return lambda: [f() for f in fns]
+
+
+def times(fns: dict, dev: str, repeats: int) -> dict[str, list[float]]:
+    sync = torch.cuda.synchronize if dev.startswith("cuda") else (lambda: None)
+    for name, (fn, o) in fns.items():
+        with old(o):
+            fn(), fn()
+    sync()
+    out = {n: [] for n in fns}
+    for _ in range(repeats):
+        for name, (fn, o) in fns.items():
+            with old(o):
+                t0 = time.perf_counter()
+                fn()
+                sync()
+                out[name].append((time.perf_counter() - t0) * 1e3)
+    return out
+
+
+def cell(ts):
+    return f"{statistics.median(ts):.3f} ({min(ts):.3f}-{max(ts):.3f})"
+
+
+def workload_rows(name, data, W, H, sh, dev, gs, repeats) -> list[str]:
+    fns = {"ours forward": (lambda: call(rasterization, data, W, H, sh, False), False),
+           "ours fwd+bwd new": (lambda: call(rasterization, data, W, H, sh, True), False),
+           "ours fwd+bwd old": (lambda: call(rasterization, data, W, H, sh, True), True),
+           "composite backward new": (composite_bwd_fn(data, W, H, sh, 16, dev), False),
+           "composite backward old": (composite_bwd_fn(data, W, H, sh, 16, dev), True)}
+    if gs is not None:
+        fns |= {"gsplat forward": (lambda: call(gs, data, W, H, sh, False), False),
+                "gsplat fwd+bwd": (lambda: call(gs, data, W, H, sh, True), False)}
+    t = times(fns, dev, repeats)
+    med = {k: statistics.median(v) for k, v in t.items()}
+    new = call(rasterization, data, W, H, sh, True)
+    with old(True):
+        ref = call(rasterization, data, W, H, sh, True)
+    diff = max(float((new[k].grad - ref[k].grad).abs().max() / ref[k].grad.abs().max().clamp_min(1e-30))
+               for k in KEYS)
+    lines = [f"#### {name}", "", "| row | ms median (min-max) | / gsplat |", "|---|---|---|"]
+    for k, v in t.items():
+        base = med.get("gsplat forward" if "forward" in k and "bwd" not in k else "gsplat fwd+bwd")
+        ratio = f"{med[k] / base:.3f}" if base and "composite" not in k else ""
+        lines.append(f"| {k} | {cell(v)} | {ratio} |")
+    lines += ["", f"old/new fwd+bwd: {med['ours fwd+bwd old'] / med['ours fwd+bwd new']:.3f}; "
+                  f"old/new composite backward: {med['composite backward old'] / med['composite backward new']:.3f}; "
+                  f"max |grad new - grad old| / max |grad old| = {diff:.2e}", ""]
+    return lines
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--out", default=None)
+    a = p.parse_args()
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    gs = load_gsplat() if dev == "cuda" else None
+    scenes, side, n1m, W, H = (2, 32, 5000, 160, 96) if a.quick else (32, 256, 1_000_000, 1280, 720)
+    work = [(f"model: {scenes} scenes x 4 targets {side}x{side}, SH 2, batched", rb.workload(scenes, side, dev),
+             side, side, rb.SH_DEGREE)]
+    vm, K = identity_camera(W, H, dev)
+    work.append((f"random {n1m:,} SH3 {W}x{H}", random_scene(n1m, 3, dev) | dict(viewmats=vm, Ks=K), W, H, 3))
+    if GUITAR.exists() and not a.quick:
+        g, gv, gK = guitar_scene(dev, W, H)
+        work.append((f"guitar {g['means'].shape[0]:,} SH0 {W}x{H}", g | dict(viewmats=gv, Ks=gK), W, H, 0))
+    name = torch.cuda.get_device_name() if dev == "cuda" else "CPU"
+    lines = [f"### Compositing backward A/B ({name}, {a.repeats} interleaved runs)", ""]
+    for w in work:
+        lines += workload_rows(*w, dev, gs, a.repeats)
+        print("\n".join(lines[-12:]), flush=True)
+    if a.out:
+        with open(a.out, "w") as f:
+            f.write("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
