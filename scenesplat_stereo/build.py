@@ -128,8 +128,8 @@ class BuildSettings:
         "JPEG/PNG encoders per renderer (default: half the CPU cores; 0 encodes inline)",
         type=whole_number("--workers", 0)))
     encoder_mode: str = field(default=DEFAULT_ENCODER_MODE, metadata=_flag(
-        f"threads or processes (spawned, fed through shared memory): the same bytes (default "
-        f"{DEFAULT_ENCODER_MODE}; `bench encode` compares them)", choices=list(ENCODER_MODES)))
+        f"threads, processes (spawned, fed through shared memory) or auto (processes on 8 or more cores): "
+        f"the same bytes (default {DEFAULT_ENCODER_MODE}; `bench encode` compares them)", choices=list(ENCODER_MODES)))
     batch_pairs: int = field(default=4, metadata=_flag(
         "pairs rendered per rasterisation call (12 cameras each)", type=whole_number("--batch-pairs")))
     backend: str = field(default="local", metadata=_flag(

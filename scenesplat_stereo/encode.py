@@ -39,7 +39,7 @@ import OpenImageIO as oiio
 from scenesplat_stereo import encode_pool
 from scenesplat_stereo.protocol import JPEG_QUALITY
 
-ENCODER_MODES = ("threads", "processes")
+ENCODER_MODES = ("auto", "threads", "processes")
 
 # Fixed so that EXR files do not carry the wall-clock time (byte-identical rebuilds).
 _EXR_DATETIME = "1970:01:01 00:00:00"
@@ -242,9 +242,22 @@ def default_encoder_workers() -> int:
     return max(1, (os.cpu_count() or 1) // 2)
 
 
-# Threads measured best on the 2-core development machine (bench encode: 616x456, 2 workers, 72.7 against
-# 70.5 samples/s; 1752x1168, 13.5 against 9.1); the 16-core GPU host's table decides for that host.
-DEFAULT_ENCODER_MODE = "threads"
+#: "auto" picks encoder processes on a machine with at least this many cores, else threads. Measured
+#: (docs/benchmarks.md, issue 12): on the 16-core H100 host the build ran 139 pairs/s with 8 encoder
+#: processes against 73 with 8 threads at 616x456 (threads wait for the GIL behind the renderer's Python
+#: thread), 25 against 28 at 1752x1168; on the 2-core development machine threads win (72.7 against 70.5
+#: samples/s at 616x456, 13.5 against 9.1 at 1752x1168): there the extra processes compete for two cores.
+PROCESSES_MIN_CORES = 8
+DEFAULT_ENCODER_MODE = "auto"
+
+
+def resolve_encoder_mode(mode: str) -> str:
+    """"threads" or "processes" for ``mode`` ("auto": processes on PROCESSES_MIN_CORES cores or more)."""
+    if mode not in ENCODER_MODES:
+        raise ValueError(f"encoder mode must be one of {ENCODER_MODES}, got {mode!r}")
+    if mode == "auto":
+        return "processes" if (os.cpu_count() or 1) >= PROCESSES_MIN_CORES else "threads"
+    return mode
 
 
 class SampleEncoder:
@@ -278,8 +291,7 @@ class SampleEncoder:
     ) -> None:
         if workers < 0:
             raise ValueError(f"SampleEncoder: workers must be >= 0, got {workers}")
-        if mode not in ENCODER_MODES:
-            raise ValueError(f"SampleEncoder: mode must be one of {ENCODER_MODES}, got {mode!r}")
+        mode = resolve_encoder_mode(mode)
         self.sink, self.quality, self.workers = sink, quality, workers
         self.max_pending = max_pending if max_pending is not None else max(2, 3 * workers)
         self.encode_s = self.wait_s = self.sink_s = 0.0

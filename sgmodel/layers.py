@@ -54,6 +54,25 @@ def replicate_pad(x: torch.Tensor, p: int) -> torch.Tensor:
     return _ReplicatePad.apply(x, p) if p else x
 
 
+class _AddRing(torch.autograd.Function):
+    """out[:, :, 0] += top; out[:, :, -1] += bottom; out[..., 0] += left; out[..., -1] += right, in place.
+    The backward hands the output gradient through and its border slices to the four terms: no copy of
+    the (large) gradient, which autograd's in-place-on-a-view bookkeeping would make once per term."""
+
+    @staticmethod
+    def forward(ctx, out, top, bottom, left, right):
+        out[:, :, 0, :] += top
+        out[:, :, -1, :] += bottom
+        out[:, :, :, 0] += left
+        out[:, :, :, -1] += right
+        ctx.mark_dirty(out)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        return grad, grad[:, :, 0, :], grad[:, :, -1, :], grad[:, :, :, 0], grad[:, :, :, -1]
+
+
 def replicate_conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
     """3x3 convolution of ``x`` [B,Cin,H,W] padded by one pixel of edge replication -> [B,Cout,H,W].
 
@@ -64,15 +83,11 @@ def replicate_conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor 
     so that each corner of the ring is counted once, by its row)."""
     out = F.conv2d(x, weight, bias, padding=1)
     x = x.to(out.dtype)  # autocast casts the weights of each 1D convolution below alike
-    row_top = F.conv1d(F.pad(x[:, :, 0, :], (1, 1), mode="replicate"), weight[:, :, 0, :])
-    row_bottom = F.conv1d(F.pad(x[:, :, -1, :], (1, 1), mode="replicate"), weight[:, :, 2, :])
-    col_left = F.conv1d(x[:, :, :, 0], weight[:, :, :, 0], padding=1)
-    col_right = F.conv1d(x[:, :, :, -1], weight[:, :, :, 2], padding=1)
-    out[:, :, 0, :] += row_top
-    out[:, :, -1, :] += row_bottom
-    out[:, :, :, 0] += col_left
-    out[:, :, :, -1] += col_right
-    return out
+    top = F.conv1d(F.pad(x[:, :, 0, :], (1, 1), mode="replicate"), weight[:, :, 0, :])
+    bottom = F.conv1d(F.pad(x[:, :, -1, :], (1, 1), mode="replicate"), weight[:, :, 2, :])
+    left = F.conv1d(x[:, :, :, 0], weight[:, :, :, 0], padding=1)
+    right = F.conv1d(x[:, :, :, -1], weight[:, :, :, 2], padding=1)
+    return _AddRing.apply(out, *(t.to(out.dtype) for t in (top, bottom, left, right)))
 
 
 class ReplicateConv2d(nn.Conv2d):

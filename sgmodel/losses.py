@@ -4,7 +4,9 @@
 input views are not supervised). LPIPS needs torchvision's ImageNet VGG16 weights, which cannot be
 downloaded here; without them the objective is ``MSE + 0.05 * (1 - SSIM)`` (skimage-style SSIM,
 ``sgmodel.metrics.ssim_map``) and says so in ``Objective.description`` (for the first log lines and
-``config.json``). Renders are not clipped: gradients must reach colours that leave [0, 1].
+``config.json``). Renders are not clipped: gradients must reach colours that leave [0, 1]. In training on
+CUDA the LPIPS network runs under bf16 autocast like the model's convolutions (VGG16 on 2 x 128 images of
+256x256 per step is otherwise the largest cost of a step); the MSE and the SSIM term stay float32.
 """
 
 from __future__ import annotations
@@ -26,12 +28,15 @@ class Objective:
 
     ``name`` is "mse+lpips-vgg" or "mse+ssim"; ``description`` is a one-line human account of it."""
 
-    def __init__(self, lpips_net: LPIPS | None, reason: str = "", weight: float = PERCEPTUAL_WEIGHT):
+    def __init__(self, lpips_net: LPIPS | None, reason: str = "", weight: float = PERCEPTUAL_WEIGHT,
+                 amp: bool = False):
         self.lpips_net = lpips_net
         self.weight = weight
+        self.amp = amp
         if lpips_net is not None:
             self.name = "mse+lpips-vgg"
-            self.description = f"MSE + {weight} * LPIPS-VGG (v0.1, VGG16 sha256 {lpips_net.vgg_sha256})"
+            self.description = (f"MSE + {weight} * LPIPS-VGG (v0.1, VGG16 sha256 {lpips_net.vgg_sha256}"
+                                f"{', bf16 autocast on CUDA' if amp else ''})")
         else:
             self.name = "mse+ssim"
             self.description = f"MSE + {weight} * (1 - SSIM) instead of LPIPS-VGG: {reason}"
@@ -47,7 +52,8 @@ class Objective:
             raise ValueError(f"loss: render {tuple(render.shape)} and target {tuple(target.shape)} differ")
         mse = (render - target).pow(2).mean()
         if self.lpips_net is not None:
-            perceptual = self.lpips_net(target, render).mean()
+            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp and render.is_cuda):
+                perceptual = self.lpips_net(target, render).float().mean()
             parts = {"mse": mse.detach(), "lpips": perceptual.detach()}
         else:
             r = SSIM_RADIUS
@@ -58,8 +64,10 @@ class Objective:
 
 
 def create_objective(vgg_path: str | os.PathLike | None = None, lin_path: str | os.PathLike | None = None,
-                     device: str | torch.device = "cpu", weight: float = PERCEPTUAL_WEIGHT) -> Objective:
+                     device: str | torch.device = "cpu", weight: float = PERCEPTUAL_WEIGHT,
+                     amp: bool = False) -> Objective:
     """The objective on ``device``: LPIPS-VGG when VGG16 weights are found (``vgg_path`` or torch's hub
-    cache), else the SSIM fallback. Weights that are given but unusable raise ``WeightsError``."""
+    cache), else the SSIM fallback. Weights that are given but unusable raise ``WeightsError``. ``amp``:
+    the LPIPS network's convolutions in bf16 on CUDA (training; the metrics of ``eval`` stay float32)."""
     net = create_lpips(vgg_path, lin_path, device)
-    return Objective(net, reason="" if net is not None else vgg16_missing_message(), weight=weight)
+    return Objective(net, reason="" if net is not None else vgg16_missing_message(), weight=weight, amp=amp)

@@ -131,26 +131,33 @@ class LPIPS(nn.Module):
         """Frozen: stays in eval mode whatever the caller asks."""
         return super().train(False)
 
+    def taps(self, x: Tensor, zero_one: bool = True) -> list[Tensor]:
+        """The unit-normalised VGG16 features [N, C_l, h_l, w_l] of images [N, 3, H, W] at the LPIPS taps."""
+        if zero_one:
+            x = 2 * x - 1
+        x = (x - self.shift) / self.scale
+        taps = []
+        for k, layer in enumerate(self.vgg.features):
+            x = layer(x)
+            if k == TAPS[len(taps)]:
+                taps.append(x / (x.pow(2).sum(dim=1, keepdim=True).sqrt() + _NORM_EPS))
+                if len(taps) == len(TAPS):
+                    break
+        return taps
+
     def layer_maps(self, a: Tensor, b: Tensor, zero_one: bool = True) -> list[Tensor]:
-        """Per-layer distance maps [N, 1, h_l, w_l] (N = product of the leading dims), before averaging."""
+        """Per-layer distance maps [N, 1, h_l, w_l] (N = product of the leading dims), before averaging.
+        An image side that needs no gradient (the targets in training) runs without autograd."""
         if a.shape != b.shape or a.dim() < 3 or a.shape[-3] != 3:
             raise ValueError(f"LPIPS: images must be [..., 3, H, W] of one shape, got {tuple(a.shape)} "
                              f"and {tuple(b.shape)}")
         n = a.shape[:-3].numel()
-        x = torch.cat([a.reshape(n, *a.shape[-3:]), b.reshape(n, *b.shape[-3:])])
-        if zero_one:
-            x = 2 * x - 1
-        x = (x - self.shift) / self.scale
-        maps = []
-        i = 0
-        for k, layer in enumerate(self.vgg.features):
-            x = layer(x)
-            if k == TAPS[i]:
-                f = x / (x.pow(2).sum(dim=1, keepdim=True).sqrt() + _NORM_EPS)
-                d = (f[:n] - f[n:]).pow(2)
-                maps.append((d * getattr(self, f"lin{i}")).sum(dim=1, keepdim=True))
-                i += 1
-        return maps
+        sides = []
+        for x in (a, b):
+            with torch.set_grad_enabled(torch.is_grad_enabled() and x.requires_grad):
+                sides.append(self.taps(x.reshape(n, *x.shape[-3:]), zero_one))
+        return [((fa - fb).pow(2) * getattr(self, f"lin{i}")).sum(dim=1, keepdim=True)
+                for i, (fa, fb) in enumerate(zip(*sides))]
 
     def forward(self, a: Tensor, b: Tensor, zero_one: bool = True) -> Tensor:
         """LPIPS per image pair, [...]: each layer's map averaged spatially, summed over layers."""

@@ -186,7 +186,7 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
     # every training step has the same shapes: let cuDNN time its algorithms once (8% of a step on an H100)
     torch.backends.cudnn.benchmark = world.device.type == "cuda"
     model = create_model(model_params, world.device)
-    objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight)
+    objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp)
     config = run_config(model_params, tp, data, model.encoder, objective)
     resume = _check_resumable(paths, config)
     params = [p for p in model.parameters() if p.requires_grad]

@@ -278,3 +278,17 @@ def test_sample_encoder_processes_same_bytes_order_and_errors():
     assert written == [keys[0]]
     with pytest.raises(ValueError, match="mode"):
         SampleEncoder(lambda k, m: None, workers=1, mode="fibers")
+
+
+def test_auto_encoder_mode_picks_processes_on_many_cores(monkeypatch):
+    from scenesplat_stereo import encode
+
+    monkeypatch.setattr(encode.os, "cpu_count", lambda: encode.PROCESSES_MIN_CORES)
+    assert encode.resolve_encoder_mode("auto") == "processes"
+    monkeypatch.setattr(encode.os, "cpu_count", lambda: 2)
+    assert encode.resolve_encoder_mode("auto") == "threads"
+    monkeypatch.setattr(encode.os, "cpu_count", lambda: None)
+    assert encode.resolve_encoder_mode("auto") == "threads"
+    assert encode.resolve_encoder_mode("processes") == "processes"
+    with pytest.raises(ValueError, match="encoder mode"):
+        encode.resolve_encoder_mode("fibers")

@@ -91,11 +91,11 @@ def run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
     torch.backends.cudnn.benchmark = device.type == "cuda"  # as `sgmodel train` does
     model = create_model(model_params, device)
-    objective = create_objective(args.lpips_vgg, device=device)
+    S, amp = model_params.resolution, not args.no_amp
+    objective = create_objective(args.lpips_vgg, device=device, amp=amp)
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(params, lr=1e-5)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
-    S, amp = model_params.resolution, not args.no_amp
     loader = iter(make_loader(args.data, "train", args.batch_size, S, args.targets, 0, args.workers, 0, 1,
                               train=True)) if args.data else None
     now = _timer(device)
