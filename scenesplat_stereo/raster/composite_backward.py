@@ -42,7 +42,6 @@ Three reductions over pixels (``reduction``), one source for CPU and CUDA:
 # No ``from __future__ import annotations`` here: Warp evaluates kernel annotations, and those naming the
 # per-D vector types of the kernel factory must be real objects, not strings.
 import functools
-import os
 
 import torch
 import warp as wp
@@ -55,16 +54,13 @@ from .lanes import LANES, lanes_any, lanes_max, lanes_sum_add
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
 # tiles are split into groups of this many pixels, each with its own row per list entry).
 DETERMINISTIC_BLOCK = 256
-# A/B switch for the GPU benchmark of issue 9 only (to be removed before merging): "1" runs the previous
-# CUDA default, block reductions through Warp's tile sums, instead of the warp-intrinsic kernel.
-_BLOCK_REDUCE_AB = "SCENESPLAT_BWD_BLOCK_REDUCE"
 # Leading packed slots before the D colour channels: d mean2d (2), d conic (3), d opacity (1).
 SPLAT_GRAD_SLOTS = 6
 
 
 @functools.cache
 def _kernels(channels: int):
-    """(per-pixel atomic kernel, block kernel factory (atomic?, group size), warp kernel, row-gather kernel)
+    """(per-pixel atomic kernel, deterministic block kernel factory (group size), warp kernel, row-gather kernel)
     for D channels."""
     vecD = vector_type(channels)
     vecF = vector_type(channels + SPLAT_GRAD_SLOTS)
@@ -164,11 +160,10 @@ def _kernels(channels: int):
     row = SPLAT_SLOTS + channels
 
     @functools.cache
-    def block_kernel(atomic: bool, group: int):
-        """Cooperative kernel: one block per ``group`` pixels of a tile walks the list in lock step, batches
-        of ``group`` rows copied to shared memory, and sums each entry's gradient over the block;
-        ``atomic`` adds the sum to the Gaussian's gradient (one atomic per block and entry instead of one
-        per pixel), else writes it to the entry's row."""
+    def block_kernel(group: int):
+        """Cooperative kernel of the deterministic reduction: one block per ``group`` pixels of a tile walks
+        the list in lock step, batches of ``group`` rows copied to shared memory, sums each entry's gradient
+        over the block and writes the sum to the entry's row (summed per Gaussian in a fixed order later)."""
 
         @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
         def composite_backward_blocks(
@@ -228,10 +223,7 @@ def _kernels(channels: int):
                     if wp.tile_max(wp.tile(hit))[0] > 0:
                         total = wp.tile_sum(wp.tile(grad, preserve_type=True))[0]
                         if lane == 0:
-                            if wp.static(atomic):
-                                wp.atomic_add(out_rows, flatten_ids[i], total)
-                            else:
-                                out_rows[i * groups + block_group] = total
+                            out_rows[i * groups + block_group] = total
                     i -= 1
 
         return composite_backward_blocks
@@ -365,16 +357,15 @@ def composite_backward(
         area = tile_size * tile_size
         if reduction == "warp":
             groups = -(-area // LANES)
-            kernel = block_kernel(True, LANES) if os.environ.get(_BLOCK_REDUCE_AB) == "1" else lanes_kernel
             with cpu_blocks(device):
-                wp.launch_tiled(kernel, dim=[C * tiles_per_camera * groups], inputs=common + [groups],
+                wp.launch_tiled(lanes_kernel, dim=[C * tiles_per_camera * groups], inputs=common + [groups],
                                 outputs=[to_wp(grads, vecF, (C * N,))], block_dim=LANES, device=device)
             return grads
         group_size = min(area, DETERMINISTIC_BLOCK)
         groups = -(-area // group_size)
         rows = torch.zeros(M * groups, F, device=colors.device, dtype=torch.float32)
         with cpu_blocks(device):
-            wp.launch_tiled(block_kernel(False, group_size), dim=[C * tiles_per_camera * groups],
+            wp.launch_tiled(block_kernel(group_size), dim=[C * tiles_per_camera * groups],
                             inputs=common + [groups], outputs=[to_wp(rows, vecF)],
                             block_dim=group_size, device=device)
         ids = bins.flatten_ids.long()
