@@ -207,8 +207,8 @@ def add_arguments(p) -> None:
     p.add_argument("--workers", type=int, default=default_encoder_workers(),
                    help="encoder workers (default: half the CPU cores)")
     p.add_argument("--encoder-modes", default="threads,processes",
-                   help=f"encoder modes of the base rows and the scaling table, the first for the other rows "
-                   f"(default threads,processes)")
+                   help="encoder modes of the base rows and the scaling table, the first for the other rows "
+                   "(default threads,processes)")
     p.add_argument("--qualities", default="75,100", help="extra JPEG qualities timed at the first size (default 75,100)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")
     p.add_argument("--gsplat", action="store_true", help="also time the pipeline rendering with gsplat (if importable)")

@@ -58,6 +58,21 @@ DETERMINISTIC_BLOCK = 256
 SPLAT_GRAD_SLOTS = 6
 
 
+@wp.func
+def walk_pixel(tile: int, local: int, tile_size: int, tiles_x: int, tiles_per_camera: int, width: int, height: int,
+               last_ids: wp.array(dtype=wp.int32)):
+    """The pixel that lane ``local`` of a cooperative walk over ``tile`` takes: (flat pixel index, its last
+    composited list entry, pixel centre x, y). A lane off the image or the tile gets pixel 0 and last entry
+    -1, so that it takes part in the lanes' reductions without contributing."""
+    c, px, py = tile_pixel(tile, local, tile_size, tiles_x, tiles_per_camera)
+    last = int(-1)
+    pix = int(0)
+    if local < tile_size * tile_size and px < width and py < height:
+        pix = (c * height + py) * width + px
+        last = last_ids[pix]
+    return pix, last, float(px) + 0.5, float(py) + 0.5
+
+
 @functools.cache
 def _kernels(channels: int):
     """(per-pixel atomic kernel, deterministic block kernel factory (group size), warp kernel, row-gather kernel)
@@ -187,20 +202,14 @@ def _kernels(channels: int):
             tile = block / groups
             block_group = block - tile * groups
             local = block_group * group + lane
-            c, px, py = tile_pixel(tile, local, tile_size, tiles_x, tiles_per_camera)
             # Every lane takes part in the block reductions; lanes off the image or the tile stay idle.
-            last = int(-1)
-            pix = int(0)
-            if local < tile_size * tile_size and px < width and py < height:
-                pix = (c * height + py) * width + px
-                last = last_ids[pix]
+            pix, last, fx, fy = walk_pixel(tile, local, tile_size, tiles_x, tiles_per_camera, width, height,
+                                           last_ids)
             T_final = 1.0 - alphas[pix]
             T = T_final
             S = vecD()
             v_rgb = v_render[pix]
             v_alpha = v_alphas[pix]
-            fx = float(px) + 0.5
-            fy = float(py) + 0.5
             start = tile_ranges[tile, 0]
             i = wp.tile_max(wp.tile(last))[0]
             while i >= start:
@@ -252,20 +261,13 @@ def _kernels(channels: int):
         block, lane = wp.tid()
         tile = block / groups
         local = (block - tile * groups) * LANES + lane
-        c, px, py = tile_pixel(tile, local, tile_size, tiles_x, tiles_per_camera)
         # Every lane takes part in the warp operations; lanes off the image or the tile stay idle.
-        last = int(-1)
-        pix = int(0)
-        if local < tile_size * tile_size and px < width and py < height:
-            pix = (c * height + py) * width + px
-            last = last_ids[pix]
+        pix, last, fx, fy = walk_pixel(tile, local, tile_size, tiles_x, tiles_per_camera, width, height, last_ids)
         T_final = 1.0 - alphas[pix]
         T = T_final
         S = vecD()
         v_rgb = v_render[pix]
         v_alpha = v_alphas[pix]
-        fx = float(px) + 0.5
-        fy = float(py) + 0.5
         start = tile_ranges[tile, 0]
         i = lanes_max(last)
         while i >= start:

@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 from pathlib import Path
 
 import torch
 
 from scenesplat_stereo.text import markdown_table
 
-from . import report
+from . import report, synced_clock
 
 from ..data import make_loader
 from ..encoders import create_encoder
@@ -42,18 +41,16 @@ def disparity_errors(disparity: torch.Tensor, depth: torch.Tensor, fx: torch.Ten
 
 def bench_encoder(name: str, loader, device: torch.device, weights: str | None) -> dict:
     encoder = create_encoder(name, weights=weights, device=str(device))
-    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
+    now = synced_clock(device)
     times, epe, d1, rel, n, pairs = [], 0.0, 0.0, 0.0, 0, 0
     for i, batch in enumerate(loader):
         if "depth" not in batch:
             raise ValueError("the dataset has no left_depth.exr: build it with `scenesplat-stereo build --with-depth`")
         batch = to_device(batch, device)
-        sync()
-        t0 = time.perf_counter()
+        t0 = now()
         with torch.no_grad():
             disparity = encoder(batch["left"], batch["right"]).disparity.float()
-        sync()
-        times.append((time.perf_counter() - t0) / batch["left"].shape[0])
+        times.append((now() - t0) / batch["left"].shape[0])
         e, o, r, k = disparity_errors(disparity, batch["depth"], batch["K"][:, 0, 0], batch["baseline"])
         epe, d1, rel, n, pairs = epe + e, d1 + o, rel + r, n + k, pairs + batch["left"].shape[0]
     if n == 0:

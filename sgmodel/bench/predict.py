@@ -14,14 +14,13 @@ from __future__ import annotations
 import argparse
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import torch
 
 from scenesplat_stereo.text import argtype, markdown_table, parse_size
 
-from . import report
+from . import report, synced_clock
 
 from .. import export
 from ..cli import add_model_arguments, params_from_args
@@ -53,11 +52,7 @@ def run(args: argparse.Namespace) -> int:
     viewmat = torch.eye(4, device=device)[None, None].clone()
     viewmat[..., 0, 3] = -0.05
 
-    def now() -> float:
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        return time.perf_counter()
-
+    now = synced_clock(device)
     times: dict[str, list[float]] = {s: [] for s in STAGES}
     with torch.no_grad(), tempfile.TemporaryDirectory() as tmp:
         for i in range(args.warmup + args.repeats):

@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 from pathlib import Path
 
 import torch
 
 from scenesplat_stereo.text import markdown_table
 
-from . import report
+from . import report, synced_clock
 
 from ..cli import add_model_arguments, params_from_args
 from ..data import make_loader
@@ -48,14 +47,6 @@ def synthetic_batch(batch: int, targets: int, size: int, device: torch.device, s
                       "masks": torch.ones(batch, targets, 1, size, size, dtype=torch.bool),
                       "target_viewmats": view, "target_Ks": K[:, None].expand(batch, targets, 3, 3).clone(),
                       "keys": [f"synthetic_{i}" for i in range(batch)]}, device)
-
-
-def _timer(device: torch.device):
-    def now() -> float:
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        return time.perf_counter()
-    return now
 
 
 def staged_step(model, objective, optimizer, batch: dict, amp: bool, now) -> dict[str, float]:
@@ -98,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
     loader = iter(make_loader(args.data, "train", args.batch_size, S, args.targets, 0, args.workers, 0, 1,
                               train=True)) if args.data else None
-    now = _timer(device)
+    now = synced_clock(device)
     stages: dict[str, list[float]] = {s: [] for s in STAGES}
     free: list[float] = []
     if device.type == "cuda":
