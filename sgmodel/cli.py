@@ -1,9 +1,9 @@
 """``sgmodel`` command line: parse, call, print. Each command's work lives in its room.
 
 Commands: ``train``, ``eval``, ``predict``, ``ablate``, ``weights fetch``, ``bench train``,
-``bench encoders``, ``bench predict``. Errors in what the user typed (a bad flag value, a missing file, weights that are
-not there) print one line naming the flag or file and exit 2; nothing is written before the inputs are
-checked.
+``bench encoders``, ``bench predict``. Errors in what the user typed (a bad flag value, a missing file,
+weights that are not there) print one line naming the flag or file and exit 2; nothing is written before
+the inputs are checked.
 """
 
 from __future__ import annotations

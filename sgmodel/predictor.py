@@ -6,9 +6,8 @@ dz (1). All convolutions pad by replication. Ablations drop inputs: ``descriptor
 ``rgbd=False`` removes RGB~ and z~ (the composer still uses them as anchors).
 
 The branches read the same input, so their first layers run as one: the shared input is convolved once
-with the branches' first-conv weights stacked (3C outputs), and normalised by one
-GroupNorm of 3x the groups (groups are contiguous channel blocks, so this is exactly each branch's own
-GroupNorm). The parameters stay per branch (``front``, ``back``, ``dz``): the same state_dict and the
+with the branches' first-conv weights stacked (3C outputs) and normalised by one GroupNorm of 3x the
+groups (groups are contiguous channel blocks, so this is exactly each branch's own GroupNorm). The parameters stay per branch (``front``, ``back``, ``dz``): the same state_dict and the
 same function as three separate branches, with one read of the wide input instead of three.
 
 Output channels of the front/back branches (SPEC section 7), named in ``CHANNELS``; the final convs
@@ -62,8 +61,6 @@ class Branch(nn.Sequential):
 
 def fused_branches(branches: list[Branch], x: torch.Tensor) -> list[torch.Tensor]:
     """Every branch applied to the same input ``x`` [B,Cin,H,W], first layers as one (module docstring)."""
-    if len(branches) == 1:
-        return [branches[0](x)]
     firsts, norms = [b.first for b in branches], [b.norm for b in branches]
     hidden = replicate_conv3x3(x, torch.cat([c.weight for c in firsts]), torch.cat([c.bias for c in firsts]))
     hidden = F.gelu(group_norm(hidden, sum(n.num_groups for n in norms), torch.cat([n.weight for n in norms]),
@@ -113,5 +110,5 @@ class GaussianPredictor(nn.Module):
         shared = torch.cat([h] + ([rgb] if self.rgbd else []) + ([phi] if self.use_descriptor else []), dim=1)
         if self.back is None:
             return self.front(shared), None, None
-        front, back, dz = fused_branches([self.front, self.back, self.dz], shared)
+        front, back, dz = fused_branches([self.front, self.back, self.dz], shared)  # the same as each alone
         return front, back, dz
