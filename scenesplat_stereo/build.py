@@ -128,7 +128,8 @@ class BuildSettings:
         "JPEG/PNG encoders per renderer (default: half the CPU cores; 0 encodes inline)",
         type=whole_number("--workers", 0)))
     encoder_mode: str = field(default=DEFAULT_ENCODER_MODE, metadata=_flag(
-        f"threads, processes (spawned, fed through shared memory) or auto (processes on 8 or more cores): "
+        f"threads, processes (spawned, fed through shared memory) or auto (processes on 8 or more cores, "
+        f"threads under --backend ray): "
         f"the same bytes (default {DEFAULT_ENCODER_MODE}; `bench encode` compares them)", choices=list(ENCODER_MODES)))
     batch_pairs: int = field(default=4, metadata=_flag(
         "pairs rendered per rasterisation call (12 cameras each)", type=whole_number("--batch-pairs")))
@@ -263,7 +264,9 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
         batches = [todo[s:s + settings.batch_pairs] for s in range(0, len(todo), settings.batch_pairs)]
         rendered = stream_samples(batches, lambda b: start_render(
             gaussians, scene.sh_degree, b, settings.device, settings.with_depth, settings.effects))
-        encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality, mode=settings.encoder_mode)
+        # inside Ray's worker processes "auto" stays with threads: spawning from them is untested
+        mode = "threads" if settings.backend == "ray" and settings.encoder_mode == "auto" else settings.encoder_mode
+        encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality, mode=mode)
         with encoder:  # its threads are joined when this block ends, whatever happens in it
             for batch in batches:
                 t0 = time.perf_counter()
