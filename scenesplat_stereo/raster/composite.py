@@ -1,19 +1,20 @@
 """Front-to-back alpha compositing of the binned Gaussians (SPEC section 2, steps 6-8).
 
-After the sort, each tile intersection's splat (mean2d, conic, opacity, D colours) is gathered into one
-row of ``splats [M, 6 + D]`` in depth order, so the kernels read a tile's list as contiguous memory.
-Two compiled variants of the same per-splat step:
-- cooperative (default on CUDA): one thread block per tile, one thread per pixel; the block copies its
-  list into shared memory a batch of one splat per thread at a time and every thread walks the batch
+Each tile intersection names its (camera, Gaussian) pair through ``flatten_ids``, and the kernels read the
+pair's splat (mean2d, conic, effective opacity, D colours) from the per-pair tensors [C * N, ...] through
+that id. Two compiled variants of the same per-splat step:
+- cooperative (default on CUDA): one thread block per tile, one thread per pixel; a batch of one list
+  entry per thread at a time, the block gathers the entries' splats through their ids into shared memory
+  (no depth-sorted copy of the splats is written to global memory first) and every thread walks the batch
   there; the block stops when all its pixels are done;
 - per pixel (default on the CPU, where Warp runs threads serially and shared memory buys nothing): one
-  thread per pixel walks its tile's rows.
+  thread per pixel walks its tile's list, reading each splat through its id.
 Both are compiled per channel count D (RGB: 3, RGB+D: 4, D: 1, plain colours: any D): depth is one more
 channel, so a render without depth does no depth work. Outputs are the raw sums (no background):
 render = sum alpha_i T_i c_i, alpha = 1 - T, and the index (into ``flatten_ids``) of the last
-composited Gaussian per pixel, -1 where none, for the backward pass.
+composited Gaussian per pixel, -1 where none, for the backward pass. The backward reads depth-sorted
+splat rows (``gather_splats``) instead.
 """
-
 # No ``from __future__ import annotations``: Warp evaluates annotations, and those naming the per-D vector
 # type of the kernel factory must be real objects, not strings.
 import functools
@@ -52,15 +53,13 @@ def conic_sigma(dx: float, dy: float, a: float, b: float, c: float) -> float:
 
 
 @wp.func
-def touch_alpha(splats: wp.array2d(dtype=float), i: int, fx: float, fy: float) -> float:
-    """o exp(-sigma) of row i at pixel centre (fx, fy) when the splat touches the pixel (sigma >= 0 and
-    o exp(-sigma) >= 1/255, SPEC step 6), else 0."""
-    dx = splats[i, 0] - fx
-    dy = splats[i, 1] - fy
-    sigma = conic_sigma(dx, dy, splats[i, 2], splats[i, 3], splats[i, 4])
+def touch_alpha(xy: wp.vec2, conic: wp.vec3, opacity: float, fx: float, fy: float) -> float:
+    """o exp(-sigma) of a splat (mean2d ``xy``, ``conic``, effective ``opacity``) at pixel centre (fx, fy)
+    when it touches the pixel (sigma >= 0 and o exp(-sigma) >= 1/255, SPEC step 6), else 0."""
+    sigma = conic_sigma(xy[0] - fx, xy[1] - fy, conic[0], conic[1], conic[2])
     if not (sigma >= 0.0):
         return 0.0
-    alpha = splats[i, 5] * wp.exp(-sigma)
+    alpha = opacity * wp.exp(-sigma)
     if not (alpha >= ALPHA_MIN):
         return 0.0
     return alpha
@@ -114,21 +113,19 @@ def gather_splats(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Ten
 
 @functools.cache
 def composite_kernel(channels: int, tile_size: int, cooperative: bool):
-    """The compositing kernel for ``channels`` colour channels and ``tile_size`` square tiles."""
-    vecD = vector_type(channels)
+    """The compositing kernel for ``channels`` colour channels and ``tile_size`` square tiles. Splats are
+    read through ``flatten_ids`` from the per-pair arrays: means2d [P, 2], conics [P, 3], opacities [P],
+    colors [P, D] with P = C * N pairs."""
     block = tile_size * tile_size
-    row = SPLAT_SLOTS + channels
-
-    @wp.func
-    def add_splat(rows: wp.array2d(dtype=float), i: int, alpha: float, T: float, acc: vecD) -> vecD:
-        w = alpha * T
-        for k in range(channels):
-            acc[k] = acc[k] + w * rows[i, SPLAT_SLOTS + k]
-        return acc
+    vecD = vector_type(channels)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_per_pixel(
-        splats: wp.array2d(dtype=float),
+        flatten_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array2d(dtype=float),
+        conics: wp.array2d(dtype=float),
+        opacities: wp.array(dtype=float),
+        colors: wp.array2d(dtype=float),
         tile_ranges: wp.array2d(dtype=wp.int32),
         width: int,
         height: int,
@@ -150,14 +147,18 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
         acc = vecD()
         last = int(-1)
         for i in range(tile_ranges[tile, 0], tile_ranges[tile, 1]):
-            vis = touch_alpha(splats, i, fx, fy)
+            g = flatten_ids[i]
+            vis = touch_alpha(wp.vec2(means2d[g, 0], means2d[g, 1]),
+                              wp.vec3(conics[g, 0], conics[g, 1], conics[g, 2]), opacities[g], fx, fy)
             if vis == 0.0:
                 continue
             alpha = wp.min(max_alpha, vis)
             next_T = T * (1.0 - alpha)
             if next_T <= T_MIN:
                 break
-            acc = add_splat(splats, i, alpha, T, acc)
+            w = alpha * T
+            for k in range(channels):
+                acc[k] = acc[k] + w * colors[g, k]
             T = next_T
             last = i
         pix = (c * height + py) * width + px
@@ -167,7 +168,11 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
 
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_cooperative(
-        splats: wp.array2d(dtype=float),
+        flatten_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array2d(dtype=float),
+        conics: wp.array2d(dtype=float),
+        opacities: wp.array(dtype=float),
+        colors: wp.array2d(dtype=float),
         tile_ranges: wp.array2d(dtype=wp.int32),
         width: int,
         height: int,
@@ -194,16 +199,18 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
             # Every thread reaches the cooperative calls; the block stops once all its pixels are done.
             if block_all(done) != 0:
                 break
-            batch = wp.tile_load(splats, shape=(block, row), offset=(b, 0), storage="shared")
+            # The batch's ids, then their splats gathered through them (ids past the list's end are other
+            # tiles' entries or, past the array, read as 0: valid rows that are never walked).
+            ids = wp.tile_load(flatten_ids, shape=(block,), offset=(b,), storage="shared")
+            xy = wp.tile_load_indexed(means2d, indices=ids, shape=(block, 2), axis=0, storage="shared")
+            con = wp.tile_load_indexed(conics, indices=ids, shape=(block, 3), axis=0, storage="shared")
+            opa = wp.tile_load_indexed(opacities, indices=ids, shape=(block,), axis=0, storage="shared")
+            col = wp.tile_load_indexed(colors, indices=ids, shape=(block, channels), axis=0, storage="shared")
             if done == 0:
                 for j in range(wp.min(block, end - b)):
-                    dx = batch[j, 0] - fx
-                    dy = batch[j, 1] - fy
-                    sigma = conic_sigma(dx, dy, batch[j, 2], batch[j, 3], batch[j, 4])
-                    if not (sigma >= 0.0):
-                        continue
-                    vis = batch[j, 5] * wp.exp(-sigma)
-                    if not (vis >= ALPHA_MIN):
+                    vis = touch_alpha(wp.vec2(xy[j, 0], xy[j, 1]), wp.vec3(con[j, 0], con[j, 1], con[j, 2]),
+                                      opa[j], fx, fy)
+                    if vis == 0.0:
                         continue
                     alpha = wp.min(max_alpha, vis)
                     next_T = T * (1.0 - alpha)
@@ -212,7 +219,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
                         break
                     w = alpha * T
                     for k in range(channels):
-                        acc[k] = acc[k] + w * batch[j, SPLAT_SLOTS + k]
+                        acc[k] = acc[k] + w * col[j, k]
                     T = next_T
                     last = b + j
             b += block
@@ -250,13 +257,13 @@ def composite_forward(
     last_ids = torch.empty(C, height, width, device=dev, dtype=torch.int32)
     if cooperative is None:  # a CUDA block holds at most 1024 threads: larger tiles go per pixel
         cooperative = dev.type == "cuda" and tile_size * tile_size <= 1024
-    vecD = vector_type(D)
+    P = C * N
     tiles_per_camera = bins.tiles_x * bins.tiles_y
-    splats = gather_splats(means2d, conics, colors, opacities, bins.flatten_ids)
     args = dict(
-        inputs=[to_wp(splats), to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x, tiles_per_camera,
-                float(max_alpha)],
-        outputs=[to_wp(render, vecD, (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
+        inputs=[to_wp(bins.flatten_ids), to_wp(means2d, None, (P, 2)), to_wp(conics, None, (P, 3)),
+                to_wp(opacities, None, (P,)), to_wp(colors, None, (P, D)), to_wp(bins.tile_ranges), int(width),
+                int(height), bins.tiles_x, tiles_per_camera, float(max_alpha)],
+        outputs=[to_wp(render, vector_type(D), (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
                  to_wp(last_ids, None, (C * height * width,))],
     )
     kernel = composite_kernel(D, tile_size, cooperative)
