@@ -140,7 +140,7 @@ def rasterization(
                 campos = -(viewmats_b[..., :3, :3].transpose(-1, -2) @ viewmats_b[..., :3, 3:])[..., 0]
                 dirs = (means_b[:, None, :, :] - campos[:, :, None, :]).reshape(B * C, N, 3)
             else:  # degree 0 never reads directions: a placeholder, not a [C, N, 3] tensor
-                dirs = means.new_zeros(1, 1, 3)
+                dirs = means.new_empty(1, 1, 3)
             coeffs = colors.reshape(B * N, *colors.shape[-2:])
             channels.append(autograd.sh_colors(sh_degree, dirs, coeffs, proj.radii, B))
         else:
