@@ -1,20 +1,21 @@
 """Front-to-back alpha compositing of the binned Gaussians (SPEC section 2, steps 6-8).
 
-Each tile intersection names its (camera, Gaussian) pair through ``flatten_ids``, and the kernels read the
-pair's splat (mean2d, conic, effective opacity, D colours) from the per-pair tensors [C * N, ...] through
-that id. Two compiled variants of the same per-splat step:
+Each tile intersection names its (camera, Gaussian) pair through ``flatten_ids``; its splat is the pair's
+mean2d, conic, effective opacity and D colours. Two compiled variants of the same per-splat step:
 - cooperative (default on CUDA): one thread block per tile, one thread per pixel; a batch of one list
-  entry per thread at a time, the block gathers the entries' splats through their ids into shared memory
-  (no depth-sorted copy of the splats is written to global memory first) and every thread walks the batch
-  there; the block stops when all its pixels are done;
+  entry per thread at a time, the block gathers the entries' splats through their ids from the per-pair
+  tensors [C * N, ...] into shared memory (one id lookup per splat per block, nothing written to global
+  memory first) and every thread walks the batch there; the block stops when all its pixels are done;
 - per pixel (default on the CPU, where Warp runs threads serially and shared memory buys nothing): one
-  thread per pixel walks its tile's list, reading each splat through its id.
+  thread per pixel walks its tile's list in depth-sorted splat rows [M, 6 + D] gathered once
+  (``gather_splats``, which the backward passes read too; on the CPU contiguous rows beat an id lookup
+  per splat per pixel).
 Both are compiled per channel count D (RGB: 3, RGB+D: 4, D: 1, plain colours: any D): depth is one more
 channel, so a render without depth does no depth work. Outputs are the raw sums (no background):
 render = sum alpha_i T_i c_i, alpha = 1 - T, and the index (into ``flatten_ids``) of the last
-composited Gaussian per pixel, -1 where none, for the backward pass. The backward reads depth-sorted
-splat rows (``gather_splats``) instead.
+composited Gaussian per pixel, -1 where none, for the backward pass.
 """
+
 # No ``from __future__ import annotations``: Warp evaluates annotations, and those naming the per-D vector
 # type of the kernel factory must be real objects, not strings.
 import functools
@@ -113,19 +114,16 @@ def gather_splats(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Ten
 
 @functools.cache
 def composite_kernel(channels: int, tile_size: int, cooperative: bool):
-    """The compositing kernel for ``channels`` colour channels and ``tile_size`` square tiles. Splats are
-    read through ``flatten_ids`` from the per-pair arrays: means2d [P, 2], conics [P, 3], opacities [P],
-    colors [P, D] with P = C * N pairs."""
+    """The compositing kernel for ``channels`` colour channels and ``tile_size`` square tiles. The
+    cooperative variant reads splats through ``flatten_ids`` from the per-pair arrays (P = C * N pairs:
+    means2d [P] vec2, conics [P] vec3, opacities [P], colors [P] of D-vectors); the per-pixel variant reads
+    the depth-sorted rows of ``gather_splats``."""
     block = tile_size * tile_size
     vecD = vector_type(channels)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_per_pixel(
-        flatten_ids: wp.array(dtype=wp.int32),
-        means2d: wp.array2d(dtype=float),
-        conics: wp.array2d(dtype=float),
-        opacities: wp.array(dtype=float),
-        colors: wp.array2d(dtype=float),
+        splats: wp.array2d(dtype=float),
         tile_ranges: wp.array2d(dtype=wp.int32),
         width: int,
         height: int,
@@ -147,9 +145,8 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
         acc = vecD()
         last = int(-1)
         for i in range(tile_ranges[tile, 0], tile_ranges[tile, 1]):
-            g = flatten_ids[i]
-            vis = touch_alpha(wp.vec2(means2d[g, 0], means2d[g, 1]),
-                              wp.vec3(conics[g, 0], conics[g, 1], conics[g, 2]), opacities[g], fx, fy)
+            vis = touch_alpha(wp.vec2(splats[i, 0], splats[i, 1]), wp.vec3(splats[i, 2], splats[i, 3], splats[i, 4]),
+                              splats[i, 5], fx, fy)
             if vis == 0.0:
                 continue
             alpha = wp.min(max_alpha, vis)
@@ -158,7 +155,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
                 break
             w = alpha * T
             for k in range(channels):
-                acc[k] = acc[k] + w * colors[g, k]
+                acc[k] = acc[k] + w * splats[i, SPLAT_SLOTS + k]
             T = next_T
             last = i
         pix = (c * height + py) * width + px
@@ -169,10 +166,10 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_cooperative(
         flatten_ids: wp.array(dtype=wp.int32),
-        means2d: wp.array2d(dtype=float),
-        conics: wp.array2d(dtype=float),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
         opacities: wp.array(dtype=float),
-        colors: wp.array2d(dtype=float),
+        colors: wp.array(dtype=vecD),
         tile_ranges: wp.array2d(dtype=wp.int32),
         width: int,
         height: int,
@@ -202,14 +199,13 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
             # The batch's ids, then their splats gathered through them (ids past the list's end are other
             # tiles' entries or, past the array, read as 0: valid rows that are never walked).
             ids = wp.tile_load(flatten_ids, shape=(block,), offset=(b,), storage="shared")
-            xy = wp.tile_load_indexed(means2d, indices=ids, shape=(block, 2), axis=0, storage="shared")
-            con = wp.tile_load_indexed(conics, indices=ids, shape=(block, 3), axis=0, storage="shared")
+            xy = wp.tile_load_indexed(means2d, indices=ids, shape=(block,), axis=0, storage="shared")
+            con = wp.tile_load_indexed(conics, indices=ids, shape=(block,), axis=0, storage="shared")
             opa = wp.tile_load_indexed(opacities, indices=ids, shape=(block,), axis=0, storage="shared")
-            col = wp.tile_load_indexed(colors, indices=ids, shape=(block, channels), axis=0, storage="shared")
+            col = wp.tile_load_indexed(colors, indices=ids, shape=(block,), axis=0, storage="shared")
             if done == 0:
                 for j in range(wp.min(block, end - b)):
-                    vis = touch_alpha(wp.vec2(xy[j, 0], xy[j, 1]), wp.vec3(con[j, 0], con[j, 1], con[j, 2]),
-                                      opa[j], fx, fy)
+                    vis = touch_alpha(xy[j], con[j], opa[j], fx, fy)
                     if vis == 0.0:
                         continue
                     alpha = wp.min(max_alpha, vis)
@@ -218,8 +214,9 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
                         done = 1
                         break
                     w = alpha * T
+                    c_j = col[j]
                     for k in range(channels):
-                        acc[k] = acc[k] + w * col[j, k]
+                        acc[k] = acc[k] + w * c_j[k]
                     T = next_T
                     last = b + j
             b += block
@@ -258,12 +255,17 @@ def composite_forward(
     if cooperative is None:  # a CUDA block holds at most 1024 threads: larger tiles go per pixel
         cooperative = dev.type == "cuda" and tile_size * tile_size <= 1024
     P = C * N
+    vecD = vector_type(D)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
+    if cooperative:
+        splats = [to_wp(bins.flatten_ids), to_wp(means2d, wp.vec2, (P,)), to_wp(conics, wp.vec3, (P,)),
+                  to_wp(opacities, None, (P,)), to_wp(colors, vecD, (P,))]
+    else:
+        splats = [to_wp(gather_splats(means2d, conics, colors, opacities, bins.flatten_ids))]
     args = dict(
-        inputs=[to_wp(bins.flatten_ids), to_wp(means2d, None, (P, 2)), to_wp(conics, None, (P, 3)),
-                to_wp(opacities, None, (P,)), to_wp(colors, None, (P, D)), to_wp(bins.tile_ranges), int(width),
-                int(height), bins.tiles_x, tiles_per_camera, float(max_alpha)],
-        outputs=[to_wp(render, vector_type(D), (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
+        inputs=[*splats, to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x, tiles_per_camera,
+                float(max_alpha)],
+        outputs=[to_wp(render, vecD, (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
                  to_wp(last_ids, None, (C * height * width,))],
     )
     kernel = composite_kernel(D, tile_size, cooperative)
