@@ -197,12 +197,22 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
             if block_all(done) != 0:
                 break
             # The batch's ids, then their splats gathered through them (ids past the list's end are other
-            # tiles' entries or, past the array, read as 0: valid rows that are never walked).
+            # tiles' entries or, past the array, read as 0: valid rows that are never walked). All four
+            # gathers go to registers first, with no barrier between them, so their loads are in flight
+            # together; then each is copied to shared memory for every thread to read.
             ids = wp.tile_load(flatten_ids, shape=(block,), offset=(b,), storage="shared")
-            xy = wp.tile_load_indexed(means2d, indices=ids, shape=(block,), axis=0, storage="shared")
-            con = wp.tile_load_indexed(conics, indices=ids, shape=(block,), axis=0, storage="shared")
-            opa = wp.tile_load_indexed(opacities, indices=ids, shape=(block,), axis=0, storage="shared")
-            col = wp.tile_load_indexed(colors, indices=ids, shape=(block,), axis=0, storage="shared")
+            xy_r = wp.tile_load_indexed(means2d, indices=ids, shape=(block,), axis=0)
+            con_r = wp.tile_load_indexed(conics, indices=ids, shape=(block,), axis=0)
+            opa_r = wp.tile_load_indexed(opacities, indices=ids, shape=(block,), axis=0)
+            col_r = wp.tile_load_indexed(colors, indices=ids, shape=(block,), axis=0)
+            xy = wp.tile_empty(shape=(block,), dtype=wp.vec2, storage="shared")
+            con = wp.tile_empty(shape=(block,), dtype=wp.vec3, storage="shared")
+            opa = wp.tile_empty(shape=(block,), dtype=float, storage="shared")
+            col = wp.tile_empty(shape=(block,), dtype=vecD, storage="shared")
+            wp.tile_assign(xy, xy_r)
+            wp.tile_assign(con, con_r)
+            wp.tile_assign(opa, opa_r)
+            wp.tile_assign(col, col_r)
             if done == 0:
                 for j in range(wp.min(block, end - b)):
                     vis = touch_alpha(xy[j], con[j], opa[j], fx, fy)
