@@ -5,7 +5,9 @@ exclusive scan of the tile counts: key = (camera * tiles + tile) << 32 | bits(de
 positive float32 (> near_plane), whose bit patterns sort like the floats. One stable radix sort over the
 bits in use orders every tile's list front to back, with ties in Gaussian index order (the keys are
 written in index order and the sort is stable). Tile ranges are then found where the tile part of
-consecutive keys changes.
+consecutive keys changes. The total of the scan sizes the key buffers: the pass's one host sync, split
+into ``start_binning`` (queue the scan and the total's copy) and ``finish_binning`` (wait, then the rest)
+so that other device work can be queued in between.
 """
 
 from __future__ import annotations
@@ -33,7 +35,8 @@ class Bins:
 @wp.kernel(enable_backward=False)
 def _write_keys(
     rects: wp.array2d(dtype=wp.vec4i),
-    offsets: wp.array2d(dtype=wp.int32),
+    tiles_touched: wp.array2d(dtype=wp.int32),
+    ends: wp.array2d(dtype=wp.int64),
     depth_bits: wp.array2d(dtype=wp.int32),
     tiles_x: int,
     tiles_per_camera: int,
@@ -41,66 +44,104 @@ def _write_keys(
     values: wp.array(dtype=wp.int32),
 ):
     c, g = wp.tid()
+    count = tiles_touched[c, g]
+    if count == 0:  # culled or off-screen: no keys, and no need to read the rectangle
+        return
+    k = int(ends[c, g] - wp.int64(count))  # exclusive offset from the inclusive scan (< 2^31, checked)
     r = rects[c, g]
-    n = rects.shape[1]
-    k = offsets[c, g]
+    value = c * rects.shape[1] + g
     zbits = wp.int64(depth_bits[c, g])
     for ty in range(r[1], r[3] + 1):
         for tx in range(r[0], r[2] + 1):
             tile = wp.int64(c * tiles_per_camera + ty * tiles_x + tx)
             keys[k] = (tile << wp.int64(32)) | zbits
-            values[k] = c * n + g
+            values[k] = value
             k += 1
 
 
 @wp.kernel(enable_backward=False)
 def _tile_ranges(keys: wp.array(dtype=wp.int64), count: int, ranges: wp.array2d(dtype=wp.int32)):
+    # Entry i closes its tile's range where the next key's tile differs, and opens the next tile's there.
     i = wp.tid()
     tile = int(keys[i] >> wp.int64(32))
     if i == 0:
-        ranges[tile, 0] = i
-    elif int(keys[i - 1] >> wp.int64(32)) != tile:
-        ranges[tile, 0] = i
+        ranges[tile, 0] = 0
     if i == count - 1:
-        ranges[tile, 1] = i + 1
-    elif int(keys[i + 1] >> wp.int64(32)) != tile:
-        ranges[tile, 1] = i + 1
+        ranges[tile, 1] = count
+    else:
+        following = int(keys[i + 1] >> wp.int64(32))
+        if following != tile:
+            ranges[tile, 1] = i + 1
+            ranges[following, 0] = i + 1
 
 
-def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int) -> Bins:
-    """Build the per-tile sorted lists of a projection (one host sync: the total intersection count)."""
+@dataclass
+class PendingBins:
+    """A started binning pass (``start_binning``): the scan is queued on the device and its total, which
+    sizes the key buffers, is on its way to the host; the kernel arguments that do not depend on it are
+    built."""
+
+    C: int
+    N: int
+    tiles_x: int
+    tiles_y: int
+    ranges: torch.Tensor  # [max(tiles, 1), 2] int32, zero: empty tiles stay (0, 0)
+    total: torch.Tensor | None  # [1] int64 on the host (pinned, filled once ``ready``), None: nothing to bin
+    ready: torch.cuda.Event | None  # recorded after the copy of the total on CUDA, None on the CPU
+    key_inputs: list
+    end_bit: int  # sort bits [0, end_bit): 32 of depth below the tile index of the last tile
+
+
+def start_binning(proj: Projection, width: int, height: int, tile_size: int) -> PendingBins:
+    """Queue the inclusive int64 scan of the tile counts (no overflow) and the copy of its total to the
+    host, without waiting for either: work queued after this (the SH colours in ``rasterization``) keeps
+    the GPU busy while ``finish_binning`` waits for the total and issues the rest of the pass."""
     C, N = proj.depths.shape
     device = proj.depths.device
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     n_tiles = C * tiles_x * tiles_y
     ranges = torch.zeros(max(n_tiles, 1), 2, device=device, dtype=torch.int32)
+    pending = PendingBins(C, N, tiles_x, tiles_y, ranges, None, None, [],
+                          32 + max(1, int(n_tiles - 1).bit_length()))
     if C * N == 0:
-        return Bins(ranges[:n_tiles], torch.zeros(0, device=device, dtype=torch.int32), tiles_x, tiles_y)
-    # Inclusive int64 scan (no overflow), one host sync for the total to size the key buffers.
+        return pending
     ends = torch.cumsum(proj.tiles_touched.reshape(-1), 0)
-    total = int(ends[-1])
+    if device.type == "cuda":
+        pending.total = ends[-1:].to("cpu", non_blocking=True)  # into pinned host memory
+        pending.ready = torch.cuda.Event()
+        pending.ready.record(torch.cuda.current_stream(device))
+    else:
+        pending.total = ends[-1:]
+    pending.key_inputs = [to_wp(proj.tile_rects, wp.vec4i), to_wp(proj.tiles_touched), to_wp(ends, shape=(C, N)),
+                          to_wp(proj.depths.view(torch.int32)), tiles_x, tiles_x * tiles_y]
+    return pending
+
+
+def finish_binning(pending: PendingBins) -> Bins:
+    """Wait for the total intersection count (the pass's one host sync), then write the keys, sort them
+    and find the tile ranges."""
+    p = pending
+    n_tiles = p.C * p.tiles_x * p.tiles_y
+    device = p.ranges.device
+    if p.ready is not None:
+        p.ready.synchronize()
+    total = 0 if p.total is None else int(p.total[0])
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed int32 indexing; render fewer cameras per call")
     if total == 0:
-        return Bins(ranges[:n_tiles], torch.zeros(0, device=device, dtype=torch.int32), tiles_x, tiles_y)
-    offsets = (ends - proj.tiles_touched.reshape(-1)).to(torch.int32)
-    keys = torch.empty(2 * total, device=device, dtype=torch.int64)
+        return Bins(p.ranges[:n_tiles], torch.zeros(0, device=device, dtype=torch.int32), p.tiles_x, p.tiles_y)
+    keys = torch.empty(2 * total, device=device, dtype=torch.int64)  # the sort's double buffers
     values = torch.empty(2 * total, device=device, dtype=torch.int32)
-    depth_bits = proj.depths.contiguous().view(torch.int32)
-    end_bit = 32 + max(1, int(n_tiles - 1).bit_length())
     with on_device_of(keys) as dev:
-        wp.launch(
-            _write_keys,
-            dim=(C, N),
-            inputs=[
-                to_wp(proj.tile_rects, wp.vec4i), to_wp(offsets.reshape(C, N)),
-                to_wp(depth_bits), tiles_x, tiles_x * tiles_y,
-            ],
-            outputs=[to_wp(keys), to_wp(values)],
-            device=dev,
-        )
+        wp.launch(_write_keys, dim=(p.C, p.N), inputs=p.key_inputs, outputs=[to_wp(keys), to_wp(values)], device=dev)
         wk, wv = wp.from_torch(keys), wp.from_torch(values)
-        wp.utils.radix_sort_pairs(wk, wv, total, begin_bit=0, end_bit=end_bit)
-        wp.launch(_tile_ranges, dim=total, inputs=[wk, total], outputs=[to_wp(ranges)], device=dev)
-    return Bins(ranges[:n_tiles], values[:total], tiles_x, tiles_y)
+        wp.utils.radix_sort_pairs(wk, wv, total, begin_bit=0, end_bit=p.end_bit)
+        wp.launch(_tile_ranges, dim=total, inputs=[wk, total], outputs=[to_wp(p.ranges)], device=dev)
+    return Bins(p.ranges[:n_tiles], values[:total], p.tiles_x, p.tiles_y)
+
+
+def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int) -> Bins:
+    """Build the per-tile sorted lists of a projection in one go (``start_binning`` then
+    ``finish_binning``; one host sync: the total intersection count)."""
+    return finish_binning(start_binning(proj, width, height, tile_size))

@@ -1,13 +1,15 @@
 """Front-to-back alpha compositing of the binned Gaussians (SPEC section 2, steps 6-8).
 
-After the sort, each tile intersection's splat (mean2d, conic, opacity, D colours) is gathered into one
-row of ``splats [M, 6 + D]`` in depth order, so the kernels read a tile's list as contiguous memory.
-Two compiled variants of the same per-splat step:
-- cooperative (default on CUDA): one thread block per tile, one thread per pixel; the block copies its
-  list into shared memory a batch of one splat per thread at a time and every thread walks the batch
-  there; the block stops when all its pixels are done;
+Each tile intersection names its (camera, Gaussian) pair through ``flatten_ids``; its splat is the pair's
+mean2d, conic, effective opacity and D colours. Two compiled variants of the same per-splat step:
+- cooperative (default on CUDA): one thread block per tile, one thread per pixel; a batch of one list
+  entry per thread at a time, the block gathers the entries' splats through their ids from the per-pair
+  tensors [C * N, ...] into shared memory (one id lookup per splat per block, nothing written to global
+  memory first) and every thread walks the batch there; the block stops when all its pixels are done;
 - per pixel (default on the CPU, where Warp runs threads serially and shared memory buys nothing): one
-  thread per pixel walks its tile's rows.
+  thread per pixel walks its tile's list in depth-sorted splat rows [M, 6 + D] gathered once
+  (``gather_splats``, which the backward passes read too; on the CPU contiguous rows beat an id lookup
+  per splat per pixel).
 Both are compiled per channel count D (RGB: 3, RGB+D: 4, D: 1, plain colours: any D): depth is one more
 channel, so a render without depth does no depth work. Outputs are the raw sums (no background):
 render = sum alpha_i T_i c_i, alpha = 1 - T, and the index (into ``flatten_ids``) of the last
@@ -52,15 +54,13 @@ def conic_sigma(dx: float, dy: float, a: float, b: float, c: float) -> float:
 
 
 @wp.func
-def touch_alpha(splats: wp.array2d(dtype=float), i: int, fx: float, fy: float) -> float:
-    """o exp(-sigma) of row i at pixel centre (fx, fy) when the splat touches the pixel (sigma >= 0 and
-    o exp(-sigma) >= 1/255, SPEC step 6), else 0."""
-    dx = splats[i, 0] - fx
-    dy = splats[i, 1] - fy
-    sigma = conic_sigma(dx, dy, splats[i, 2], splats[i, 3], splats[i, 4])
+def touch_alpha(xy: wp.vec2, conic: wp.vec3, opacity: float, fx: float, fy: float) -> float:
+    """o exp(-sigma) of a splat (mean2d ``xy``, ``conic``, effective ``opacity``) at pixel centre (fx, fy)
+    when it touches the pixel (sigma >= 0 and o exp(-sigma) >= 1/255, SPEC step 6), else 0."""
+    sigma = conic_sigma(xy[0] - fx, xy[1] - fy, conic[0], conic[1], conic[2])
     if not (sigma >= 0.0):
         return 0.0
-    alpha = splats[i, 5] * wp.exp(-sigma)
+    alpha = opacity * wp.exp(-sigma)
     if not (alpha >= ALPHA_MIN):
         return 0.0
     return alpha
@@ -114,17 +114,12 @@ def gather_splats(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Ten
 
 @functools.cache
 def composite_kernel(channels: int, tile_size: int, cooperative: bool):
-    """The compositing kernel for ``channels`` colour channels and ``tile_size`` square tiles."""
-    vecD = vector_type(channels)
+    """The compositing kernel for ``channels`` colour channels and ``tile_size`` square tiles. The
+    cooperative variant reads splats through ``flatten_ids`` from the per-pair arrays (P = C * N pairs:
+    means2d [P] vec2, conics [P] vec3, opacities [P], colors [P] of D-vectors); the per-pixel variant reads
+    the depth-sorted rows of ``gather_splats``."""
     block = tile_size * tile_size
-    row = SPLAT_SLOTS + channels
-
-    @wp.func
-    def add_splat(rows: wp.array2d(dtype=float), i: int, alpha: float, T: float, acc: vecD) -> vecD:
-        w = alpha * T
-        for k in range(channels):
-            acc[k] = acc[k] + w * rows[i, SPLAT_SLOTS + k]
-        return acc
+    vecD = vector_type(channels)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_per_pixel(
@@ -150,14 +145,17 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
         acc = vecD()
         last = int(-1)
         for i in range(tile_ranges[tile, 0], tile_ranges[tile, 1]):
-            vis = touch_alpha(splats, i, fx, fy)
+            vis = touch_alpha(wp.vec2(splats[i, 0], splats[i, 1]), wp.vec3(splats[i, 2], splats[i, 3], splats[i, 4]),
+                              splats[i, 5], fx, fy)
             if vis == 0.0:
                 continue
             alpha = wp.min(max_alpha, vis)
             next_T = T * (1.0 - alpha)
             if next_T <= T_MIN:
                 break
-            acc = add_splat(splats, i, alpha, T, acc)
+            w = alpha * T
+            for k in range(channels):
+                acc[k] = acc[k] + w * splats[i, SPLAT_SLOTS + k]
             T = next_T
             last = i
         pix = (c * height + py) * width + px
@@ -167,7 +165,11 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
 
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_cooperative(
-        splats: wp.array2d(dtype=float),
+        flatten_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=vecD),
         tile_ranges: wp.array2d(dtype=wp.int32),
         width: int,
         height: int,
@@ -194,16 +196,27 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
             # Every thread reaches the cooperative calls; the block stops once all its pixels are done.
             if block_all(done) != 0:
                 break
-            batch = wp.tile_load(splats, shape=(block, row), offset=(b, 0), storage="shared")
+            # The batch's ids, then their splats gathered through them (ids past the list's end are other
+            # tiles' entries or, past the array, read as 0: valid rows that are never walked). All four
+            # gathers go to registers first, with no barrier between them, so their loads are in flight
+            # together; then each is copied to shared memory for every thread to read.
+            ids = wp.tile_load(flatten_ids, shape=(block,), offset=(b,), storage="shared")
+            xy_r = wp.tile_load_indexed(means2d, indices=ids, shape=(block,), axis=0)
+            con_r = wp.tile_load_indexed(conics, indices=ids, shape=(block,), axis=0)
+            opa_r = wp.tile_load_indexed(opacities, indices=ids, shape=(block,), axis=0)
+            col_r = wp.tile_load_indexed(colors, indices=ids, shape=(block,), axis=0)
+            xy = wp.tile_empty(shape=(block,), dtype=wp.vec2, storage="shared")
+            con = wp.tile_empty(shape=(block,), dtype=wp.vec3, storage="shared")
+            opa = wp.tile_empty(shape=(block,), dtype=float, storage="shared")
+            col = wp.tile_empty(shape=(block,), dtype=vecD, storage="shared")
+            wp.tile_assign(xy, xy_r)
+            wp.tile_assign(con, con_r)
+            wp.tile_assign(opa, opa_r)
+            wp.tile_assign(col, col_r)
             if done == 0:
                 for j in range(wp.min(block, end - b)):
-                    dx = batch[j, 0] - fx
-                    dy = batch[j, 1] - fy
-                    sigma = conic_sigma(dx, dy, batch[j, 2], batch[j, 3], batch[j, 4])
-                    if not (sigma >= 0.0):
-                        continue
-                    vis = batch[j, 5] * wp.exp(-sigma)
-                    if not (vis >= ALPHA_MIN):
+                    vis = touch_alpha(xy[j], con[j], opa[j], fx, fy)
+                    if vis == 0.0:
                         continue
                     alpha = wp.min(max_alpha, vis)
                     next_T = T * (1.0 - alpha)
@@ -211,8 +224,9 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
                         done = 1
                         break
                     w = alpha * T
+                    c_j = col[j]
                     for k in range(channels):
-                        acc[k] = acc[k] + w * batch[j, SPLAT_SLOTS + k]
+                        acc[k] = acc[k] + w * c_j[k]
                     T = next_T
                     last = b + j
             b += block
@@ -250,11 +264,16 @@ def composite_forward(
     last_ids = torch.empty(C, height, width, device=dev, dtype=torch.int32)
     if cooperative is None:  # a CUDA block holds at most 1024 threads: larger tiles go per pixel
         cooperative = dev.type == "cuda" and tile_size * tile_size <= 1024
+    P = C * N
     vecD = vector_type(D)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
-    splats = gather_splats(means2d, conics, colors, opacities, bins.flatten_ids)
+    if cooperative:
+        splats = [to_wp(bins.flatten_ids), to_wp(means2d, wp.vec2, (P,)), to_wp(conics, wp.vec3, (P,)),
+                  to_wp(opacities, None, (P,)), to_wp(colors, vecD, (P,))]
+    else:
+        splats = [to_wp(gather_splats(means2d, conics, colors, opacities, bins.flatten_ids))]
     args = dict(
-        inputs=[to_wp(splats), to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x, tiles_per_camera,
+        inputs=[*splats, to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x, tiles_per_camera,
                 float(max_alpha)],
         outputs=[to_wp(render, vecD, (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
                  to_wp(last_ids, None, (C * height * width,))],

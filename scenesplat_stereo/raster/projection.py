@@ -89,6 +89,26 @@ def screen_covariance(cov_cam: wp.mat33, J0: wp.vec3, J1: wp.vec3) -> wp.vec3:
     return wp.vec3(wp.dot(J0, cov_cam * J0), wp.dot(J0, cov_cam * J1), wp.dot(J1, cov_cam * J1))
 
 
+@wp.func
+def write_culled(
+    c: int,
+    g: int,
+    out_means2d: wp.array2d(dtype=wp.vec2),
+    out_conics: wp.array2d(dtype=wp.vec3),
+    out_opacities: wp.array2d(dtype=float),
+    out_radii: wp.array2d(dtype=wp.vec2i),
+    out_rects: wp.array2d(dtype=wp.vec4i),
+    out_tiles: wp.array2d(dtype=wp.int32),
+):
+    """The outputs of a culled pair: zero mean, conic, opacity and radii, an empty tile rectangle."""
+    out_means2d[c, g] = wp.vec2(0.0, 0.0)
+    out_conics[c, g] = wp.vec3(0.0, 0.0, 0.0)
+    out_opacities[c, g] = 0.0
+    out_radii[c, g] = wp.vec2i(0, 0)
+    out_rects[c, g] = wp.vec4i(0, 0, -1, -1)
+    out_tiles[c, g] = 0
+
+
 @functools.cache
 def projection_kernel(antialiased: bool):
     """The projection kernel, compiled per rasterize mode. Thread (c, g) projects Gaussian g of camera c's
@@ -118,13 +138,7 @@ def projection_kernel(antialiased: bool):
         out_rects: wp.array2d(dtype=wp.vec4i),
         out_tiles: wp.array2d(dtype=wp.int32),
     ):
-        c, g = wp.tid()
-        out_means2d[c, g] = wp.vec2(0.0, 0.0)
-        out_conics[c, g] = wp.vec3(0.0, 0.0, 0.0)
-        out_opacities[c, g] = 0.0
-        out_radii[c, g] = wp.vec2i(0, 0)
-        out_rects[c, g] = wp.vec4i(0, 0, -1, -1)
-        out_tiles[c, g] = 0
+        c, g = wp.tid()  # every output of the pair is written once: culled at a return, else at the end
 
         gi = (c / cameras_per_scene) * out_depths.shape[1] + g  # the Gaussian in the flat batch
         V = viewmats[c]
@@ -137,12 +151,14 @@ def projection_kernel(antialiased: bool):
         )
         out_depths[c, g] = p[2]
         if not (p[2] > near_plane and p[2] < far_plane):
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
             return
 
         # Step 2: world covariance R S S^T R^T, then camera covariance.
         q = quats[gi]
         qn = wp.length(q)
         if not (qn > 0.0):
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
             return
         R = quat_to_rotation(q / qn)
         s = scales[gi]
@@ -171,11 +187,13 @@ def projection_kernel(antialiased: bool):
         d = d + eps2d
         det = a * d - b * b
         if not (det > 0.0):
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
             return
         o = opacities[gi]
         if wp.static(antialiased):
             o = o * wp.sqrt(wp.max(det_orig / det, 0.0))
         if not (o >= ALPHA_MIN):
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
             return
 
         # Step 5: screen-space mean and conic.
@@ -193,6 +211,7 @@ def projection_kernel(antialiased: bool):
         v0 = wp.clamp(wp.ceil(m2[1] - ry - 0.5), -1.0, fh)
         v1 = wp.clamp(wp.floor(m2[1] + ry - 0.5), -1.0, fh)
         if not (u1 >= 0.0 and v1 >= 0.0 and u0 <= fw - 1.0 and v0 <= fh - 1.0 and u0 <= u1 and v0 <= v1):
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
             return
         tx0 = int(wp.max(u0, 0.0)) / tile_size
         tx1 = int(wp.min(u1, fw - 1.0)) / tile_size

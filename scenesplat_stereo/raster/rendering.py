@@ -1,8 +1,9 @@
 """``rasterization``: the one entry point every part of the project renders through (SPEC section 2).
 
 Same argument names, shapes and meaning as gsplat 1.5's ``rasterization`` for the subset used here.
-Pipeline: project (per camera and Gaussian) -> SH colours (only when colours are needed, compiled for the
-scene's degree) -> tile binning (key sort + scan) -> compositing (compiled for the channel count), then
+Pipeline: project (per camera and Gaussian) -> scan of the tile counts -> SH colours (only when colours are
+needed, compiled for the scene's degree; queued while the scan's total reaches the host) -> tile binning
+(keys, sort, tile ranges) -> compositing (compiled for the channel count), then
 background and expected depth as plain torch ops; each stage is one launch for a whole batch of scenes.
 Differentiable with respect to means, quats, scales, opacities, colors and backgrounds through the stages'
 autograd Functions.
@@ -15,7 +16,7 @@ import math
 import torch
 
 from . import autograd
-from .binning import bin_gaussians
+from .binning import finish_binning, start_binning
 from .sh import num_sh_bases
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
@@ -132,6 +133,8 @@ def rasterization(
                             opacities.reshape(B * N), viewmats_b.reshape(B * C, 4, 4), Ks.reshape(B * C, 3, 3),
                             width, height, near_plane, far_plane, eps2d, rasterize_mode == "antialiased",
                             tile_size, B)
+    # The scan's total travels to the host while the GPU evaluates the colours.
+    pending = start_binning(proj, width, height, tile_size)
     channels = []
     if with_rgb:
         if sh_degree is not None:
@@ -140,7 +143,7 @@ def rasterization(
                 campos = -(viewmats_b[..., :3, :3].transpose(-1, -2) @ viewmats_b[..., :3, 3:])[..., 0]
                 dirs = (means_b[:, None, :, :] - campos[:, :, None, :]).reshape(B * C, N, 3)
             else:  # degree 0 never reads directions: a placeholder, not a [C, N, 3] tensor
-                dirs = means.new_zeros(1, 1, 3)
+                dirs = means.new_empty(1, 1, 3)
             coeffs = colors.reshape(B * N, *colors.shape[-2:])
             channels.append(autograd.sh_colors(sh_degree, dirs, coeffs, proj.radii, B))
         else:
@@ -151,7 +154,7 @@ def rasterization(
     features = channels[0] if len(channels) == 1 else torch.cat(channels, dim=-1)
     features = features.contiguous()
 
-    bins = bin_gaussians(proj, width, height, tile_size)
+    bins = finish_binning(pending)
     render, alphas, _ = autograd.composite(proj.means2d, proj.conics, features, proj.opacities, bins, width,
                                            height, tile_size, max_alpha, deterministic)
     if render_mode in ("ED", "RGB+ED"):

@@ -118,10 +118,9 @@ def eval_sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii:
     K = num_sh_bases(degree)
     if coeffs.shape[1] < K:
         raise ValueError(f"colors has {coeffs.shape[1]} SH coefficients per channel, sh_degree={degree} needs {K}")
-    out = torch.zeros(C, N, 3, device=coeffs.device, dtype=torch.float32)
+    out = torch.empty(C, N, 3, device=coeffs.device, dtype=torch.float32)  # every pair is written
     if C == 0 or N == 0:
         return out
-    coeffs = coeffs[:, :K].contiguous()
     with on_device_of(coeffs) as device:
         wp.launch(
             sh_kernel(degree),
