@@ -23,7 +23,7 @@ import sys
 import time
 import warnings
 from collections import defaultdict
-from dataclasses import MISSING, asdict, dataclass, field, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -264,9 +264,7 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
         batches = [todo[s:s + settings.batch_pairs] for s in range(0, len(todo), settings.batch_pairs)]
         rendered = stream_samples(batches, lambda b: start_render(
             gaussians, scene.sh_degree, b, settings.device, settings.with_depth, settings.effects))
-        # inside Ray's worker processes "auto" stays with threads: spawning from them is untested
-        mode = "threads" if settings.backend == "ray" and settings.encoder_mode == "auto" else settings.encoder_mode
-        encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality, mode=mode)
+        encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality, mode=settings.encoder_mode)
         with encoder:  # its threads are joined when this block ends, whatever happens in it
             for batch in batches:
                 t0 = time.perf_counter()
@@ -304,6 +302,8 @@ def _run_ray(jobs: list[TeacherJob], settings: BuildSettings, bar: tqdm) -> list
         ray.init(address=settings.ray_address)
     gpus = 1 if str(settings.device).startswith("cuda") else 0
     task = ray.remote(num_cpus=1, num_gpus=gpus)(build_teacher)
+    if settings.encoder_mode == "auto":  # Ray's workers encode in threads: spawning from them is untested
+        settings = replace(settings, encoder_mode="threads")
     pending = {task.remote(job, settings): job for job in jobs}
     results = []
     while pending:

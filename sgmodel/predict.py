@@ -19,7 +19,6 @@ import os
 import shutil
 import sys
 import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +29,7 @@ import torch.nn.functional as F
 from scenesplat_stereo.encode import decode_image, encode_png, to_uint8
 
 from . import baselines, export
+from .bench import synced_clock
 from .calib import CalibError, Calibration, calib_from_flags, read_calib
 from .geometry import Z_MAX, depth_from_disparity
 from .render import render_views
@@ -142,12 +142,11 @@ class _Timer:
     """Wall time per stage (CUDA synchronised), printed as a table."""
 
     def __init__(self, device: torch.device) -> None:
-        self.device, self.rows, self.t = device, [], time.perf_counter()
+        self.now = synced_clock(device)
+        self.rows, self.t = [], self.now()
 
     def lap(self, stage: str) -> None:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-        now = time.perf_counter()
+        now = self.now()
         self.rows.append((stage, now - self.t))
         self.t = now
 
