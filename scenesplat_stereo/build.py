@@ -1,7 +1,8 @@
 """``scenesplat-stereo build``: teacher scenes -> SceneSplat-Stereo shards (SPEC sections 3-5).
 
 Orchestration only: teachers (discovery, PSNR filter) -> protocol (splits, sample plans) -> the Warp
-rasteriser (all cameras of several pairs per call) -> encoder threads -> shards.
+rasteriser (all cameras of several pairs per call) -> encoder threads or processes (and nvJPEG) -> shards.
+The settings and flags live in ``build_settings``.
 
 Work is cut into shards per teacher: the teachers of a split, in sorted scene-id order, each take
 ceil(samples / --samples-per-shard) consecutive shard numbers, so ``OUT/<split>/shard-<NNNNNN>.tar`` is
@@ -17,172 +18,38 @@ summary and skipped; the others go on, and the teacher's unfinished shard is rem
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import time
 import warnings
 from collections import defaultdict
-from dataclasses import MISSING, asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from scenesplat_stereo import shards
-from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import DEFAULT_ENCODER_MODE, ENCODER_MODES, SampleEncoder, default_encoder_workers
+from scenesplat_stereo.build_settings import SPLITS_OF_MODE, BuildSettings, add_arguments, settings_from_args
+from scenesplat_stereo.encode import SampleEncoder
 from scenesplat_stereo.gaussians import load_ply
-from scenesplat_stereo.protocol import (
-    JPEG_QUALITY,
-    MIN_TEACHER_PSNR,
-    NUM_TARGETS,
-    VAL_SCENES,
-    SamplePlan,
-    filter_teachers,
-    plan_scene,
-    split_scenes,
-)
-from scenesplat_stereo.raster import check_device
+from scenesplat_stereo.nvjpeg import NvJpegEncoder
+from scenesplat_stereo.protocol import VAL_SCENES, SamplePlan, filter_teachers, plan_scene, split_scenes
 from scenesplat_stereo.render_pairs import start_render, stream_samples
 from scenesplat_stereo.teachers import (
     Discovery,
-    OrbitSpec,
     Rejection,
     Teacher,
     discover_teachers,
     resolve_trajectory,
     summary_table,
 )
-from scenesplat_stereo.text import (argtype, format_table, parse_counts, parse_number_or_none, parse_size,
-                                   positive_number, whole_number)
+from scenesplat_stereo.text import format_table
 
-SPLITS_OF_MODE = {"trainval": ("train", "val"), "test": ("test",)}
+__all__ = ["BuildSettings", "BuildReport", "add_arguments", "build", "run", "settings_from_args", "summary"]
+
 BUILD_JSON = "build.json"
 EXIT_TEACHER_FAILED = 3  # exit status when some teachers failed at build time (the rest is complete)
-
-
-def _effects(text: str, flag: str) -> str:
-    CameraEffects.parse(text)  # unknown names raise, naming --effects
-    return text
-
-
-def _flag(help: str, **argparse_kwargs) -> dict:
-    """Field metadata: the ``build`` flag of a setting (``--field-name``), its help and argparse options."""
-    return {"cli": dict(help=help, **argparse_kwargs)}
-
-
-def _default_device() -> str:
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
-@dataclass(frozen=True)
-class BuildSettings:
-    """Everything a build needs, and the one description of the ``build`` flags (each field's metadata:
-    ``add_arguments`` makes the flags from it, ``settings_from_args`` reads them back). Units:
-    ``resolution`` (W, H) pixels; ``baseline``, ``rho`` world units (metres), None for the teacher's PSNR
-    tier; ``min_psnr`` dB, None keeps every teacher; ``val_scenes`` {subset: k} or one k for every subset,
-    None for the paper's ``VAL_SCENES``. Construction checks every value (ValueError naming the flag), so
-    a refused setting never reaches the output folder."""
-
-    teachers: Path = field(metadata=_flag(
-        "folder of teacher scenes (SceneSplat-7K/gsplat, INRIA or plain layout, detected per sub-folder)",
-        type=Path, required=True))
-    out: Path = field(metadata=_flag(
-        "output folder (OUT/<split>/shard-NNNNNN.tar, index.json, stats.json)", type=Path, required=True))
-    split_mode: str = field(default="trainval", metadata=_flag(
-        "trainval: train and val scene splits (seed 42), every frame for train, 5 pairs x 4 targets per val "
-        "scene; test: 100 evenly spaced pairs x all targets per scene (default trainval)",
-        choices=list(SPLITS_OF_MODE)))
-    resolution: tuple[int, int] | None = field(default=None, metadata=_flag(
-        "render size in pixels (default: each teacher's native size; K is rescaled)",
-        type=argtype(parse_size, "--resolution"), metavar="WxH"))
-    baseline: float | None = field(default=None, metadata=_flag(
-        "stereo baseline B in world units (metres), > 0; default: PSNR tier", type=positive_number("--baseline")))
-    rho: float | None = field(default=None, metadata=_flag(
-        "target radius rho in world units (metres), > 0; default: PSNR tier", type=positive_number("--rho")))
-    targets: int = field(default=NUM_TARGETS, metadata=_flag(
-        f"targets per pair, 1..{NUM_TARGETS}: the first of the {NUM_TARGETS} Fibonacci directions (val: of the "
-        "first 4)", type=whole_number("--targets")))
-    val_scenes: dict[str, int] | int | None = field(default=None, metadata=_flag(
-        "validation scenes per subset, e.g. 'ScanNetGS=30,ScanNetPPGS-V2=20' (the default; 0 for other "
-        "subsets) or one integer for every subset", type=argtype(parse_counts, "--val-scenes"),
-        metavar="SUBSET=K,...|K"))
-    min_psnr: float | None = field(default=MIN_TEACHER_PSNR, metadata=_flag(
-        f"keep teachers with PSNR strictly above this (dB, default {MIN_TEACHER_PSNR}); 'none' keeps all, "
-        "including teachers without a PSNR", type=argtype(parse_number_or_none, "--min-psnr"), metavar="DB|none"))
-    with_depth: bool = field(default=False, metadata=_flag(
-        "also store the left camera's expected depth (world units along z) as float16 EXR "
-        "<key>.left_depth.exr", action="store_true"))
-    effects: CameraEffects | None = field(default=None, metadata=_flag(
-        "camera effects on the left/right inputs only, comma-separated from noise,vignetting,exposure "
-        "(default: none); --seed seeds their per-sample parameters", type=argtype(_effects, "--effects"),
-        metavar="LIST"))
-    device: str = field(default_factory=_default_device, metadata=_flag(
-        "torch device for rendering: cpu, cuda or cuda:<n> (default: cuda when available)",
-        type=argtype(check_device, "--device")))
-    samples_per_shard: int = field(default=64, metadata=_flag(
-        "samples (pairs) per tar shard (default 64)", type=whole_number("--samples-per-shard")))
-    workers: int = field(default_factory=default_encoder_workers, metadata=_flag(
-        "JPEG/PNG encoders per renderer (default: half the CPU cores; 0 encodes inline)",
-        type=whole_number("--workers", 0)))
-    encoder_mode: str = field(default=DEFAULT_ENCODER_MODE, metadata=_flag(
-        f"threads, processes (spawned, fed through shared memory) or auto (processes on 8 or more cores, "
-        f"threads under --backend ray): "
-        f"the same bytes (default {DEFAULT_ENCODER_MODE}; `bench encode` compares them)", choices=list(ENCODER_MODES)))
-    batch_pairs: int = field(default=4, metadata=_flag(
-        "pairs rendered per rasterisation call (12 cameras each)", type=whole_number("--batch-pairs")))
-    backend: str = field(default="local", metadata=_flag(
-        "local: one process; ray: one task per teacher on an existing Ray cluster (pip extra [ray])",
-        choices=["local", "ray"]))
-    ray_address: str | None = field(default="auto", metadata=_flag(
-        "ray.init address for --backend ray (default auto)"))
-    orbit: OrbitSpec | None = field(default=None, metadata=_flag(
-        "trajectory for teachers without one: 'RADIUS' or 'radius=6,frames=60,elevation=20,size=616x456,"
-        "fov=60,up=-y' (world units, degrees, pixels); the orbit circles the median of the Gaussian means, "
-        "OpenCV cameras looking at it", type=argtype(OrbitSpec.parse, "--orbit"), metavar="SPEC"))
-    max_frames: int | None = field(default=None, metadata=_flag(
-        "at most this many evenly spaced pairs per teacher (quick runs), >= 1", type=whole_number("--max-frames")))
-    jpeg_quality: int = JPEG_QUALITY
-    progress: bool = True
-
-    def __post_init__(self) -> None:
-        def bad(flag: str, value, why: str) -> ValueError:
-            return ValueError(f"{flag} {value}: {why}")
-
-        if self.split_mode not in SPLITS_OF_MODE:
-            raise bad("--split-mode", repr(self.split_mode), f"must be one of {list(SPLITS_OF_MODE)}")
-        if self.resolution is not None and (len(self.resolution) != 2 or min(self.resolution) < 1):
-            raise bad("--resolution", self.resolution, "width and height must be >= 1 pixel")
-        for flag, value in (("--baseline", self.baseline), ("--rho", self.rho)):
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise bad(flag, value, "must be a finite number > 0 (world units)")
-        if not 1 <= self.targets <= NUM_TARGETS:
-            raise bad("--targets", self.targets, f"must be in 1..{NUM_TARGETS}")
-        for flag, value, low in (("--samples-per-shard", self.samples_per_shard, 1), ("--workers", self.workers, 0),
-                                 ("--batch-pairs", self.batch_pairs, 1),
-                                 ("--max-frames", 1 if self.max_frames is None else self.max_frames, 1)):
-            if value < low:
-                raise bad(flag, value, f"must be >= {low}")
-        if not 1 <= self.jpeg_quality <= 100:
-            raise bad("jpeg_quality", self.jpeg_quality, "must be in 1..100")
-        if self.encoder_mode not in ENCODER_MODES:
-            raise bad("--encoder-mode", repr(self.encoder_mode), f"must be one of {list(ENCODER_MODES)}")
-        if self.backend not in ("local", "ray"):
-            raise bad("--backend", repr(self.backend), "must be 'local' or 'ray'")
-        check_device(self.device)
-
-    def fingerprint(self) -> dict:
-        """The settings that decide the output bytes (stored in ``OUT/build.json``)."""
-        keep = ("resolution", "baseline", "rho", "targets", "val_scenes", "min_psnr", "with_depth",
-                "samples_per_shard", "max_frames", "jpeg_quality")
-        doc = {k: getattr(self, k) for k in keep}
-        doc["resolution"] = list(self.resolution) if self.resolution else None
-        doc["teachers"] = str(Path(self.teachers).resolve())
-        doc["effects"] = asdict(self.effects) if self.effects else None
-        doc["orbit"] = asdict(self.orbit) if self.orbit else None
-        return json.loads(json.dumps(doc))
 
 
 @dataclass
@@ -252,7 +119,7 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
     t = job.teacher
     result = TeacherResult(t.scene_id, t.subset, job.split, path=str(t.ply_path))
     sink = shards.PlannedShards(settings.out, job.split, job.chunks)
-    encoder = None
+    encoder = jpeg = None
     try:
         scene = load_ply(t.ply_path, strict=True)
         teacher = resolve_trajectory(t, scene.means) if t.c2w is None else t
@@ -261,9 +128,10 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
             by_key = {p.key: p for p in plan_teacher(teacher, job.split, settings)}
         todo = [by_key[k] for _, keys in job.chunks for k in keys]
         gaussians = scene.to_torch(settings.device)
+        jpeg = None if settings.jpeg_encoder == "cpu" else NvJpegEncoder(settings.device, settings.jpeg_quality)
         batches = [todo[s:s + settings.batch_pairs] for s in range(0, len(todo), settings.batch_pairs)]
         rendered = stream_samples(batches, lambda b: start_render(
-            gaussians, scene.sh_degree, b, settings.device, settings.with_depth, settings.effects))
+            gaussians, scene.sh_degree, b, settings.device, settings.with_depth, settings.effects, jpeg=jpeg))
         encoder = SampleEncoder(sink, settings.workers, settings.jpeg_quality, mode=settings.encoder_mode)
         with encoder:  # its threads are joined when this block ends, whatever happens in it
             for batch in batches:
@@ -279,6 +147,8 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
     except Exception as e:  # noqa: BLE001  (one bad teacher must not stop the others; reported)
         sink.discard()
         result.error = f"{type(e).__name__}: {e}"
+    if jpeg is not None:
+        jpeg.close()
     if encoder is not None:
         result.encode_s, result.write_s = encoder.encode_s, encoder.sink_s
     result.shards, result.pairs = sink.done, sink.pairs
@@ -489,25 +359,6 @@ def summary(report: BuildReport) -> str:
         f"write {sum(r.write_s for r in report.results):.1f} s, wall {report.wall_s:.1f} s ({rate})",
     ]
     return "\n".join(lines)
-
-
-def add_arguments(p) -> None:
-    """The ``build`` flags, one per ``BuildSettings`` field with flag metadata, plus ``--seed`` (of the
-    effects) and ``--no-progress``."""
-    for f in fields(BuildSettings):
-        if "cli" in f.metadata:
-            default = {} if f.metadata["cli"].get("required") else {
-                "default": f.default_factory() if f.default_factory is not MISSING else f.default}
-            p.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **default, **f.metadata["cli"])
-    p.add_argument("--seed", type=int, default=0, help="seed of the per-sample effect parameters (default 0)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-def settings_from_args(args) -> BuildSettings:
-    """``BuildSettings`` from parsed ``build`` flags (ValueError naming the flag when a value is refused)."""
-    values = {f.name: getattr(args, f.name) for f in fields(BuildSettings) if "cli" in f.metadata}
-    values["effects"] = CameraEffects.parse(args.effects, args.seed)
-    return BuildSettings(**values, progress=not args.no_progress)
 
 
 def run(args) -> int:

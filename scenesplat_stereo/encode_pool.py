@@ -37,8 +37,8 @@ _maps: dict[str, mmap.mmap] = {}  # in a worker: slot path -> its mapping
 _free_slots: list[Slot] = []  # slots of finished encoders, kept mapped here and in the workers
 _slots_lock = threading.Lock()
 
-# (offset in bytes, shape, dtype string) of each array in a slot
-Layout = list[tuple[int, tuple[int, ...], str]]
+# (name, offset in bytes, shape, dtype string) of each array in a slot
+Layout = list[tuple[str, int, tuple[int, ...], str]]
 
 
 def process_pool(workers: int) -> ProcessPoolExecutor:
@@ -100,16 +100,16 @@ class Slot:
     def __init__(self, folder: str) -> None:
         self.folder, self.path, self.buf = folder, "", None
 
-    def put(self, arrays: list[np.ndarray]) -> tuple[str, Layout]:
-        """Copy ``arrays`` into the slot; returns (path, layout) for ``encode_in_worker``."""
+    def put(self, arrays: dict[str, np.ndarray]) -> tuple[str, Layout]:
+        """Copy named ``arrays`` into the slot; returns (path, layout) for ``encode_in_worker``."""
         layout, offset = [], 0
-        for a in arrays:
-            layout.append((offset, tuple(a.shape), a.dtype.str))
+        for name, a in arrays.items():
+            layout.append((name, offset, tuple(a.shape), a.dtype.str))
             offset += -(-a.nbytes // _ALIGN) * _ALIGN
         if self.buf is None or len(self.buf) < offset:
             self._grow(offset)
-        for a, (off, shape, dtype) in zip(arrays, layout):
-            np.copyto(np.ndarray(shape, dtype, buffer=self.buf, offset=off), a, casting="no")
+        for (name, off, shape, dtype) in layout:
+            np.copyto(np.ndarray(shape, dtype, buffer=self.buf, offset=off), arrays[name], casting="no")
         return self.path, layout
 
     def _grow(self, nbytes: int) -> None:
@@ -147,15 +147,18 @@ def _mapping(path: str) -> mmap.mmap:
 
 def encode_in_worker(path: str, layout: Layout, key: str, target_ids: tuple[int, ...], meta: bytes,
                      quality: int) -> dict[str, bytes]:
-    """In a worker: ``encode_sample`` of the sample that ``Slot.put`` copied to ``path`` (arrays in the
-    order left, right, targets, masks[, depth])."""
-    from scenesplat_stereo.encode import SampleImages, encode_sample
+    """In a worker: ``encode_sample`` of the sample whose arrays ``Slot.put`` copied to ``path`` under the
+    names of ``SampleImages``' fields (``masks``; ``left``, ``right``, ``targets`` unless the caller holds
+    the JPEGs already, whose members are then left out of the result; ``depth`` when there is one)."""
+    from scenesplat_stereo.encode import SampleImages, encode_sample, jpeg_members
 
     buf = _mapping(path)
-    arrays = [np.ndarray(shape, dtype, buffer=buf, offset=off) for off, shape, dtype in layout]
-    depth = arrays[4] if len(arrays) > 4 else None
-    sample = SampleImages(key, arrays[0], arrays[1], arrays[2], arrays[3], target_ids, meta, depth)
+    arrays = {name: np.ndarray(shape, dtype, buffer=buf, offset=off) for name, off, shape, dtype in layout}
+    jpegs = None if "left" in arrays else dict.fromkeys(jpeg_members(target_ids), b"")
+    sample = SampleImages(key, arrays.get("left"), arrays.get("right"), arrays.get("targets"), arrays["masks"],
+                          target_ids, meta, arrays.get("depth"), jpegs)
     try:
-        return encode_sample(sample, quality)
+        members = encode_sample(sample, quality)
+        return {k: v for k, v in members.items() if jpegs is None or k not in jpegs}
     finally:
-        del sample, arrays, depth  # no view may outlive the call: the mapping can be closed on the next miss
+        del sample, arrays  # no view may outlive the call: the mapping can be closed on the next miss

@@ -5,19 +5,23 @@ On CUDA, a batch's uint8 images, masks and depth are copied to pinned host memor
 stream while the compute stream already renders the next batch (``stream_samples``), so a build is
 bound by the slower of rendering and copying, not by their sum. On the CPU everything is synchronous.
 Images: ``round(clip(x, 0, 1) * 255)`` as uint8; masks: rendered alpha >= ``MASK_ALPHA_THRESHOLD``;
-depth (optional): the left camera's expected depth in world units.
+depth (optional): the left camera's expected depth in world units. With an ``NvJpegEncoder``
+(``--jpeg-encoder nvjpeg``) the colour images are JPEG-encoded on the GPU (by the encoder's own thread
+and stream, while the next batch renders) instead of copied, and only their bytes reach the host.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from scenesplat_stereo.cameras import viewmats_from_c2w
-from scenesplat_stereo.encode import SampleImages
+from scenesplat_stereo.encode import SampleImages, jpeg_members
+from scenesplat_stereo.nvjpeg import NvJpegEncoder
 from scenesplat_stereo.protocol import MASK_ALPHA_THRESHOLD, SampleMeta, SamplePlan
 from scenesplat_stereo.raster import rasterization, tile_size_for
 
@@ -29,22 +33,28 @@ class RenderedBatch:
     """A rendered batch on its way to host memory; ``samples()`` waits for the copy and unpacks it."""
 
     plans: list[SamplePlan]
-    rgb8: torch.Tensor  # [B, 2 + T, H, W, 3] uint8, host
+    rgb8: torch.Tensor | None  # [B, 2 + T, H, W, 3] uint8, host (None when ``jpegs`` holds them)
     masks: torch.Tensor  # [B, T, H, W] bool, host
     depth: torch.Tensor | None  # [B, H, W] float32, host
     copied: torch.cuda.Event | None
+    jpegs: Future | None = None  # list of the B * (2 + T) images' JPEG bytes, encoded on the device
 
     def samples(self) -> list[SampleImages]:
         if self.copied is not None:
             self.copied.synchronize()
-        rgb8, masks = self.rgb8.numpy(), self.masks.numpy()
+        masks = self.masks.numpy()
+        rgb8 = None if self.rgb8 is None else self.rgb8.numpy()
         depth = None if self.depth is None else self.depth.numpy()
-        return [
-            SampleImages(key=p.key, left=rgb8[i, 0], right=rgb8[i, 1], targets=rgb8[i, 2:], masks=masks[i],
-                         target_ids=tuple(p.target_ids), meta=SampleMeta.from_plan(p).to_json(),
-                         depth=None if depth is None else depth[i])
-            for i, p in enumerate(self.plans)
-        ]
+        blobs = None if self.jpegs is None else iter(self.jpegs.result())
+        out = []
+        for i, p in enumerate(self.plans):
+            ids = tuple(p.target_ids)
+            images = (None, None, None) if rgb8 is None else (rgb8[i, 0], rgb8[i, 1], rgb8[i, 2:])
+            out.append(SampleImages(
+                p.key, *images, masks=masks[i], target_ids=ids, meta=SampleMeta.from_plan(p).to_json(),
+                depth=None if depth is None else depth[i],
+                jpegs=None if blobs is None else {name: next(blobs) for name in jpeg_members(ids)}))
+        return out
 
 
 def _to_host(tensors: list[torch.Tensor | None]) -> tuple[list[torch.Tensor | None], torch.cuda.Event | None]:
@@ -70,10 +80,11 @@ def _to_host(tensors: list[torch.Tensor | None]) -> tuple[list[torch.Tensor | No
 
 
 def start_render(gaussians: dict, sh_degree: int, plans: list[SamplePlan], device: str, with_depth: bool = False,
-                 effects=None, rasterize=rasterization) -> RenderedBatch:
+                 effects=None, rasterize=rasterization, jpeg: NvJpegEncoder | None = None) -> RenderedBatch:
     """Render the cameras of ``plans`` (one teacher, one image size; left, right, targets each) in ONE
     ``rasterize`` call (ours, or gsplat's for ``bench build --gsplat``; antialiased, the teacher's SH degree,
-    black background) and start their copy to host memory."""
+    black background) and start their copy to host memory (with ``jpeg``: their JPEG encoding on the
+    device, and the copy of the bytes only)."""
     p0 = plans[0]
     width, height, per = p0.width, p0.height, 2 + len(p0.target_ids)
     c2w = np.stack([np.concatenate([p.c2w_left[None], p.c2w_right[None], p.c2w_targets]) for p in plans])
@@ -92,6 +103,10 @@ def start_render(gaussians: dict, sh_degree: int, plans: list[SamplePlan], devic
         rgb8 = (rgb.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
         masks = alphas.reshape(len(plans), per, height, width)[:, 2:] >= MASK_ALPHA_THRESHOLD
         depth = colors[:, 0, :, :, 3].contiguous() if with_depth else None
+    if jpeg is not None:
+        jpegs = jpeg.encode(rgb8.reshape(-1, height, width, 3))
+        (masks, depth), event = _to_host([masks, depth])
+        return RenderedBatch(plans, None, masks, depth, event, jpegs)
     (rgb8, masks, depth), event = _to_host([rgb8, masks, depth])
     return RenderedBatch(plans, rgb8, masks, depth, event)
 

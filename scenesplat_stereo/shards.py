@@ -85,6 +85,9 @@ def remove_shard(root: Path, split: str, number: int) -> None:
         path.unlink(missing_ok=True)
 
 
+_COPY_BUFSIZE = 1 << 24  # bytes
+
+
 class ShardWriter:
     """Writes samples into ``root/<split>/shard-<NNNNNN>.tar``, ``samples_per_shard`` per shard, numbered
     from ``first_shard``. Use as a context manager; ``add(key, members)`` takes member suffixes
@@ -117,7 +120,9 @@ class ShardWriter:
         tmp.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(tmp, "wb")
         self._hash = hashlib.sha256()
-        self._tar = tarfile.open(fileobj=_HashingWriter(self._file, self._hash), mode="w", format=tarfile.PAX_FORMAT)
+        # members are copied in one piece (tarfile's default copies 16 KiB at a time through the hashing writer)
+        self._tar = tarfile.open(fileobj=_HashingWriter(self._file, self._hash), mode="w", format=tarfile.PAX_FORMAT,
+                                 copybufsize=_COPY_BUFSIZE)
         self._keys, self._scenes = [], {}
 
     def add(self, key: str, members: dict[str, bytes]) -> None:

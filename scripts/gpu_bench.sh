@@ -21,7 +21,7 @@ if [[ $what == parity || $what == all ]]; then
   python3 scripts/gpu_parity.py 2>&1 | tee "$out/parity.txt" || rc=1
 fi
 if [[ $what == tests || $what == all ]]; then
-  python3 -m pytest -q -p no:cacheprovider tests/test_raster_backward.py tests/test_build.py -k cuda 2>&1 | tee "$out/tests.txt" | tail -15 || rc=1
+  python3 -m pytest -q -p no:cacheprovider tests/test_raster_backward.py tests/test_build.py tests/test_encode.py -k cuda 2>&1 | tee "$out/tests.txt" | tail -15 || rc=1
 fi
 if [[ $what == profile || $what == all ]]; then
   python3 scripts/gpu_profile.py 2>&1 | tee "$out/profile.txt" || rc=1
@@ -37,6 +37,6 @@ if [[ $what == build || $what == all ]]; then
   python3 -m scenesplat_stereo.bench.encode --sizes 616x456,1752x1168 --workers 4,8,12,16 \
     --modes threads,processes,threads-oiio1 --repeats 3 --samples 32 --out "$out/bench_encode.md" || rc=1
   python3 -m scenesplat_stereo.cli bench build --device cuda --gsplat --pairs 64 --sizes 616x456,1752x1168 \
-    --repeats 3 --out "$out/bench_build.md" || rc=1
+    --repeats 5 --jpeg-encoders cpu,nvjpeg --out "$out/bench_build.md" || rc=1
 fi
 exit $rc

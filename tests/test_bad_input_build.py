@@ -52,6 +52,8 @@ BUILD_CASES = [  # (extra flags, part of the message)
     (["--min-psnr", "high"], "--min-psnr 'high': expected a number"),
     (["--val-scenes", "DemoGS=x"], "--val-scenes 'DemoGS=x'"),
     (["--min-psnr", "99"], "no teacher to build from"),
+    (["--jpeg-encoder", "nvjpeg", "--device", "cpu"], "--jpeg-encoder nvjpeg: needs a CUDA --device, got cpu"),
+    (["--jpeg-encoder", "gpu"], "invalid choice: 'gpu'"),
 ]
 
 

@@ -174,6 +174,31 @@ def test_cuda_build_is_byte_identical_and_close_to_cpu(built, teachers, tmp_path
         assert np.abs(a - b).max() <= 2
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_nvjpeg_build_is_byte_identical_and_close_to_cpu(built, teachers, tmp_path):
+    """JPEGs encoded on the GPU: a rebuild (other batches, encoder processes) gives the same bytes; masks
+    and JSON are those of the CPU build, the JPEGs decode to nearly the same pixels; OUT records the
+    encoder, and resuming it with the CPU encoder is refused."""
+    out, _ = built
+    for folder, kw in (("nv1", {}), ("nv2", dict(batch_pairs=3, encoder_mode="processes"))):
+        report = build(settings(teachers, tmp_path / folder, device="cuda", jpeg_encoder="nvjpeg", **kw))
+        assert not report.failed, report.failed[0].error
+    assert tree(tmp_path / "nv1") == tree(tmp_path / "nv2")
+    cpu, gpu = samples(out, "train"), samples(tmp_path / "nv1", "train")
+    assert [k for k, _ in cpu] == [k for k, _ in gpu]
+    for (_, m0), (_, m1) in zip(cpu, gpu):
+        assert set(m0) == set(m1) and m0["json"] == m1["json"]
+        for name in m0:
+            if name.endswith(".png"):
+                assert m0[name] == m1[name], name
+            elif name.endswith(".jpg"):
+                a, b = decode_image(m0[name], "jpg").astype(float), decode_image(m1[name], "jpg").astype(float)
+                assert np.abs(a - b).mean() < 1.5, name
+    assert json.loads((tmp_path / "nv1/build.json").read_text())["trainval"]["jpeg_encoder"] == "nvjpeg"
+    with pytest.raises(ValueError, match="jpeg_encoder"):
+        build(settings(teachers, tmp_path / "nv1", device="cuda"))
+
+
 def test_resume_after_an_interrupted_build_gives_the_same_bytes(built, teachers, tmp_path, monkeypatch):
     out, _ = built
     real_add = shards.ShardWriter.add
@@ -344,9 +369,9 @@ def test_bench_build_runs_small_and_prints_the_tables(capsys, tmp_path):
                  "--frames", "3", "--workers", "2", "--batch-pairs", "2", "--qualities", "75", "--device", "cpu",
                  "--repeats", "2", "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    for row in ("| base (RGB, q92, no effects, no depth), threads | 32x24 |",
-                "| base (RGB, q92, no effects, no depth), processes | 48x36 |",
+    for row in ("| base (RGB, q92, no effects, no depth), cpu JPEG, threads | 32x24 |",
+                "| base (RGB, q92, no effects, no depth), cpu JPEG, processes | 48x36 |",
                 "| JPEG quality 75 | 32x24 |", "| + left depth", "| + effects", "| threads | 1 |", "| processes | 2 |",
-                "| 616x456 | 174,621 |", "| 1752x1168 | 149,196 |", "| **total** | 323,817 |", "encoder processes, from medians"):
+                "| 616x456 | 174,621 |", "| 1752x1168 | 149,196 |", "| **total** | 323,817 |", "cpu JPEG, encoder processes, from medians"):
         assert row in text, row
         assert row in out.read_text(), row

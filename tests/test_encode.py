@@ -122,8 +122,8 @@ def _sample(key: str, seed: int, targets: int = 3, depth: bool = False) -> Sampl
 
 def test_encode_sample_members():
     members = encode.encode_sample(_sample("a__000000", 0, targets=2, depth=True))
-    assert list(members) == ["left.jpg", "right.jpg", "left_depth.exr", "target_00.jpg", "mask_00.png",
-                             "target_01.jpg", "mask_01.png", "json"]
+    assert sorted(members) == sorted(["left.jpg", "right.jpg", "left_depth.exr", "target_00.jpg", "mask_00.png",
+                                      "target_01.jpg", "mask_01.png", "json"])
     s = _sample("a__000000", 0, targets=2)
     s.target_ids = (4, 7)
     assert {"target_04.jpg", "mask_07.png"} <= set(encode.encode_sample(s))
@@ -292,3 +292,92 @@ def test_auto_encoder_mode_picks_processes_on_many_cores(monkeypatch):
     assert encode.resolve_encoder_mode("processes") == "processes"
     with pytest.raises(ValueError, match="encoder mode"):
         encode.resolve_encoder_mode("fibers")
+
+
+def _sampling_factors(jpeg: bytes) -> list[tuple[int, int]]:
+    """(horizontal, vertical) sampling factors of each component, from the SOF0 segment (0xFFC0)."""
+    i = 2
+    while i < len(jpeg):
+        assert jpeg[i] == 0xFF
+        marker, length = jpeg[i + 1], int.from_bytes(jpeg[i + 2:i + 4], "big")
+        if marker == 0xC0:
+            n = jpeg[i + 9]
+            return [(jpeg[i + 11 + 3 * c] >> 4, jpeg[i + 11 + 3 * c] & 15) for c in range(n)]
+        assert marker not in (0xC1, 0xC2), "baseline (SOF0) coding expected"
+        i += 2 + length
+    raise AssertionError("no SOF0 segment")
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(255.0 ** 2 / np.mean((a.astype(float) - b.astype(float)) ** 2)))
+
+
+def test_cpu_jpegs_are_baseline_420():
+    assert _sampling_factors(encode_jpeg(smooth_image())) == [(2, 2), (1, 1), (1, 1)]
+
+
+def test_sample_encoder_takes_given_jpegs_as_they_are():
+    """Samples whose JPEGs were encoded on the GPU (``jpegs``, images None): those bytes are stored as they
+    are, and the masks, depth and JSON are the same as for the images' own sample, in every mode."""
+    full = [_sample(f"s__{i:06d}", i, targets=2, depth=i % 2 == 0) for i in range(5)]
+    given = []
+    for s in full:
+        names = encode.jpeg_members(s.target_ids)
+        given.append(SampleImages(s.key, None, None, None, s.masks, s.target_ids, s.meta, s.depth,
+                                  jpegs={n: f"jpeg {s.key} {n}".encode() for n in names}))
+    reference = [encode.encode_sample(s) for s in full]
+    for mode, workers in (("threads", 0), ("threads", 2), ("processes", 2)):
+        got: list[tuple[str, dict]] = []
+        with SampleEncoder(lambda k, m: got.append((k, m)), workers=workers, mode=mode) as enc:
+            for s in given:
+                enc.submit(s)
+        assert [k for k, _ in got] == [s.key for s in given], mode
+        for (key, members), ref, s in zip(got, reference, given):
+            assert set(members) == set(ref), mode
+            for name, data in members.items():
+                assert data == (s.jpegs[name] if name.endswith(".jpg") else ref[name]), (mode, name)
+
+
+def test_nvjpeg_missing_library_names_where_it_looked(monkeypatch, tmp_path):
+    from scenesplat_stereo import nvjpeg
+
+    missing = str(tmp_path / "libnvjpeg.so.13")
+    monkeypatch.setattr(nvjpeg, "_lib", [])
+    monkeypatch.setattr(nvjpeg, "_candidates", lambda: [missing, "libnvjpeg-not-there.so"])
+    with pytest.raises(RuntimeError, match="nvJPEG not found") as info:
+        nvjpeg.load_library()
+    assert missing in str(info.value) and "pip install nvidia-nvjpeg" in str(info.value)
+    monkeypatch.undo()  # the real search order: $SCENESPLAT_NVJPEG first
+    monkeypatch.setenv("SCENESPLAT_NVJPEG", missing)
+    assert nvjpeg._candidates()[0] == missing
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_nvjpeg_quality_420_deterministic_and_close_to_cpu():
+    from scenesplat_stereo.nvjpeg import NvJpegEncoder
+
+    rng = np.random.default_rng(0)
+    images = [to_uint8(smooth_image(456, 616, seed=s)) for s in range(3)]
+    images.append(np.clip(images[0].astype(int) + rng.integers(-40, 41, images[0].shape), 0, 255).astype(np.uint8))
+    enc = NvJpegEncoder("cuda")
+    batch = torch.from_numpy(np.stack(images)).cuda()
+    first = enc.encode(batch).result()
+    assert enc.encode(batch).result() == first  # same input, same bytes (states reused from the pool)
+    for img, data in zip(images, first):
+        assert data[:2] == b"\xff\xd8" and data[-2:] == b"\xff\xd9"
+        assert _luma_table(data) == _ijg_table(92)
+        assert _sampling_factors(data) == [(2, 2), (1, 1), (1, 1)]
+        cpu = encode_jpeg(img)
+        gpu_psnr, cpu_psnr = _psnr(decode_image(data, "jpg"), img), _psnr(decode_image(cpu, "jpg"), img)
+        assert gpu_psnr > cpu_psnr - 1.0, (gpu_psnr, cpu_psnr)
+        assert len(data) < 1.3 * len(cpu), (len(data), len(cpu))
+    # odd sizes (partial MCUs), one pixel, and an empty batch
+    for h, w in ((17, 23), (1, 1)):
+        img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        (data,) = enc.encode(torch.from_numpy(img[None]).cuda()).result()
+        assert decode_image(data, "jpg").shape == (h, w, 3)
+    assert enc.encode(torch.zeros((0, 8, 8, 3), dtype=torch.uint8, device="cuda")).result() == []
+    with pytest.raises(ValueError, match="uint8"):
+        enc.encode(batch.float())
+    with pytest.raises(ValueError, match="quality"):
+        NvJpegEncoder("cuda", quality=0)

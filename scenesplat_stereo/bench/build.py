@@ -10,11 +10,14 @@ pairs/s with min-max and the spread ((max - min) / median), and, from the median
 split: render (waiting for the rasteriser and the device-to-host copy, s), encode (summed over encoder
 threads, worker-s), write (tar + marker, s), and how long the renderer waited for the encoders.
 
-Rows: the base setting at each ``--sizes`` entry for each ``--encoder-modes`` entry; at the first size
+Rows: the base setting at each ``--sizes`` entry for each ``--jpeg-encoders`` x ``--encoder-modes``
+entry (``nvjpeg``: JPEGs encoded on the GPU, the host encoders write the masks only); at the first size
 and the first mode, JPEG quality ``--qualities``, then ``--with-depth`` and ``--effects`` on (off, they
 are skipped code paths: the base row is the "off" cost), and with ``--gsplat`` the same pipeline rendering
 with gsplat's ``rasterization`` (CUDA only). A second table measures encoder scaling (workers, each mode).
-Last, per mode, the projected time of the paper's training set (appendix B: 174,621 ScanNetGS pairs at
+With ``nvjpeg``, a third table compares the two JPEG encoders on the same rendered images (ms per image
+in calls of one batch, bytes, PSNR against the rendered pixels). Last, per JPEG encoder and mode, the
+projected time of the paper's training set (appendix B: 174,621 ScanNetGS pairs at
 616x456 and 149,196 ScanNetPPGS-V2 pairs at 1752x1168, 12 images each) on this device, from the medians of
 the base rows at those sizes (or, for a size not measured, scaled by pixel count from the nearest measured
 one, and labelled so).
@@ -34,12 +37,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.build import BuildSettings
+from scenesplat_stereo.build_settings import BuildSettings
 from scenesplat_stereo.cameras import intrinsics_matrix
 from scenesplat_stereo.demo import make_room, room_trajectory
 from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import ENCODER_MODES, SampleEncoder, default_encoder_workers
+from scenesplat_stereo.encode import (ENCODER_MODES, JPEG_ENCODERS, SampleEncoder, decode_image,
+                                      default_encoder_workers, encode_jpeg)
 from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.nvjpeg import NvJpegEncoder
 from scenesplat_stereo.protocol import JPEG_QUALITY, SamplePlan, plan_scene
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.render_pairs import start_render, stream_samples
@@ -138,9 +143,11 @@ def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: Build
     plans = (plans * math.ceil(pairs / len(plans)))[:pairs]
     plans = [replace(p, key=f"bench__{i:06d}") for i, p in enumerate(plans)]
 
+    jpeg = NvJpegEncoder(settings.device, settings.jpeg_quality) if settings.jpeg_encoder == "nvjpeg" else None
+
     def render(batch):
         return start_render(gaussians, teacher.sh_degree, batch, settings.device, settings.with_depth,
-                            settings.effects, rasterize)
+                            settings.effects, rasterize, jpeg)
 
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -173,6 +180,35 @@ def encoder_scaling(teacher: Teacher, gaussians: dict, settings: BuildSettings, 
             rates.append(len(samples) / (time.perf_counter() - t0))
         out.append((workers, rates[1:]))
     return out
+
+
+def jpeg_comparison(teacher: Teacher, gaussians: dict, settings: BuildSettings, size: tuple[int, int],
+                    pairs: int, repeats: int) -> str:
+    """One table row: the same rendered images (``pairs`` pairs, 12 each) JPEG-encoded by nvJPEG in one
+    call (median ms per image over ``repeats`` calls after one untimed) and by the host encoder one at a
+    time; mean KB per image and PSNR (dB, decoded against the rendered uint8 pixels) of each."""
+    plans = plan_scene(teacher, "train", resolution=size)[:max(1, pairs)]
+    samples = start_render(gaussians, teacher.sh_degree, plans, settings.device).samples()
+    images = np.stack([im for s in samples for im in (s.left, s.right, *s.targets)])
+    enc = NvJpegEncoder(settings.device, settings.jpeg_quality)
+    device_images = torch.from_numpy(images).to(settings.device)
+    times = []
+    for _ in range(repeats + 1):
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        gpu = enc.encode(device_images).result()
+        times.append((time.perf_counter() - t0) / len(images))
+    t0 = time.perf_counter()
+    cpu = [encode_jpeg(im, settings.jpeg_quality) for im in images]
+    cpu_ms = 1e3 * (time.perf_counter() - t0) / len(images)
+
+    def psnr(files: list[bytes]) -> float:
+        mse = np.mean([np.mean((decode_image(f, "jpg").astype(float) - im) ** 2) for f, im in zip(files, images)])
+        return 10 * math.log10(255.0 ** 2 / mse)
+
+    kb = [sum(map(len, files)) / len(files) / 1e3 for files in (gpu, cpu)]
+    return (f"| {size[0]}x{size[1]} | {len(images)} | {1e3 * statistics.median(times[1:]):.3f} | {cpu_ms:.2f} | "
+            f"{kb[0]:.1f} | {kb[1]:.1f} | {psnr(gpu):.2f} | {psnr(cpu):.2f} |")
 
 
 def projection(base: dict[tuple[int, int], Row]) -> list[str]:
@@ -209,6 +245,8 @@ def add_arguments(p) -> None:
     p.add_argument("--encoder-modes", default="threads,processes",
                    help="encoder modes of the base rows and the scaling table, the first for the other rows "
                    "(default threads,processes)")
+    p.add_argument("--jpeg-encoders", default="cpu",
+                   help="JPEG encoders of the base rows, from cpu,nvjpeg (nvjpeg: CUDA and nvJPEG; default cpu)")
     p.add_argument("--qualities", default="75,100", help="extra JPEG qualities timed at the first size (default 75,100)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")
     p.add_argument("--gsplat", action="store_true", help="also time the pipeline rendering with gsplat (if importable)")
@@ -218,8 +256,13 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     sizes = _sizes(args.sizes)
     modes = [m.strip() for m in args.encoder_modes.split(",") if m.strip()]
-    if not modes or any(m not in ENCODER_MODES for m in modes) or args.repeats < 1:
-        raise SystemExit(f"bench build: --encoder-modes from {','.join(ENCODER_MODES)}; --repeats >= 1")
+    jpegs = [m.strip() for m in args.jpeg_encoders.split(",") if m.strip()]
+    if (not modes or any(m not in ENCODER_MODES for m in modes) or not jpegs
+            or any(j not in JPEG_ENCODERS for j in jpegs) or args.repeats < 1):
+        raise SystemExit(f"bench build: --encoder-modes from {','.join(ENCODER_MODES)}; --jpeg-encoders from "
+                         f"{','.join(JPEG_ENCODERS)}; --repeats >= 1")
+    if "nvjpeg" in jpegs:
+        BuildSettings(teachers=Path("-"), out=Path("-"), device=args.device, jpeg_encoder="nvjpeg")  # refuses early
     settings = BuildSettings(teachers=Path("-"), out=Path("-"), device=args.device, workers=args.workers,
                              batch_pairs=args.batch_pairs, progress=False, encoder_mode=modes[0])
     teacher, gaussians = synthetic_teacher(args.gaussians, args.sh_degree, args.frames, sizes[0], args.device)
@@ -228,17 +271,18 @@ def run(args) -> int:
            f"{args.repeats} timed runs per row after one untimed, {args.batch_pairs} pairs per call, "
            f"{args.workers} encoder workers, {os.cpu_count()} CPU cores, device {device}\n"]
     print(out[0], flush=True)
-    n, rows, base = args.pairs, [], {m: {} for m in modes}
+    n, rows = args.pairs, []
+    base = {(j, m): {} for j in jpegs for m in modes}
 
     def timed(label: str, s: BuildSettings, size: tuple[int, int], rasterize=rasterization) -> Row:
         rows.append(time_pipeline(label, teacher, gaussians, s, size, n, args.repeats, rasterize))
         print(rows[-1].row(), flush=True)
         return rows[-1]
 
-    for mode in modes:
+    for jpeg, mode in base:
         for size in sizes:
-            base[mode][size] = timed(f"base (RGB, q92, no effects, no depth), {mode}",
-                                     replace(settings, encoder_mode=mode), size)
+            base[jpeg, mode][size] = timed(f"base (RGB, q92, no effects, no depth), {jpeg} JPEG, {mode}",
+                                           replace(settings, encoder_mode=mode, jpeg_encoder=jpeg), size)
     first = sizes[0]
     for q in (int(v) for v in args.qualities.split(",") if v.strip()):
         timed(f"JPEG quality {q}", replace(settings, jpeg_quality=q), first)
@@ -263,10 +307,17 @@ def run(args) -> int:
             med = statistics.median(rates)
             out.append(f"| {mode} | {workers} | {med:.2f} | {min(rates):.1f}-{max(rates):.1f} | "
                        f"{100 * (max(rates) - min(rates)) / med:.0f}% |")
-    for mode in modes:
-        out.append(f"\nProjected time of the paper's training set on this device ({device}), encoder {mode}, "
-                   "from medians:\n")
-        out += projection(base[mode])
+    if "nvjpeg" in jpegs:
+        out.append(f"\nJPEG encoders on the same rendered images (q{settings.jpeg_quality}, 4:2:0; nvJPEG: all "
+                   f"images in one call, median of {args.repeats} after one untimed; host: one image at a time, "
+                   "one thread):\n")
+        out.append("| size | images | nvJPEG ms/image | host ms/image | nvJPEG KB | host KB | nvJPEG PSNR dB | "
+                   "host PSNR dB |\n|---|---:|---:|---:|---:|---:|---:|---:|")
+        out += [jpeg_comparison(teacher, gaussians, settings, size, args.batch_pairs, args.repeats) for size in sizes]
+    for jpeg, mode in base:
+        out.append(f"\nProjected time of the paper's training set on this device ({device}), {jpeg} JPEG, "
+                   f"encoder {mode}, from medians:\n")
+        out += projection(base[jpeg, mode])
     doc = "\n".join(out) + "\n"
     print(doc)
     if args.out is not None:
