@@ -246,18 +246,22 @@ def jpeg_members(target_ids: tuple[int, ...]) -> list[str]:
 
 
 def encode_sample(sample: SampleImages, quality: int = JPEG_QUALITY) -> dict[str, bytes]:
-    """Encode one sample into its shard members (SPEC section 5): ``left.jpg``, ``right.jpg``,
-    ``target_<jj>.jpg`` and ``mask_<jj>.png`` for each target direction jj, ``left_depth.exr`` when
-    depth is given, and ``json``. JPEGs already in ``sample.jpegs`` are taken as they are."""
+    """Encode one sample into its shard members (SPEC section 5): ``left.jpg``, ``right.jpg`` and
+    ``target_<jj>.jpg`` (taken as they are from ``sample.jpegs`` when given), then ``encode_other_members``."""
     if sample.jpegs is not None:
-        members = dict(sample.jpegs)
+        jpegs = dict(sample.jpegs)
     else:
         images = [sample.left, sample.right, *sample.targets]
-        members = {name: encode_jpeg(image, quality) for name, image in zip(jpeg_members(sample.target_ids), images)}
+        jpegs = {name: encode_jpeg(image, quality) for name, image in zip(jpeg_members(sample.target_ids), images)}
+    return jpegs | encode_other_members(sample)
+
+
+def encode_other_members(sample: SampleImages) -> dict[str, bytes]:
+    """The members of a sample other than its JPEGs: ``mask_<jj>.png`` for each target direction jj,
+    ``left_depth.exr`` when depth is given, and ``json``."""
+    members = {f"mask_{j:02d}.png": encode_mask_png(sample.masks[i]) for i, j in enumerate(sample.target_ids)}
     if sample.depth is not None:
         members["left_depth.exr"] = encode_depth_exr(sample.depth)
-    for i, j in enumerate(sample.target_ids):
-        members[f"mask_{j:02d}.png"] = encode_mask_png(sample.masks[i])
     members["json"] = sample.meta
     return members
 

@@ -147,18 +147,16 @@ def _mapping(path: str) -> mmap.mmap:
 
 def encode_in_worker(path: str, layout: Layout, key: str, target_ids: tuple[int, ...], meta: bytes,
                      quality: int) -> dict[str, bytes]:
-    """In a worker: ``encode_sample`` of the sample whose arrays ``Slot.put`` copied to ``path`` under the
-    names of ``SampleImages``' fields (``masks``; ``left``, ``right``, ``targets`` unless the caller holds
-    the JPEGs already, whose members are then left out of the result; ``depth`` when there is one)."""
-    from scenesplat_stereo.encode import SampleImages, encode_sample, jpeg_members
+    """In a worker: the members of the sample whose arrays ``Slot.put`` copied to ``path`` under the names
+    of ``SampleImages``' fields (``masks``; ``left``, ``right``, ``targets`` unless the caller holds the
+    JPEGs already: then only ``encode_other_members``; ``depth`` when there is one)."""
+    from scenesplat_stereo.encode import SampleImages, encode_other_members, encode_sample
 
     buf = _mapping(path)
     arrays = {name: np.ndarray(shape, dtype, buffer=buf, offset=off) for name, off, shape, dtype in layout}
-    jpegs = None if "left" in arrays else dict.fromkeys(jpeg_members(target_ids), b"")
     sample = SampleImages(key, arrays.get("left"), arrays.get("right"), arrays.get("targets"), arrays["masks"],
-                          target_ids, meta, arrays.get("depth"), jpegs)
+                          target_ids, meta, arrays.get("depth"))
     try:
-        members = encode_sample(sample, quality)
-        return {k: v for k, v in members.items() if jpegs is None or k not in jpegs}
+        return encode_sample(sample, quality) if sample.left is not None else encode_other_members(sample)
     finally:
         del sample, arrays  # no view may outlive the call: the mapping can be closed on the next miss
