@@ -54,6 +54,7 @@ _PNG_COMPRESSION_LEVEL = 6  # contact sheets and other images
 # 17 KB through OpenImageIO (Sub filter, level 1); 2.6-2.9 ms against 4.4 ms on a 2-core CPU.
 _MASK_ZLIB_LEVEL = 1
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"\0\0\0\0IEND\xaeB`\x82"  # the empty IEND chunk with its CRC
 _JPEG_SUBSAMPLING = "4:2:0"
 
 # /dev/shm is used for scratch files only with this much room (containers often give it 64 MB; a few
@@ -164,13 +165,24 @@ def encode_mask_png(mask: np.ndarray) -> bytes:
     mask = np.asarray(mask)
     if mask.dtype != np.bool_ or mask.ndim != 2 or 0 in mask.shape:
         raise ValueError(f"encode_mask_png: expected a non-empty bool [H, W] mask, got {mask.dtype} {mask.shape}")
-    h, w = mask.shape
-    rows = np.zeros((h, w + 1), np.uint8)  # each row: filter type 0 (none), then its pixels
-    np.negative(mask.view(np.uint8), out=rows[:, 1:])  # 1 -> 255 (uint8 wraps), 0 -> 0
-    deflate = zlib.compressobj(_MASK_ZLIB_LEVEL, zlib.DEFLATED, 15, 8, zlib.Z_RLE)
-    idat = deflate.compress(rows) + deflate.flush()
-    return (_PNG_SIGNATURE + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
-            + _png_chunk(b"IDAT", idat) + _png_chunk(b"IEND", b""))
+    return encode_mask_pngs(mask[None])[0]
+
+
+def encode_mask_pngs(masks: np.ndarray) -> list[bytes]:
+    """Boolean masks [T, H, W] -> T PNGs as ``encode_mask_png`` writes them; the rows of all T are laid
+    out in one array (two array operations per sample instead of two per mask)."""
+    masks = np.asarray(masks)
+    if masks.dtype != np.bool_ or masks.ndim != 3 or 0 in masks.shape[1:]:
+        raise ValueError(f"encode_mask_pngs: expected non-empty bool [T, H, W] masks, got {masks.dtype} {masks.shape}")
+    t, h, w = masks.shape
+    rows = np.zeros((t, h, w + 1), np.uint8)  # each row: filter type 0 (none), then its pixels
+    np.negative(masks.view(np.uint8), out=rows[:, :, 1:])  # 1 -> 255 (uint8 wraps), 0 -> 0
+    head = _PNG_SIGNATURE + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+    out = []
+    for r in rows:
+        deflate = zlib.compressobj(_MASK_ZLIB_LEVEL, zlib.DEFLATED, 15, 8, zlib.Z_RLE)
+        out.append(head + _png_chunk(b"IDAT", deflate.compress(r) + deflate.flush()) + _PNG_END)
+    return out
 
 
 def _png_chunk(kind: bytes, data: bytes) -> bytes:
@@ -259,7 +271,8 @@ def encode_sample(sample: SampleImages, quality: int = JPEG_QUALITY) -> dict[str
 def encode_other_members(sample: SampleImages) -> dict[str, bytes]:
     """The members of a sample other than its JPEGs: ``mask_<jj>.png`` for each target direction jj,
     ``left_depth.exr`` when depth is given, and ``json``."""
-    members = {f"mask_{j:02d}.png": encode_mask_png(sample.masks[i]) for i, j in enumerate(sample.target_ids)}
+    names = [f"mask_{j:02d}.png" for j in sample.target_ids]
+    members = dict(zip(names, encode_mask_pngs(sample.masks))) if names else {}
     if sample.depth is not None:
         members["left_depth.exr"] = encode_depth_exr(sample.depth)
     members["json"] = sample.meta

@@ -109,6 +109,7 @@ class ShardWriter:
         self.written: list[int] = []
         self._tar: tarfile.TarFile | None = None
         self._file = None
+        self._buffer: _SampleBuffer | None = None
         self._hash = None
         self._keys: list[str] = []
         self._scenes: dict[str, dict] = {}
@@ -120,9 +121,9 @@ class ShardWriter:
         tmp.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(tmp, "wb")
         self._hash = hashlib.sha256()
-        # members are copied in one piece (tarfile's default copies 16 KiB at a time through the hashing writer)
-        self._tar = tarfile.open(fileobj=_HashingWriter(self._file, self._hash), mode="w", format=tarfile.PAX_FORMAT,
-                                 copybufsize=_COPY_BUFSIZE)
+        self._buffer = _SampleBuffer(self._file, self._hash)
+        # members are copied in one piece (tarfile's default copies 16 KiB at a time)
+        self._tar = tarfile.open(fileobj=self._buffer, mode="w", format=tarfile.PAX_FORMAT, copybufsize=_COPY_BUFSIZE)
         self._keys, self._scenes = [], {}
 
     def add(self, key: str, members: dict[str, bytes]) -> None:
@@ -135,15 +136,17 @@ class ShardWriter:
             self._open()
         if key in self._keys:
             raise ValueError(f"sample {key}: key already in shard {self.next_shard}")
-        for suffix in sorted(members):
+        for suffix in members:  # all checked before any is added
             if not suffix or "/" in suffix or suffix.startswith("."):
                 raise ValueError(f"sample {key}: bad member suffix {suffix!r}")
+        for suffix in sorted(members):
             data = members[suffix]
             info = tarfile.TarInfo(f"{key}.{suffix}")
             info.size, info.mtime, info.mode = len(data), 0, 0o644
             info.uid = info.gid = 0
             info.uname = info.gname = ""
             self._tar.addfile(info, io.BytesIO(data))
+        self._buffer.flush()
         self._keys.append(key)
         if "json" in members:
             meta = json.loads(members["json"])
@@ -158,6 +161,7 @@ class ShardWriter:
     def _finish(self) -> None:
         number = self.next_shard
         self._tar.close()
+        self._buffer.flush()
         self._file.flush()
         os.fsync(self._file.fileno())
         self._file.close()
@@ -174,7 +178,7 @@ class ShardWriter:
         }
         atomic_write_bytes(done_path(self.root, self.split, number), _json_bytes(marker))
         self.written.append(number)
-        self._tar = self._file = None
+        self._tar = self._file = self._buffer = None
         self.next_shard += 1
 
     def close(self) -> None:
@@ -191,7 +195,7 @@ class ShardWriter:
                 pass
             self._file.close()
             _temp_path(self.root, self.split, self.next_shard).unlink(missing_ok=True)
-            self._tar = self._file = None
+            self._tar = self._file = self._buffer = None
 
     def __enter__(self) -> ShardWriter:
         return self
@@ -249,18 +253,30 @@ def remove_unplanned(root: Path, split: str, planned: set[int]) -> int:
     return len(stale)
 
 
-class _HashingWriter:
-    """A write-only file object that hashes what passes through it (tarfile needs only ``write``)."""
+class _SampleBuffer:
+    """The tar's file object: collects what tarfile writes for one sample (headers, data, padding) and
+    hands it to the file and the hash in one piece on ``flush``. tarfile makes about three writes per
+    member (60 for a sample); one write and one hash update per sample keep the writer thread from
+    queueing for the interpreter lock at each of them while the encoder threads are busy."""
 
     def __init__(self, f, digest) -> None:
         self._f, self._digest = f, digest
+        self._parts: list[bytes] = []
+        self._offset = f.tell()
 
     def write(self, data: bytes) -> int:
-        self._digest.update(data)
-        return self._f.write(data)
+        self._parts.append(data)
+        self._offset += len(data)
+        return len(data)
 
     def tell(self) -> int:
-        return self._f.tell()
+        return self._offset
+
+    def flush(self) -> None:
+        data = b"".join(self._parts)
+        self._parts.clear()
+        self._digest.update(data)
+        self._f.write(data)
 
 
 def iter_shard(path: Path) -> Iterator[tuple[str, dict[str, bytes]]]:

@@ -46,7 +46,8 @@ EDGE_MASKS = ("none", "hard", "soft")  # appendix A "Edge-mask variants"; "none"
 
 LAYER_CHANNELS = 37  # SPEC section 7 "Branch channels"
 SH_COEFFS = 9  # degree 2
-_OPACITY, _OFFSET, _SCALE, _QUAT, _SH = slice(0, 1), slice(1, 3), slice(3, 6), slice(6, 10), slice(10, 37)
+# channel counts of opacity, offset, scale, quaternion and SH, in this order (channels 0, 1-2, 3-5, 6-9, 10-36)
+_SPLIT = (1, 2, 3, 4, 27)
 _SH_DEGREE = (0, 1, 1, 1, 2, 2, 2, 2, 2)  # degree j of SH coefficient k
 _QUAT_EPS = 1e-12  # norms below this give the identity quaternion (a zero vector has no direction)
 
@@ -108,7 +109,8 @@ def means(depth: torch.Tensor, offset_logits: torch.Tensor, K: torch.Tensor) -> 
     off = torch.sigmoid(offset_logits) - 0.5
     v, u = torch.meshgrid(torch.arange(H, device=depth.device, dtype=depth.dtype),
                           torch.arange(W, device=depth.device, dtype=depth.dtype), indexing="ij")
-    pix = torch.stack([u + 0.5 + off[:, 0], v + 0.5 + off[:, 1], torch.ones_like(off[:, 0])], dim=-1)
+    du, dv = off.unbind(1)
+    pix = torch.stack([u + 0.5 + du, v + 0.5 + dv, torch.ones_like(du)], dim=-1)
     rays = torch.einsum("bij,bhwj->bhwi", torch.linalg.inv(K), pix)  # [B,H,W,3]
     return (depth[:, 0, ..., None] * rays).reshape(B, H * W, 3)
 
@@ -170,17 +172,21 @@ def sh(delta_c: torch.Tensor, rgb: torch.Tensor, composer: bool = True) -> torch
     if composer:
         decay = torch.tensor([SH_DECAY_BASE * SH_DECAY_RATE**j for j in _SH_DEGREE[1:]],
                              dtype=c.dtype, device=c.device).view(1, SH_COEFFS - 1, 1, 1, 1)
-        c = torch.cat([((rgb - 0.5) / C0 + c[:, 0]).unsqueeze(1), decay * c[:, 1:]], dim=1)
+        dc, higher = c.split([1, SH_COEFFS - 1], dim=1)  # a split's backward is one write (as in _layer)
+        c = torch.cat([((rgb - 0.5) / C0).unsqueeze(1) + dc, decay * higher], dim=1)
     return c.permute(0, 3, 4, 1, 2).reshape(B, H * W, SH_COEFFS, 3)
 
 
 def _layer(branch: torch.Tensor, depth: torch.Tensor, rgb: torch.Tensor, K: torch.Tensor,
            cap: torch.Tensor | float | None, gate: torch.Tensor | None, composer: bool) -> dict[str, torch.Tensor]:
-    return dict(means=means(depth, branch[:, _OFFSET], K),
-                quats=quats(branch[:, _QUAT], composer),
-                scales=scales(depth, branch[:, _SCALE], K, cap, composer),
-                opacities=opacities(branch[:, _OPACITY], gate, composer),
-                sh=sh(branch[:, _SH], rgb, composer))
+    # one split, not five slices: its backward writes the branch's gradient once, where each slice's
+    # would be a zero-filled full-size tensor, summed with the others
+    opacity, offset, scale, quat, coeffs = branch.split(_SPLIT, dim=1)
+    return dict(means=means(depth, offset, K),
+                quats=quats(quat, composer),
+                scales=scales(depth, scale, K, cap, composer),
+                opacities=opacities(opacity, gate, composer),
+                sh=sh(coeffs, rgb, composer))
 
 
 def _check(name: str, t: object, shape: tuple[int | None, ...]) -> None:

@@ -20,6 +20,7 @@ from scenesplat_stereo.encode import (
     encode_depth_exr,
     encode_jpeg,
     encode_mask_png,
+    encode_mask_pngs,
     encode_png,
     to_uint8,
 )
@@ -75,6 +76,17 @@ def test_mask_png_exact(shape):
     assert np.array_equal(dec[..., 0], np.where(mask, 255, 0))
     with pytest.raises(ValueError, match="bool"):
         encode_mask_png(mask.astype(np.uint8))
+
+
+def test_mask_pngs_of_a_stack_decode_to_their_own_masks():
+    rng = np.random.default_rng(1)
+    masks = rng.random((3, 9, 13)) > np.array([0.1, 0.5, 0.9])[:, None, None]
+    files = encode_mask_pngs(masks)
+    assert len(files) == 3
+    for data, mask in zip(files, masks):
+        assert np.array_equal(decode_image(data, "png")[..., 0], np.where(mask, 255, 0))
+    with pytest.raises(ValueError, match="bool"):
+        encode_mask_pngs(masks[0])
 
 
 def test_png_rgb_exact():

@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from sgmodel.config import PredictorParams
-from sgmodel.layers import GroupNorm, ReplicateConv2d, compute_dtype, replicate_pad
+from sgmodel.layers import GroupNorm, ReplicateConv2d, compute_dtype, replicate_conv3x3, replicate_pad
 from sgmodel.predictor import GaussianPredictor, fused_branches
 
 
@@ -48,6 +48,25 @@ def test_replicate_conv_matches_torch_conv(size):
         torch.testing.assert_close(u, v, rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.parametrize("size", [(4, 5), (1, 3), (2, 1)])
+def test_replicate_conv_backward_gradcheck_and_partial_needs(size):
+    """The hand-written backward (ring gradients added in place) by finite differences, and with only
+    some inputs needing a gradient (frozen input, frozen weights, no bias)."""
+    torch.manual_seed(1)
+    x = torch.randn(2, 3, *size, dtype=torch.float64, requires_grad=True)
+    w = torch.randn(4, 3, 3, 3, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(4, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(replicate_conv3x3, (x, w, b))
+    assert torch.autograd.gradcheck(replicate_conv3x3, (x, w, None))
+    ref = F.conv2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), w, b)
+    g = torch.randn_like(ref)
+    gx_ref, gw_ref = torch.autograd.grad(ref, [x, w], g)
+    (gw,) = torch.autograd.grad(replicate_conv3x3(x.detach(), w, b), w, g)
+    torch.testing.assert_close(gw, gw_ref, rtol=1e-12, atol=1e-12)
+    (gx,) = torch.autograd.grad(replicate_conv3x3(x, w.detach(), None) + b.detach()[:, None, None], x, g)
+    torch.testing.assert_close(gx, gx_ref, rtol=1e-12, atol=1e-12)
+
+
 def test_replicate_conv_under_bf16_autocast_stays_close():
     torch.manual_seed(0)
     ours = ReplicateConv2d(8, 6)
@@ -58,6 +77,10 @@ def test_replicate_conv_under_bf16_autocast_stays_close():
         y = ours(x)
     assert y.dtype == torch.bfloat16
     torch.testing.assert_close(y.float(), ref(x), rtol=3e-2, atol=3e-2)
+    (gw,) = torch.autograd.grad(y.float().square().sum(), ours.weight)
+    assert gw.dtype == torch.float32  # the parameter's dtype, through autocast's cast
+    (gw_ref,) = torch.autograd.grad(ref(x).square().sum(), ref.weight)
+    torch.testing.assert_close(gw, gw_ref, rtol=5e-2, atol=5e-2 * gw_ref.abs().max().item())
 
 
 def test_group_norm_matches_torch_and_keeps_dtype():

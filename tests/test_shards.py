@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import tarfile
 from pathlib import Path
@@ -65,6 +67,33 @@ def test_tar_headers_are_fixed_and_bytes_identical(tmp_path):
     assert all(m.mtime == 0 and m.uid == 0 and m.gid == 0 and m.uname == "" and m.mode == 0o644 for m in infos)
     names = [m.name for m in infos]
     assert names[:3] == ["sc__000000.json", "sc__000000.left.jpg", "sc__000000.mask_00.png"]  # sorted per sample
+
+
+def test_shard_bytes_are_what_tarfile_writes(tmp_path):
+    """The writer hands tarfile's output to the file one sample at a time: the bytes must be exactly those
+    of a tar written member by member by tarfile itself (same headers), and the done marker's hash theirs."""
+    write(tmp_path, 3, 3)
+    expected = io.BytesIO()
+    with tarfile.open(fileobj=expected, mode="w", format=tarfile.PAX_FORMAT) as tar:
+        for i in range(3):
+            members = members_of(i)
+            for suffix in sorted(members):
+                info = tarfile.TarInfo(f"sc__{i:06d}.{suffix}")
+                info.size, info.mtime, info.mode, info.uid, info.gid, info.uname, info.gname = (
+                    len(members[suffix]), 0, 0o644, 0, 0, "", "")
+                tar.addfile(info, io.BytesIO(members[suffix]))
+    data = (tmp_path / "train/shard-000000.tar").read_bytes()
+    assert data == expected.getvalue()
+    assert shards.read_done(tmp_path, "train", 0)["sha256"] == hashlib.sha256(data).hexdigest()
+
+
+def test_a_sample_with_a_bad_member_adds_nothing(tmp_path):
+    with ShardWriter(tmp_path, "train", 2) as w:
+        w.add("sc__000000", members_of(0))
+        with pytest.raises(ValueError, match="suffix"):
+            w.add("sc__000001", {"json": b"{}", "left.jpg": b"L", "zz/bad": b""})  # the bad one sorts last
+        w.add("sc__000002", members_of(2))
+    assert [k for k, _ in iter_shard(tmp_path / "train/shard-000000.tar")] == ["sc__000000", "sc__000002"]
 
 
 def test_exception_leaves_no_partial_shard(tmp_path):

@@ -130,7 +130,7 @@ def test_torchrun_two_ranks_split_the_batch_and_only_rank_0_writes(demo_dataset,
     import sys
 
     run = tmp_path / "ddp"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29531", "-m",
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone", "-m",
            "sgmodel.cli", "train", "--data", str(demo_dataset), "--out", str(run), "--device", "cpu",
            "--preset", "cpu-small", "--resolution", "32", "--padding", "2", "--batch-size", "4", "--steps", "2",
            "--val-every", "2", "--workers", "0", "--no-progress"]

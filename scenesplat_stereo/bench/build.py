@@ -120,7 +120,7 @@ def _pipeline(plans: list[SamplePlan], render, settings: BuildSettings, folder: 
     sync = torch.cuda.synchronize if str(settings.device).startswith("cuda") else (lambda: None)
     sync()
     t0, render_s, renders = time.perf_counter(), 0.0, 0
-    with ShardWriter(folder, "bench", len(plans)) as writer:
+    with ShardWriter(folder, "bench", settings.samples_per_shard) as writer:  # shards as the build writes them
         with SampleEncoder(writer.add, settings.workers, settings.jpeg_quality, mode=settings.encoder_mode) as enc:
             batches = [plans[s:s + settings.batch_pairs] for s in range(0, len(plans), settings.batch_pairs)]
             rendered = stream_samples(batches, render)
