@@ -133,6 +133,10 @@ class LPIPS(nn.Module):
 
     def taps(self, x: Tensor, zero_one: bool = True) -> list[Tensor]:
         """The unit-normalised VGG16 features [N, C_l, h_l, w_l] of images [N, 3, H, W] at the LPIPS taps."""
+        if x.is_cuda and torch.is_autocast_enabled("cuda"):
+            # the bf16 training loss: channels-last convolutions, without cuDNN's layout conversions
+            # (loss + backward 182.5 -> 162.6 ms with the norm below, H100, 128 pairs at 256x256)
+            x = x.contiguous(memory_format=torch.channels_last)
         if zero_one:
             x = 2 * x - 1
         x = (x - self.shift) / self.scale
@@ -140,7 +144,8 @@ class LPIPS(nn.Module):
         for k, layer in enumerate(self.vgg.features):
             x = layer(x)
             if k == TAPS[len(taps)]:
-                taps.append(x / (x.pow(2).sum(dim=1, keepdim=True).sqrt() + _NORM_EPS))
+                norm = torch.linalg.vector_norm(x, dim=1, keepdim=True, dtype=torch.float32)
+                taps.append(x / (norm + _NORM_EPS))
                 if len(taps) == len(TAPS):
                     break
         return taps

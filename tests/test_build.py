@@ -241,7 +241,7 @@ def test_resume_after_sigkill_of_a_cli_build(tmp_path):
     assert 0 < finished < 15, f"the build was killed after {finished} of 15 shards; the test needs it midway"
     resumed = build(replace(settings(teachers, tmp_path / "killed", val_scenes=0), workers=1, batch_pairs=1))
     assert resumed.skipped_shards >= finished - 1
-    clean = build(settings(teachers, tmp_path / "clean", val_scenes=0))
+    build(settings(teachers, tmp_path / "clean", val_scenes=0))
     assert not resumed.failed and tree(tmp_path / "killed") == tree(tmp_path / "clean")
 
 

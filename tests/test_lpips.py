@@ -146,6 +146,24 @@ def test_gradient_reaches_input_not_weights(net):
     assert all(p.grad is None for p in net.parameters())
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the bf16 channels-last loss path)")
+def test_bf16_training_path_stays_close_to_float32(net):
+    """Under CUDA autocast the loss runs VGG16 channels-last in bf16: close to the float32 path in value,
+    and its input gradient points the same way."""
+    cuda = net.to("cuda")
+    g = torch.Generator(device="cuda").manual_seed(3)
+    a = torch.rand(4, 3, 64, 64, device="cuda", generator=g)
+    b = (a + 0.05 * torch.randn(a.shape, device="cuda", generator=g)).clamp(0, 1).requires_grad_(True)
+    want = cuda(a, b)
+    (g32,) = torch.autograd.grad(want.sum(), b)
+    with torch.autocast("cuda", dtype=torch.bfloat16):
+        got = cuda(a, b).float()
+    (g16,) = torch.autograd.grad(got.sum(), b)
+    torch.testing.assert_close(got, want, rtol=2e-2, atol=1e-4)
+    assert F.cosine_similarity(g16.flatten(), g32.flatten(), dim=0) > 0.98
+    net.to("cpu")
+
+
 def test_strict_loading_names_bad_keys(tmp_path, lin_path):
     state = random_vgg_state()
     state["features.29.weight"] = state.pop("features.28.weight")
