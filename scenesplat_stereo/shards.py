@@ -255,9 +255,9 @@ def remove_unplanned(root: Path, split: str, planned: set[int]) -> int:
 
 class _SampleBuffer:
     """The tar's file object: collects what tarfile writes for one sample (headers, data, padding) and
-    hands it to the file and the hash in one piece on ``flush``. tarfile makes about three writes per
-    member (60 for a sample); one write and one hash update per sample keep the writer thread from
-    queueing for the interpreter lock at each of them while the encoder threads are busy."""
+    hands it to the file and the hash in one piece on ``flush``: one write and one hash update per sample
+    instead of tarfile's three writes per member (the writer thread's time per 1752x1168 pair fell from
+    12-13.6 to 8.8-9.5 ms on an H100 host; docs/benchmarks.md)."""
 
     def __init__(self, f, digest) -> None:
         self._f, self._digest = f, digest

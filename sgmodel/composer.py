@@ -44,10 +44,18 @@ BACK_POOL = 9  # section 4.3 eq. 4: back-layer anchor = max of z~ over a 9 x 9 n
 SOFT_BETA = 0.3  # appendix A "Edge-mask variants": soft mask floor beta
 EDGE_MASKS = ("none", "hard", "soft")  # appendix A "Edge-mask variants"; "none" is the paper's model
 
-LAYER_CHANNELS = 37  # SPEC section 7 "Branch channels"
+# channel ranges of a front/back branch output (SPEC section 7 "Branch channels"); the predictor's heads
+# are initialised by these names
+CHANNELS = {
+    "opacity": slice(0, 1),  # opacity residual delta_alpha (logit space)
+    "offset": slice(1, 3),  # image-plane offset logits (u, v)
+    "scale": slice(3, 6),  # scale residuals delta_s (x, y, z)
+    "quat": slice(6, 10),  # quaternion residual delta_q (w, x, y, z)
+    "sh": slice(10, 37),  # degree-2 SH residuals, coefficient-major: channel 10 + 3k + c
+}
+LAYER_CHANNELS = 37
 SH_COEFFS = 9  # degree 2
-# channel counts of opacity, offset, scale, quaternion and SH, in this order (channels 0, 1-2, 3-5, 6-9, 10-36)
-_SPLIT = (1, 2, 3, 4, 27)
+_SPLIT = tuple(s.stop - s.start for s in CHANNELS.values())  # the ranges are contiguous and in this order
 _SH_DEGREE = (0, 1, 1, 1, 2, 2, 2, 2, 2)  # degree j of SH coefficient k
 _QUAT_EPS = 1e-12  # norms below this give the identity quaternion (a zero vector has no direction)
 

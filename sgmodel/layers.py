@@ -6,7 +6,8 @@
   on an H100 (40 ms of 400 at 256x256, batch 32); this one is a copy of the gradient plus border sums.
 - ``replicate_conv3x3`` / ``ReplicateConv2d``: a 3x3 convolution of the replicate-padded input (the
   predictor's convolutions) without the padded copy: a zero-padded convolution plus the ring's
-  difference, whose gradients are added into the convolution's in place. Same parameters and state_dict keys as ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
+  difference, whose gradients are added into the convolution's in place. Same parameters and state_dict
+  keys as ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
 - ``GroupNorm``: ``nn.GroupNorm`` that keeps its input's dtype. Under autocast PyTorch runs GroupNorm in
   float32 (an up-cast copy in, a float32 tensor out and a down-cast before the next convolution); the
   CUDA kernel accumulates its statistics in float32 for bf16 inputs anyway, so running it in bf16 gives

@@ -112,6 +112,52 @@ def load_lpips_linear(path: str | os.PathLike) -> list[Tensor]:
     return out
 
 
+class _TapDistance(torch.autograd.Function):
+    """sum_c w_c (a_c / (|a| + eps) - b_c / (|b| + eps))^2 per pixel, with a hand-written backward.
+
+    Left to autograd, the normalisations, the difference, its square and the weighting each keep or make
+    a float32 copy of the layer's feature maps (128 x 64 x 256 x 256 at the first tap in a training
+    step), and their backward as many again. Here the forward keeps one (the difference) and the
+    backward makes about three per side. With n = |f| + eps, u = f / n and h = dd/du:
+    dd/df = (h - f (h . f) / (n |f|)) / n, taking the second term as 0 where |f| = 0 (f is 0 there; the
+    convention of ``torch.linalg.vector_norm``'s gradient)."""
+
+    @staticmethod
+    def forward(ctx, a: Tensor, b: Tensor, weight: Tensor) -> Tensor:
+        with torch.autocast(a.device.type, enabled=False):
+            accumulate = torch.promote_types(a.dtype, torch.float32)
+            norms = [torch.linalg.vector_norm(f, dim=1, keepdim=True, dtype=accumulate) for f in (a, b)]
+            diff = a / (norms[0] + _NORM_EPS)
+            diff.addcdiv_(b, norms[1] + _NORM_EPS, value=-1.0)
+            out = diff.square().mul_(weight).sum(dim=1, keepdim=True)
+        # a side's features are kept only when its gradient is wanted (not the targets' in training)
+        ctx.save_for_backward(*(f if ctx.needs_input_grad[i] else None for i, f in enumerate((a, b))), weight, diff,
+                              *norms)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        a, b, weight, diff, norm_a, norm_b = ctx.saved_tensors
+        grads = [None, None, None]
+        with torch.autocast(grad.device.type, enabled=False):
+            h = weight * diff  # dd/du_a / 2 = w (u_a - u_b) = -dd/du_b / 2
+            for i, (f, norm, sign) in enumerate(((a, norm_a, 2.0), (b, norm_b, -2.0))):
+                if not ctx.needs_input_grad[i]:
+                    continue
+                n = norm + _NORM_EPS
+                along = (h * f).sum(dim=1, keepdim=True) / (n * torch.where(norm > 0, norm, 1.0))
+                g = torch.addcmul(h, f, along, value=-1.0).mul_(grad * sign / n)
+                grads[i] = g.to(f.dtype)
+        return tuple(grads)
+
+
+def tap_distance(a: Tensor, b: Tensor, weight: Tensor) -> Tensor:
+    """LPIPS's distance map of one tap: raw features a, b [N, C, h, w] (any float dtype), linear weights
+    [1, C, 1, 1] -> [N, 1, h, w] in float32 (float64 for float64 inputs): each side unit-normalised over
+    channels (|f| + 1e-10), the squared difference weighted and summed over channels (``_TapDistance``)."""
+    return _TapDistance.apply(a, b, weight.to(torch.promote_types(weight.dtype, torch.float32)))
+
+
 class LPIPS(nn.Module):
     """LPIPS-VGG v0.1, frozen. Images [..., 3, H, W]; values per image [...] (lower = more similar)."""
 
@@ -132,7 +178,8 @@ class LPIPS(nn.Module):
         return super().train(False)
 
     def taps(self, x: Tensor, zero_one: bool = True) -> list[Tensor]:
-        """The unit-normalised VGG16 features [N, C_l, h_l, w_l] of images [N, 3, H, W] at the LPIPS taps."""
+        """The raw VGG16 features [N, C_l, h_l, w_l] of images [N, 3, H, W] at the LPIPS taps (relu1_2 ...
+        relu5_3; ``tap_distance`` normalises them)."""
         if x.is_cuda and torch.is_autocast_enabled("cuda"):
             # the bf16 training loss: channels-last convolutions, without cuDNN's layout conversions
             # (loss + backward 182.5 -> 162.6 ms with the norm below, H100, 128 pairs at 256x256)
@@ -144,8 +191,7 @@ class LPIPS(nn.Module):
         for k, layer in enumerate(self.vgg.features):
             x = layer(x)
             if k == TAPS[len(taps)]:
-                norm = torch.linalg.vector_norm(x, dim=1, keepdim=True, dtype=torch.float32)
-                taps.append(x / (norm + _NORM_EPS))
+                taps.append(x)
                 if len(taps) == len(TAPS):
                     break
         return taps
@@ -161,8 +207,7 @@ class LPIPS(nn.Module):
         for x in (a, b):
             with torch.set_grad_enabled(torch.is_grad_enabled() and x.requires_grad):
                 sides.append(self.taps(x.reshape(n, *x.shape[-3:]), zero_one))
-        return [((fa - fb).pow(2) * getattr(self, f"lin{i}")).sum(dim=1, keepdim=True)
-                for i, (fa, fb) in enumerate(zip(*sides))]
+        return [tap_distance(fa, fb, getattr(self, f"lin{i}")) for i, (fa, fb) in enumerate(zip(*sides))]
 
     def forward(self, a: Tensor, b: Tensor, zero_one: bool = True) -> Tensor:
         """LPIPS per image pair, [...]: each layer's map averaged spatially, summed over layers."""

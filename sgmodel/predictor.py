@@ -10,7 +10,7 @@ with the branches' first-conv weights stacked (3C outputs) and normalised by one
 groups (groups are contiguous channel blocks, so this is exactly each branch's own GroupNorm). The parameters stay per branch (``front``, ``back``, ``dz``): the same state_dict and the
 same function as three separate branches, with one read of the wide input instead of three.
 
-Output channels of the front/back branches (SPEC section 7), named in ``CHANNELS``; the final convs
+Output channels of the front/back branches (SPEC section 7), named in ``composer.CHANNELS``; the final convs
 start at exactly zero for scale, SH and the whole dz branch, and small and non-zero for opacity, offset
 and quaternion (ml-sharp's zero-initialised heads, with the paper's exception).
 """
@@ -21,18 +21,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .composer import CHANNELS, LAYER_CHANNELS
 from .config import ConfigurationError, PredictorParams
 from .layers import GroupNorm, ReplicateConv2d, compute_dtype, group_norm, replicate_conv3x3
 
-# channel ranges of a 37-channel layer output (SPEC section 7 "Branch channels")
-CHANNELS = {
-    "opacity": slice(0, 1),  # opacity residual delta_alpha (logit space)
-    "offset": slice(1, 3),  # image-plane offset logits (u, v)
-    "scale": slice(3, 6),  # scale residuals delta_s (x, y, z)
-    "quat": slice(6, 10),  # quaternion residual delta_q (w, x, y, z)
-    "sh": slice(10, 37),  # degree-2 SH residuals, coefficient-major: channel 10 + 3k + c
-}
-LAYER_CHANNELS = 37
 ZERO_INIT = ("scale", "sh")  # exactly zero at initialisation (appendix A)
 
 

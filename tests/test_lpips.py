@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from sgmodel import weights
 from sgmodel.losses import create_objective
-from sgmodel.lpips import LPIPS, create_lpips, find_vgg16_weights
+from sgmodel.lpips import LPIPS, create_lpips, find_vgg16_weights, tap_distance
 from sgmodel.weights import WeightsError
 
 #: torchvision's VGG16 `features` indices of the 13 convolutions, and of the first conv of stages 2-5.
@@ -162,6 +162,37 @@ def test_bf16_training_path_stays_close_to_float32(net):
     torch.testing.assert_close(got, want, rtol=2e-2, atol=1e-4)
     assert F.cosine_similarity(g16.flatten(), g32.flatten(), dim=0) > 0.98
     net.to("cpu")
+
+
+def _tap_distance_by_autograd(a, b, w):
+    """The tap distance as plain operations (autograd differentiates it)."""
+    ua = a / (torch.linalg.vector_norm(a, dim=1, keepdim=True) + 1e-10)
+    ub = b / (torch.linalg.vector_norm(b, dim=1, keepdim=True) + 1e-10)
+    return ((ua - ub) ** 2 * w).sum(dim=1, keepdim=True)
+
+
+def test_tap_distance_backward_matches_autograd_in_float64():
+    g = torch.Generator().manual_seed(4)
+    a = torch.rand(2, 5, 3, 4, generator=g, dtype=torch.float64, requires_grad=True)
+    b = torch.rand(2, 5, 3, 4, generator=g, dtype=torch.float64, requires_grad=True)
+    w = torch.rand(1, 5, 1, 1, generator=g, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda x, y: tap_distance(x, y, w), (a, b))
+    with torch.no_grad():  # degenerate pixels: all-zero features on one side or both (ReLU outputs)
+        a[0, :, 0, 0] = 0
+        b[1, :, 2, 3] = 0
+        a[1, :, 1, 1] = b[1, :, 1, 1] = 0
+    up = torch.rand(2, 1, 3, 4, generator=g, dtype=torch.float64)
+    ours = tap_distance(a, b, w)
+    ref = _tap_distance_by_autograd(a, b, w)
+    torch.testing.assert_close(ours, ref, rtol=1e-12, atol=0)
+    got, want = torch.autograd.grad(ours, (a, b), up), torch.autograd.grad(ref, (a, b), up)
+    for x, y in zip(got, want):
+        assert torch.isfinite(x).all()
+        torch.testing.assert_close(x, y, rtol=1e-10, atol=1e-10 * y.abs().max().item())
+    (only_b,) = torch.autograd.grad(tap_distance(a.detach(), b, w), b, up)  # the training case: targets frozen
+    torch.testing.assert_close(only_b, want[1], rtol=1e-10, atol=1e-10 * want[1].abs().max().item())
+    half = tap_distance(a.detach().bfloat16(), b.detach().bfloat16(), w.float())
+    assert half.dtype == torch.float32 and torch.isfinite(half).all()
 
 
 def test_strict_loading_names_bad_keys(tmp_path, lin_path):
