@@ -163,9 +163,9 @@ def encode_mask_png(mask: np.ndarray) -> bytes:
     """Boolean mask [H, W] -> 8-bit single-channel PNG bytes holding 0 (False) and 255 (True): one IHDR
     (8-bit greyscale, no interlace), one IDAT (unfiltered rows, zlib Z_RLE) and IEND."""
     mask = np.asarray(mask)
-    if mask.dtype != np.bool_ or mask.ndim != 2 or 0 in mask.shape:
-        raise ValueError(f"encode_mask_png: expected a non-empty bool [H, W] mask, got {mask.dtype} {mask.shape}")
-    return encode_mask_pngs(mask[None])[0]
+    if mask.ndim != 2:
+        raise ValueError(f"encode_mask_png: expected a bool [H, W] mask, got {mask.dtype} {mask.shape}")
+    return encode_mask_pngs(mask[None])[0]  # which checks the dtype and the size
 
 
 def encode_mask_pngs(masks: np.ndarray) -> list[bytes]:

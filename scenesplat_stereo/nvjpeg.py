@@ -208,8 +208,8 @@ class NvJpegEncoder:
         finally:
             self._stream.synchronize()
             self._free.extend(states)
-        data = host.numpy().tobytes()
-        return [data[a:b] for a, b in zip(offsets[:-1], offsets[1:])]
+        data = host.numpy()
+        return [data[a:b].tobytes() for a, b in zip(offsets[:-1], offsets[1:])]  # one copy per file
 
     def close(self) -> None:
         """Stop the encoder thread; free the nvJPEG states, parameters and handle (also at garbage collection)."""

@@ -25,6 +25,7 @@ one, and labelled so).
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import math
 import os
@@ -150,7 +151,8 @@ def time_pipeline(label: str, teacher: Teacher, gaussians: dict, settings: Build
                             settings.effects, rasterize, jpeg)
 
     runs = []
-    with tempfile.TemporaryDirectory() as tmp:
+    encoder_closed = contextlib.closing(jpeg) if jpeg is not None else contextlib.nullcontext()
+    with tempfile.TemporaryDirectory() as tmp, encoder_closed:
         # As many pairs as a timed run: the pinned host buffers of samples still queued for the encoders
         # are allocated (slowly, cudaHostAlloc) until torch's host cache holds enough of them.
         _pipeline(plans, render, settings, Path(tmp) / "warm-up")
@@ -190,14 +192,14 @@ def jpeg_comparison(teacher: Teacher, gaussians: dict, settings: BuildSettings, 
     plans = plan_scene(teacher, "train", resolution=size)[:max(1, pairs)]
     samples = start_render(gaussians, teacher.sh_degree, plans, settings.device).samples()
     images = np.stack([im for s in samples for im in (s.left, s.right, *s.targets)])
-    enc = NvJpegEncoder(settings.device, settings.jpeg_quality)
     device_images = torch.from_numpy(images).to(settings.device)
     times = []
-    for _ in range(repeats + 1):
-        torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        gpu = enc.encode(device_images).result()
-        times.append((time.perf_counter() - t0) / len(images))
+    with contextlib.closing(NvJpegEncoder(settings.device, settings.jpeg_quality)) as enc:
+        for _ in range(repeats + 1):
+            torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            gpu = enc.encode(device_images).result()
+            times.append((time.perf_counter() - t0) / len(images))
     t0 = time.perf_counter()
     cpu = [encode_jpeg(im, settings.jpeg_quality) for im in images]
     cpu_ms = 1e3 * (time.perf_counter() - t0) / len(images)
