@@ -68,13 +68,11 @@ def profile(name: str, scene: dict, viewmats, Ks, s: Setting, backward: bool = F
     W, H, ts = s.width, s.height, s.tile_size
     m, q, sc, o, col = (scene[k] for k in ("means", "quats", "scales", "opacities", "colors"))
     proj = project_gaussians(m, q, sc, o, viewmats, Ks, W, H, 0.01, 1e10, 0.3, True, ts)
-    campos = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]
-    dirs = m[None] - campos[:, None]
-    colors = eval_sh_colors(s.sh_degree, dirs, col, proj.radii)
+    colors = eval_sh_colors(s.sh_degree, m, viewmats, col, proj.radii)
     bins = bin_gaussians(proj, W, H, ts)
     rows = {
         "project": timed(lambda: project_gaussians(m, q, sc, o, viewmats, Ks, W, H, 0.01, 1e10, 0.3, True, ts)),
-        "sh colours": timed(lambda: eval_sh_colors(s.sh_degree, dirs, col, proj.radii)),
+        "sh colours": timed(lambda: eval_sh_colors(s.sh_degree, m, viewmats, col, proj.radii)),
         "bin (scan, keys, sort, ranges)": timed(lambda: bin_gaussians(proj, W, H, ts)),
         "composite": timed(lambda: composite_forward(proj.means2d, proj.conics, colors, proj.opacities, bins, W,
                                                      H, ts, 0.999)),

@@ -2,7 +2,8 @@
 
 Per workload: forward ms and forward + backward ms of mean(render^2), ours and gsplat (antialiased; we pass
 ``max_alpha=0.999``, gsplat 1.5.3's clamp), and our compositing backward alone (cotangents of ones).
-Medians (min-max) of ``--repeats`` interleaved runs after two warm-up calls each, synchronised. Workloads:
+Medians (min-max) of ``--repeats`` interleaved runs after two warm-up calls each, synchronised, and the
+torch allocator's peak of one more call of each above what was allocated before it. Workloads:
 the model's (32 scenes x 4 targets at 256x256, SH 2, one batched call), 1M random SH3 1280x720, and the
 guitar teacher when ``SCENESPLAT_GUITAR_PLY`` exists. ``--quick``: tiny sizes, runs on the CPU too (a smoke
 test of this script, without gsplat).
@@ -52,8 +53,7 @@ def composite_bwd_fn(data, W, H, sh, ts, dev):
     fns = []
     for b in range(1 if B == 1 else 2):  # two scenes are enough for the relative timing of one stage
         proj = project_gaussians(m[b], q[b], sc[b], o[b], vm[b], Ks[b], W, H, 0.01, 1e10, 0.3, True, ts)
-        campos = -(vm[b, :, :3, :3].transpose(1, 2) @ vm[b, :, :3, 3:])[..., 0]
-        colors = eval_sh_colors(sh, m[b][None] - campos[:, None], col[b], proj.radii)
+        colors = eval_sh_colors(sh, m[b], vm[b], col[b], proj.radii)
         bins = bin_gaussians(proj, W, H, ts)
         args = (proj.means2d, proj.conics, colors, proj.opacities, bins, W, H, ts, 0.999)
         _, alphas, last = composite_forward(*args)
@@ -77,6 +77,21 @@ def times(fns: dict, dev: str, repeats: int) -> dict[str, list[float]]:
     return out
 
 
+def peaks(fns: dict, dev: str) -> dict[str, float]:
+    """Torch allocator peak of one call of each, MiB above what was allocated before it (CUDA only)."""
+    if not dev.startswith("cuda"):
+        return {}
+    out = {}
+    for name, fn in fns.items():
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated()
+        fn()
+        torch.cuda.synchronize()
+        out[name] = (torch.cuda.max_memory_allocated() - base) / 2**20
+    return out
+
+
 def cell(ts):
     return f"{statistics.median(ts):.3f} ({min(ts):.3f}-{max(ts):.3f})"
 
@@ -89,12 +104,14 @@ def workload_rows(name, data, W, H, sh, dev, gs, repeats) -> list[str]:
         fns |= {"gsplat forward": lambda: call(gs, data, W, H, sh, False),
                 "gsplat fwd+bwd": lambda: call(gs, data, W, H, sh, True)}
     t = times(fns, dev, repeats)
+    peak = peaks(fns, dev)
     med = {k: statistics.median(v) for k, v in t.items()}
-    lines = [f"#### {name}", "", "| row | ms median (min-max) | / gsplat |", "|---|---|---|"]
+    lines = [f"#### {name}", "", "| row | ms median (min-max) | / gsplat | peak MiB |", "|---|---|---|---|"]
     for k, v in t.items():
         base = med.get("gsplat forward" if "forward" in k and "bwd" not in k else "gsplat fwd+bwd")
         ratio = f"{med[k] / base:.3f}" if base and "composite" not in k else ""
-        lines.append(f"| {k} | {cell(v)} | {ratio} |")
+        mib = f"{peak[k]:.0f}" if k in peak else ""
+        lines.append(f"| {k} | {cell(v)} | {ratio} | {mib} |")
     return lines + [""]
 
 

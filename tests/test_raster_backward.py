@@ -181,14 +181,22 @@ def test_gradients_match_finite_differences(rasterize_mode):
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
 def test_sh_stage_matches_reference(sh_degree, device):
-    """The SH stage alone, for directions over the whole sphere (in renders they point roughly along the
-    camera axis, where the normalisation hides errors along it) and of any length, with extra bands beyond
-    the degree (zero gradient), some channels clamped at 0 and some culled pairs (zero gradient)."""
+    """The SH stage alone, for view directions over the whole sphere (in renders they point roughly along
+    the camera axis, where the normalisation hides errors along it) and of any length, from cameras at
+    different centres and in different orientations, with extra bands beyond the degree (zero gradient), some
+    channels clamped at 0 and some culled pairs (zero gradient). Gradients reach the means through the
+    directions (summed over the cameras) and the coefficients; the reference takes the camera centre as
+    -R^T t of each world-to-camera matrix."""
     from scenesplat_stereo.reference import sh_colors as reference_sh_colors
 
     g = torch.Generator().manual_seed(sh_degree)
     C, N, K = 3, 64, 16
-    dirs = torch.randn(C, N, 3, generator=g, dtype=torch.float64) * torch.exp(torch.randn(C, N, 1, generator=g))
+    means = torch.randn(N, 3, generator=g, dtype=torch.float64) * torch.exp(torch.randn(N, 1, generator=g))
+    viewmats = torch.eye(4, dtype=torch.float64).repeat(C, 1, 1)
+    for c in range(C):  # a random rotation (QR of a Gaussian matrix) and translation per camera
+        q, r = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
+        viewmats[c, :3, :3] = q * torch.sign(torch.diagonal(r))
+        viewmats[c, :3, 3] = 2.0 * torch.randn(3, generator=g, dtype=torch.float64)
     coeffs = 0.5 * torch.randn(N, K, 3, generator=g, dtype=torch.float64)
     coeffs[:, 0] *= 4.0  # DC below -0.5 / C0 for about a quarter of the channels: clamped at 0
     radii = torch.ones(C, N, 2, dtype=torch.int32)
@@ -196,24 +204,28 @@ def test_sh_stage_matches_reference(sh_degree, device):
     v_colors = torch.randn(C, N, 3, generator=g, dtype=torch.float64)
     visible = (radii[..., 0] > 0).double()[..., None]
 
-    d64, c64 = dirs.clone().requires_grad_(), coeffs.clone().requires_grad_()
-    ref_rgb = torch.stack([reference_sh_colors(sh_degree, d64[c], c64) for c in range(C)]) * visible
-    ref_v_dirs, ref_v_coeffs = torch.autograd.grad((ref_rgb * v_colors).sum(), [d64, c64], allow_unused=True)
+    m64, c64 = means.clone().requires_grad_(), coeffs.clone().requires_grad_()
+    centres = -(viewmats[:, :3, :3].transpose(1, 2) @ viewmats[:, :3, 3:])[..., 0]
+    ref_rgb = torch.stack([reference_sh_colors(sh_degree, m64 - centres[c], c64) for c in range(C)]) * visible
+    ref_v_means, ref_v_coeffs = torch.autograd.grad((ref_rgb * v_colors).sum(), [m64, c64], allow_unused=True)
     clamped = float((ref_rgb == 0).double().mean() - (1 - visible).mean())
     assert clamped > 0.02, "some channels should be clamped at 0"
 
-    d32 = dirs.float().to(device).requires_grad_()
+    m32 = means.float().to(device).requires_grad_()
     c32 = coeffs.float().to(device).requires_grad_()
-    rgb = autograd.sh_colors(sh_degree, d32, c32, radii.to(device))
-    v_dirs, v_coeffs = torch.autograd.grad((rgb.double().cpu() * v_colors).sum(), [d32, c32], allow_unused=True)
+    rgb = autograd.sh_colors(sh_degree, m32, viewmats.float().to(device), c32, radii.to(device))
+    v_means, v_coeffs = torch.autograd.grad((rgb.double().cpu() * v_colors).sum(), [m32, c32], allow_unused=True)
     assert relative_error(rgb.detach().double().cpu(), ref_rgb.detach()) < 1e-6
     assert relative_error(v_coeffs.double().cpu(), ref_v_coeffs) < 1e-5
     assert bool((v_coeffs[:, (sh_degree + 1) ** 2:] == 0).all())
     if sh_degree == 0:
-        assert v_dirs is None or bool((v_dirs == 0).all())
+        assert v_means is None or bool((v_means == 0).all())
     else:
-        assert relative_error(v_dirs.double().cpu(), ref_v_dirs) < 1e-5
-        assert bool((v_dirs[:, ::7] == 0).all())
+        assert relative_error(v_means.double().cpu(), ref_v_means) < 1e-5
+        all_culled = torch.zeros(C, N, 2, dtype=torch.int32)
+        rgb = autograd.sh_colors(sh_degree, m32, viewmats.float().to(device), c32, all_culled.to(device))
+        v_means, v_coeffs = torch.autograd.grad(rgb.sum(), [m32, c32])
+        assert bool((v_means == 0).all()) and bool((v_coeffs == 0).all()), "culled everywhere: no gradient"
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -3,7 +3,7 @@
 Forward passes call the Warp forward stages; backward passes call the hand-written reverse kernels
 (projection_backward, sh_backward, composite_backward). Gradients flow to means, quats, scales, opacities
 and colours (SH coefficients or plain colours); cameras (viewmats, Ks) get none. Everything the stages
-add in torch (depth channel, background, expected depth, SH directions) is differentiated by torch.
+add in torch (depth channel, background, expected depth) is differentiated by torch.
 
 Reproducibility: the compositing backward sums over pixels with float atomics by default, whose order
 (and so the last bits of the gradients) can change from run to run on CUDA. ``deterministic=True`` (a
@@ -54,20 +54,20 @@ class ProjectGaussians(torch.autograd.Function):
 
 class SHColors(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, degree, dirs, coeffs, radii, scenes):
-        ctx.save_for_backward(dirs, coeffs, radii)
+    def forward(ctx, degree, means, viewmats, coeffs, radii, scenes):
+        ctx.save_for_backward(means, viewmats, coeffs, radii)
         ctx.config = (degree, scenes)
-        return eval_sh_colors(degree, dirs, coeffs, radii, scenes)
+        return eval_sh_colors(degree, means, viewmats, coeffs, radii, scenes)
 
     @staticmethod
     def backward(ctx, v_colors):
-        dirs, coeffs, radii = ctx.saved_tensors
-        if not (ctx.needs_input_grad[1] or ctx.needs_input_grad[2]):
-            return None, None, None, None, None
+        means, viewmats, coeffs, radii = ctx.saved_tensors
+        if not (ctx.needs_input_grad[1] or ctx.needs_input_grad[3]):
+            return (None,) * 6
         degree, scenes = ctx.config
-        v_dirs, v_coeffs = eval_sh_colors_backward(degree, dirs, coeffs, radii, v_colors, scenes)
-        return (None, v_dirs if ctx.needs_input_grad[1] else None,
-                v_coeffs if ctx.needs_input_grad[2] else None, None, None)
+        v_means, v_coeffs = eval_sh_colors_backward(degree, means, viewmats, coeffs, radii, v_colors, scenes)
+        return (None, v_means if ctx.needs_input_grad[1] else None, None,
+                v_coeffs if ctx.needs_input_grad[3] else None, None, None)
 
 
 class CompositeTiles(torch.autograd.Function):
@@ -106,10 +106,11 @@ def project(means, quats, scales, opacities, viewmats, Ks, width, height, near_p
     return Projection(*out)
 
 
-def sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor,
+def sh_colors(degree: int, means: torch.Tensor, viewmats: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor,
               scenes: int = 1) -> torch.Tensor:
-    """Differentiable SH colours (see sh.eval_sh_colors; ``scenes`` scenes laid end to end)."""
-    return SHColors.apply(degree, dirs, coeffs, radii, scenes)
+    """Differentiable SH colours (see sh.eval_sh_colors; ``scenes`` scenes laid end to end); gradients flow
+    to the means (through the view directions) and the coefficients, not to the cameras."""
+    return SHColors.apply(degree, means, viewmats, coeffs, radii, scenes)
 
 
 def composite(means2d, conics, colors, opacities, bins: Bins, width, height, tile_size, max_alpha,

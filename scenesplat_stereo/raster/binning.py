@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ._warp import on_device_of, to_wp
+from ._warp import launch, radix_sort_pairs, to_wp
 from .projection import Projection
 
 
@@ -133,11 +133,9 @@ def finish_binning(pending: PendingBins) -> Bins:
         return Bins(p.ranges[:n_tiles], torch.zeros(0, device=device, dtype=torch.int32), p.tiles_x, p.tiles_y)
     keys = torch.empty(2 * total, device=device, dtype=torch.int64)  # the sort's double buffers
     values = torch.empty(2 * total, device=device, dtype=torch.int32)
-    with on_device_of(keys) as dev:
-        wp.launch(_write_keys, dim=(p.C, p.N), inputs=p.key_inputs, outputs=[to_wp(keys), to_wp(values)], device=dev)
-        wk, wv = wp.from_torch(keys), wp.from_torch(values)
-        wp.utils.radix_sort_pairs(wk, wv, total, begin_bit=0, end_bit=p.end_bit)
-        wp.launch(_tile_ranges, dim=total, inputs=[wk, total], outputs=[to_wp(p.ranges)], device=dev)
+    launch(_write_keys, (p.C, p.N), [*p.key_inputs, to_wp(keys), to_wp(values)], keys)
+    radix_sort_pairs(keys, values, total, p.end_bit)
+    launch(_tile_ranges, total, [to_wp(keys), total, to_wp(p.ranges)], keys)
     return Bins(p.ranges[:n_tiles], values[:total], p.tiles_x, p.tiles_y)
 
 

@@ -4,12 +4,13 @@ Each tile intersection names its (camera, Gaussian) pair through ``flatten_ids``
 mean2d, conic, effective opacity and D colours. Two compiled variants of the same per-splat step:
 - cooperative (default on CUDA): one thread block per tile, one thread per pixel; a batch of one list
   entry per thread at a time, the block gathers the entries' splats through their ids from the per-pair
-  tensors [C * N, ...] into shared memory (one id lookup per splat per block, nothing written to global
-  memory first) and every thread walks the batch there; the block stops when all its pixels are done;
+  tensors [C * N, ...] into shared memory (``splat_batch_func``, one id lookup per splat per block,
+  nothing written to global memory first; the cooperative backward kernels gather the same way) and every
+  thread walks the batch there; the block stops when all its pixels are done;
 - per pixel (default on the CPU, where Warp runs threads serially and shared memory buys nothing): one
   thread per pixel walks its tile's list in depth-sorted splat rows [M, 6 + D] gathered once
-  (``gather_splats``, which the backward passes read too; on the CPU contiguous rows beat an id lookup
-  per splat per pixel).
+  (``gather_splats``, which the per-pixel backward reads too; on the CPU contiguous rows beat an id
+  lookup per splat per pixel).
 Both are compiled per channel count D (RGB: 3, RGB+D: 4, D: 1, plain colours: any D): depth is one more
 channel, so a render without depth does no depth work. Outputs are the raw sums (no background):
 render = sum alpha_i T_i c_i, alpha = 1 - T, and the index (into ``flatten_ids``) of the last
@@ -23,7 +24,7 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import ALPHA_MIN, T_MIN, cpu_blocks, on_device_of, to_wp, vector_type
+from ._warp import ALPHA_MIN, T_MIN, launch, to_wp, vector_type
 from .binning import Bins
 from .lanes import block_all
 
@@ -99,17 +100,47 @@ def _gather_kernel(channels: int):
 def gather_splats(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
                   flatten_ids: torch.Tensor) -> torch.Tensor:
     """Depth-sorted splat rows [M, 6 + D] of the intersection list (see the module docstring), written in
-    one pass from the per-(camera, Gaussian) tensors [C, N, ...] (forward and backward both read these)."""
+    one pass from the per-(camera, Gaussian) tensors [C, N, ...] (the per-pixel forward and backward read
+    these)."""
     C, N, D = colors.shape
     M = flatten_ids.numel()
     splats = torch.empty(M, SPLAT_SLOTS + D, device=colors.device, dtype=torch.float32)
-    if M:
-        with on_device_of(colors) as device:
-            wp.launch(_gather_kernel(D), dim=M, device=device,
-                      inputs=[to_wp(flatten_ids), to_wp(means2d, wp.vec2, (C * N,)), to_wp(conics, wp.vec3, (C * N,)),
-                              to_wp(opacities, None, (C * N,)), to_wp(colors, vector_type(D), (C * N,))],
-                      outputs=[to_wp(splats)])
+    launch(_gather_kernel(D), M,
+           [to_wp(flatten_ids), to_wp(means2d, wp.vec2, (C * N,)), to_wp(conics, wp.vec3, (C * N,)),
+            to_wp(opacities, None, (C * N,)), to_wp(colors, vector_type(D), (C * N,)), to_wp(splats)],
+           colors)
     return splats
+
+
+@functools.cache
+def splat_batch_func(size: int, channels: int):
+    """A Warp function for cooperative blocks: the splats (mean2d, conic, opacity, D colours) of the list
+    entries base .. base + size - 1, gathered through their ids from the per-pair arrays into shared
+    memory, one entry per thread. Entries past the list's end are other tiles' entries or, past the array,
+    read as 0: valid splats that the caller never walks. The four gathers go to registers first, with no
+    barrier between them, so their loads are in flight together; then each is copied to shared memory for
+    every thread to read. Every thread of the block must call it."""
+    vecD = vector_type(channels)
+
+    @wp.func
+    def splat_batch(flatten_ids: wp.array(dtype=wp.int32), base: int, means2d: wp.array(dtype=wp.vec2),
+                    conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), colors: wp.array(dtype=vecD)):
+        ids = wp.tile_load(flatten_ids, shape=(size,), offset=(base,), storage="shared")
+        xy_r = wp.tile_load_indexed(means2d, indices=ids, shape=(size,), axis=0)
+        con_r = wp.tile_load_indexed(conics, indices=ids, shape=(size,), axis=0)
+        opa_r = wp.tile_load_indexed(opacities, indices=ids, shape=(size,), axis=0)
+        col_r = wp.tile_load_indexed(colors, indices=ids, shape=(size,), axis=0)
+        xy = wp.tile_empty(shape=(size,), dtype=wp.vec2, storage="shared")
+        con = wp.tile_empty(shape=(size,), dtype=wp.vec3, storage="shared")
+        opa = wp.tile_empty(shape=(size,), dtype=float, storage="shared")
+        col = wp.tile_empty(shape=(size,), dtype=vecD, storage="shared")
+        wp.tile_assign(xy, xy_r)
+        wp.tile_assign(con, con_r)
+        wp.tile_assign(opa, opa_r)
+        wp.tile_assign(col, col_r)
+        return xy, con, opa, col
+
+    return splat_batch
 
 
 @functools.cache
@@ -120,6 +151,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
     the depth-sorted rows of ``gather_splats``."""
     block = tile_size * tile_size
     vecD = vector_type(channels)
+    splat_batch = splat_batch_func(block, channels)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_per_pixel(
@@ -196,23 +228,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
             # Every thread reaches the cooperative calls; the block stops once all its pixels are done.
             if block_all(done) != 0:
                 break
-            # The batch's ids, then their splats gathered through them (ids past the list's end are other
-            # tiles' entries or, past the array, read as 0: valid rows that are never walked). All four
-            # gathers go to registers first, with no barrier between them, so their loads are in flight
-            # together; then each is copied to shared memory for every thread to read.
-            ids = wp.tile_load(flatten_ids, shape=(block,), offset=(b,), storage="shared")
-            xy_r = wp.tile_load_indexed(means2d, indices=ids, shape=(block,), axis=0)
-            con_r = wp.tile_load_indexed(conics, indices=ids, shape=(block,), axis=0)
-            opa_r = wp.tile_load_indexed(opacities, indices=ids, shape=(block,), axis=0)
-            col_r = wp.tile_load_indexed(colors, indices=ids, shape=(block,), axis=0)
-            xy = wp.tile_empty(shape=(block,), dtype=wp.vec2, storage="shared")
-            con = wp.tile_empty(shape=(block,), dtype=wp.vec3, storage="shared")
-            opa = wp.tile_empty(shape=(block,), dtype=float, storage="shared")
-            col = wp.tile_empty(shape=(block,), dtype=vecD, storage="shared")
-            wp.tile_assign(xy, xy_r)
-            wp.tile_assign(con, con_r)
-            wp.tile_assign(opa, opa_r)
-            wp.tile_assign(col, col_r)
+            xy, con, opa, col = splat_batch(flatten_ids, b, means2d, conics, opacities, colors)
             if done == 0:
                 for j in range(wp.min(block, end - b)):
                     vis = touch_alpha(xy[j], con[j], opa[j], fx, fy)
@@ -272,18 +288,12 @@ def composite_forward(
                   to_wp(opacities, None, (P,)), to_wp(colors, vecD, (P,))]
     else:
         splats = [to_wp(gather_splats(means2d, conics, colors, opacities, bins.flatten_ids))]
-    args = dict(
-        inputs=[*splats, to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x, tiles_per_camera,
-                float(max_alpha)],
-        outputs=[to_wp(render, vecD, (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
-                 to_wp(last_ids, None, (C * height * width,))],
-    )
+    args = [*splats, to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x, tiles_per_camera,
+            float(max_alpha), to_wp(render, vecD, (C * height * width,)), to_wp(alphas, None, (C * height * width,)),
+            to_wp(last_ids, None, (C * height * width,))]
     kernel = composite_kernel(D, tile_size, cooperative)
-    with on_device_of(colors) as device:
-        if cooperative:
-            with cpu_blocks(device):
-                wp.launch_tiled(kernel, dim=[C * tiles_per_camera], block_dim=tile_size * tile_size, device=device,
-                                **args)
-        else:
-            wp.launch(kernel, dim=C * tiles_per_camera * tile_size * tile_size, device=device, **args)
+    if cooperative:
+        launch(kernel, C * tiles_per_camera, args, colors, block_dim=tile_size * tile_size)
+    else:
+        launch(kernel, C * tiles_per_camera * tile_size * tile_size, args, colors)
     return render, alphas, last_ids

@@ -22,7 +22,8 @@ Three reductions over pixels (``reduction``), one source for CPU and CUDA:
 - "pixel" (default on the CPU): one thread per pixel, ``wp.atomic_add`` into the packed gradients. Warp's
   CPU launches are one serial loop, so there this is contention-free and bit-reproducible;
 - "warp" (default on CUDA): blocks of one warp (``lanes.LANES`` pixels of a tile) walk the list in lock
-  step from the warp's largest ``last_ids``, batches of 32 rows copied to shared memory; one warp vote
+  step from the warp's largest ``last_ids``, batches of 32 splats gathered through their ids into shared
+  memory (``composite.splat_batch_func``, no depth-sorted rows written first); one warp vote
   skips an entry that none of the warp's pixels composited, and an entry that some pixel did is summed
   over the warp with register shuffles (a reduce-scatter, ``lanes.lanes_sum_add``) and added with one
   atomic instruction per warp (lane 2k adds component k) instead of one per pixel (float atomics add in
@@ -46,9 +47,10 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import ALPHA_MIN, cpu_blocks, on_device_of, to_wp, vector_type
+from ._warp import ALPHA_MIN, launch, to_wp, vector_type
 from .binning import Bins
-from .composite import COMPOSITE_OPTIONS, SPLAT_SLOTS, conic_sigma, gather_splats, tile_pixel
+from .composite import (COMPOSITE_OPTIONS, SPLAT_SLOTS, conic_sigma, gather_splats, splat_batch_func,
+                        tile_pixel)
 from .lanes import LANES, lanes_any, lanes_max, lanes_sum_add
 
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
@@ -224,8 +226,9 @@ def _kernels(channels: int):
                         for k in range(channels):
                             col[k] = batch[r, SPLAT_SLOTS + k]
                         T, S, grad, touched = reverse_step(wp.vec2(batch[r, 0], batch[r, 1]),
-                                                  wp.vec3(batch[r, 2], batch[r, 3], batch[r, 4]), batch[r, 5],
-                                                  col, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
+                                                           wp.vec3(batch[r, 2], batch[r, 3], batch[r, 4]),
+                                                           batch[r, 5], col, fx, fy, max_alpha, T, T_final, S,
+                                                           v_rgb, v_alpha)
                         if wp.length_sq(grad) > 0.0:
                             hit = 1
                     # A cheap integer reduction first: most entries touch none of a group's pixels.
@@ -238,10 +241,14 @@ def _kernels(channels: int):
         return composite_backward_blocks
 
     sum_add = lanes_sum_add(channels + SPLAT_GRAD_SLOTS)
+    splat_batch = splat_batch_func(LANES, channels)
 
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_backward_lanes(
-        splats: wp.array2d(dtype=float),
+        means2d: wp.array(dtype=wp.vec2),
+        conics: wp.array(dtype=wp.vec3),
+        opacities: wp.array(dtype=float),
+        colors: wp.array(dtype=vecD),
         tile_ranges: wp.array2d(dtype=wp.int32),
         flatten_ids: wp.array(dtype=wp.int32),
         width: int,
@@ -272,18 +279,14 @@ def _kernels(channels: int):
         i = lanes_max(last)
         while i >= start:
             base = wp.max(start, i - (LANES - 1))
-            batch = wp.tile_load(splats, shape=(LANES, row), offset=(base, 0), storage="shared")
+            xy, con, opa, col = splat_batch(flatten_ids, base, means2d, conics, opacities, colors)
             while i >= base:
                 grad = vecF()
                 touched = int(0)
                 if i <= last:
                     r = i - base
-                    col = vecD()
-                    for k in range(channels):
-                        col[k] = batch[r, SPLAT_SLOTS + k]
-                    T, S, grad, touched = reverse_step(wp.vec2(batch[r, 0], batch[r, 1]),
-                                                       wp.vec3(batch[r, 2], batch[r, 3], batch[r, 4]), batch[r, 5],
-                                                       col, fx, fy, max_alpha, T, T_final, S, v_rgb, v_alpha)
+                    T, S, grad, touched = reverse_step(xy[r], con[r], opa[r], col[r], fx, fy, max_alpha, T, T_final,
+                                                       S, v_rgb, v_alpha)
                 # Most entries touch none of a warp's pixels: one vote skips their reduction and atomics.
                 if lanes_any(touched) != 0:
                     sum_add(grad, out_grads, flatten_ids[i], lane)
@@ -342,41 +345,42 @@ def composite_backward(
     vecD, vecF = vector_type(D), vector_type(F)
     tiles_per_camera = bins.tiles_x * bins.tiles_y
     HW = C * height * width
-    splats = gather_splats(means2d, conics, colors, opacities, bins.flatten_ids)
+    if reduction is None:
+        reduction = "rows" if deterministic else "pixel" if colors.device.type == "cpu" else "warp"
+    P = C * N
+    if reduction != "warp":  # depth-sorted rows, gathered once (the deterministic blocks read them too)
+        splats = [to_wp(gather_splats(means2d, conics, colors, opacities, bins.flatten_ids))]
+    else:  # warps gather batches of splats through their ids
+        splats = [to_wp(means2d, wp.vec2, (P,)), to_wp(conics, wp.vec3, (P,)), to_wp(opacities, None, (P,)),
+                  to_wp(colors, vecD, (P,))]
     common = [
-        to_wp(splats), to_wp(bins.tile_ranges), to_wp(bins.flatten_ids), int(width),
-        int(height), int(tile_size), bins.tiles_x, tiles_per_camera, float(max_alpha),
-        to_wp(alphas, None, (HW,)), to_wp(last_ids, None, (HW,)), to_wp(v_render, vecD, (HW,)),
-        to_wp(v_alphas, None, (HW,)),
+        *splats, to_wp(bins.tile_ranges), to_wp(bins.flatten_ids), int(width), int(height), int(tile_size),
+        bins.tiles_x, tiles_per_camera, float(max_alpha), to_wp(alphas, None, (HW,)), to_wp(last_ids, None, (HW,)),
+        to_wp(v_render, vecD, (HW,)), to_wp(v_alphas, None, (HW,)),
     ]
-    with on_device_of(colors) as device:
-        if reduction is None:
-            reduction = "rows" if deterministic else "pixel" if device == "cpu" else "warp"
-        if reduction == "pixel":
-            wp.launch(atomic_kernel, dim=C * tiles_per_camera * tile_size * tile_size, inputs=common,
-                      outputs=[to_wp(grads, vecF, (C * N,))], device=device)
-            return grads
-        area = tile_size * tile_size
-        if reduction == "warp":
-            groups = -(-area // LANES)
-            with cpu_blocks(device):
-                wp.launch_tiled(lanes_kernel, dim=[C * tiles_per_camera * groups], inputs=common + [groups],
-                                outputs=[to_wp(grads, vecF, (C * N,))], block_dim=LANES, device=device)
-            return grads
-        group_size = min(area, DETERMINISTIC_BLOCK)
-        groups = -(-area // group_size)
-        rows = torch.zeros(M * groups, F, device=colors.device, dtype=torch.float32)
-        with cpu_blocks(device):
-            wp.launch_tiled(block_kernel(group_size), dim=[C * tiles_per_camera * groups],
-                            inputs=common + [groups], outputs=[to_wp(rows, vecF)],
-                            block_dim=group_size, device=device)
-        ids = bins.flatten_ids.long()
-        order = torch.sort(ids, stable=True).indices.to(torch.int32)
-        segment_start = torch.zeros(C * N + 1, device=colors.device, dtype=torch.int64)
-        segment_start[1:] = torch.cumsum(torch.bincount(ids, minlength=C * N), 0)
-        wp.launch(gather_kernel, dim=C * N,
-                  inputs=[to_wp(order), to_wp(segment_start.to(torch.int32)), groups, to_wp(rows, vecF)],
-                  outputs=[to_wp(grads, vecF, (C * N,))], device=device)
+    if reduction == "pixel":
+        launch(atomic_kernel, C * tiles_per_camera * tile_size * tile_size,
+               [*common, to_wp(grads, vecF, (P,))], colors)
+        return grads
+    area = tile_size * tile_size
+    if reduction == "warp":
+        groups = -(-area // LANES)
+        launch(lanes_kernel, C * tiles_per_camera * groups, [*common, groups, to_wp(grads, vecF, (P,))], colors,
+               block_dim=LANES)
+        return grads
+    group_size = min(area, DETERMINISTIC_BLOCK)
+    groups = -(-area // group_size)
+    rows = torch.zeros(M * groups, F, device=colors.device, dtype=torch.float32)
+    launch(block_kernel(group_size), C * tiles_per_camera * groups, [*common, groups, to_wp(rows, vecF)], colors,
+           block_dim=group_size)
+    ids = bins.flatten_ids.long()
+    order = torch.sort(ids, stable=True).indices.to(torch.int32)
+    segment_start = torch.zeros(C * N + 1, device=colors.device, dtype=torch.int64)
+    segment_start[1:] = torch.cumsum(torch.bincount(ids, minlength=C * N), 0)
+    launch(gather_kernel, C * N,
+           [to_wp(order), to_wp(segment_start.to(torch.int32)), groups, to_wp(rows, vecF),
+            to_wp(grads, vecF, (P,))],
+           colors)
     return grads
 
 

@@ -4,7 +4,7 @@ any block, the ``lanes_*`` functions for blocks of exactly one warp (``LANES`` =
 
 On CUDA they are bare warp intrinsics (a vote, register shuffles), with no shared memory and no block
 barrier; Warp's tile reductions, by contrast, go through a shared-memory tile and ``__syncthreads`` per
-call. On the CPU (Warp's cooperative fibers, ``_warp.cpu_blocks``) the same functions fall back to Warp's
+call. On the CPU (Warp's cooperative fibers, ``_warp.launch`` with ``block_dim``) the same functions fall back to Warp's
 tile reductions, which sum in lane order, so CPU results are reproducible. Every lane of the block must
 call each function (all 32 lanes take part in the shuffles).
 

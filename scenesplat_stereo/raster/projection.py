@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ._warp import ALPHA_MIN, on_device_of, to_wp
+from ._warp import ALPHA_MIN, launch, to_wp
 
 # SPEC section 2, step 3: tx/z is clamped to 1.3x the half field of view (0.15 W / fx beyond each edge).
 JACOBIAN_CLAMP_MARGIN = 0.15
@@ -261,20 +261,15 @@ def project_gaussians(
     )
     if BC == 0 or N == 0:
         return out
-    with on_device_of(means) as device:
-        wp.launch(
-            projection_kernel(bool(antialiased)),
-            dim=(BC, N),
-            inputs=[
-                to_wp(means, wp.vec3), to_wp(quats, wp.vec4), to_wp(scales, wp.vec3), to_wp(opacities),
-                to_wp(viewmats, wp.mat44), to_wp(Ks, wp.mat33), int(width), int(height),
-                float(near_plane), float(far_plane), float(eps2d), int(tile_size), BC // scenes,
-            ],
-            outputs=[
-                to_wp(out.means2d, wp.vec2), to_wp(out.conics, wp.vec3), to_wp(out.depths),
-                to_wp(out.opacities), to_wp(out.radii, wp.vec2i), to_wp(out.tile_rects, wp.vec4i),
-                to_wp(out.tiles_touched),
-            ],
-            device=device,
-        )
+    launch(
+        projection_kernel(bool(antialiased)), (BC, N),
+        [
+            to_wp(means, wp.vec3), to_wp(quats, wp.vec4), to_wp(scales, wp.vec3), to_wp(opacities),
+            to_wp(viewmats, wp.mat44), to_wp(Ks, wp.mat33), int(width), int(height), float(near_plane),
+            float(far_plane), float(eps2d), int(tile_size), BC // scenes,
+            to_wp(out.means2d, wp.vec2), to_wp(out.conics, wp.vec3), to_wp(out.depths), to_wp(out.opacities),
+            to_wp(out.radii, wp.vec2i), to_wp(out.tile_rects, wp.vec4i), to_wp(out.tiles_touched),
+        ],
+        means,
+    )
     return out

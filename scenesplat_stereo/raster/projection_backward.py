@@ -27,7 +27,7 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import on_device_of, to_wp
+from ._warp import launch, to_wp
 from .projection import clamped_jacobian, quat_to_rotation, screen_covariance, tangent_limits, view_rotation
 
 
@@ -227,20 +227,19 @@ def project_gaussians_backward(
     C is scenes * C; each Gaussian sums over its own scene's cameras."""
     BN = means.shape[0]
     f32 = dict(device=means.device, dtype=torch.float32)
-    out = (torch.zeros(BN, 3, **f32), torch.zeros(BN, 4, **f32), torch.zeros(BN, 3, **f32), torch.zeros(BN, **f32))
+    new = torch.zeros if BN == 0 or viewmats.shape[0] == 0 else torch.empty  # the kernel writes every Gaussian
+    out = (new(BN, 3, **f32), new(BN, 4, **f32), new(BN, 3, **f32), new(BN, **f32))
     if BN == 0 or viewmats.shape[0] == 0:
         return out
-    with on_device_of(means) as device:
-        wp.launch(
-            projection_backward_kernel(bool(antialiased)),
-            dim=(scenes, BN // scenes),
-            inputs=[
-                to_wp(means, wp.vec3), to_wp(quats, wp.vec4), to_wp(scales, wp.vec3), to_wp(opacities),
-                to_wp(viewmats, wp.mat44), to_wp(Ks, wp.mat33), int(width), int(height), float(eps2d),
-                viewmats.shape[0] // scenes, to_wp(radii, wp.vec2i), to_wp(v_means2d, wp.vec2),
-                to_wp(v_conics, wp.vec3), to_wp(v_depths), to_wp(v_opacities),
-            ],
-            outputs=[to_wp(out[0], wp.vec3), to_wp(out[1], wp.vec4), to_wp(out[2], wp.vec3), to_wp(out[3])],
-            device=device,
-        )
+    launch(
+        projection_backward_kernel(bool(antialiased)), (scenes, BN // scenes),
+        [
+            to_wp(means, wp.vec3), to_wp(quats, wp.vec4), to_wp(scales, wp.vec3), to_wp(opacities),
+            to_wp(viewmats, wp.mat44), to_wp(Ks, wp.mat33), int(width), int(height), float(eps2d),
+            viewmats.shape[0] // scenes, to_wp(radii, wp.vec2i), to_wp(v_means2d, wp.vec2), to_wp(v_conics, wp.vec3),
+            to_wp(v_depths), to_wp(v_opacities),
+            to_wp(out[0], wp.vec3), to_wp(out[1], wp.vec4), to_wp(out[2], wp.vec3), to_wp(out[3]),
+        ],
+        means,
+    )
     return out

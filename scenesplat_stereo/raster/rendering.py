@@ -23,9 +23,11 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RASTERIZE_MODES = ("classic", "antialiased")
 
 
-def _check(cond: bool, msg: str) -> None:
+def _check(cond: bool, msg) -> None:
+    """ValueError with ``msg()`` unless ``cond`` (messages are formatted only on failure: the checks run on
+    every call, and formatting them all costs host time comparable to a kernel launch)."""
     if not cond:
-        raise ValueError(f"rasterization: {msg}")
+        raise ValueError(f"rasterization: {msg()}")
 
 
 def rasterization(
@@ -85,67 +87,65 @@ def rasterization(
         tile_ranges [B * C * tiles, 2] and flatten_ids (entries (b * C + c) * N + g); tile_width,
         tile_height, tile_size, width, height, n_cameras = C, batch_dims = the leading shape).
     """
-    _check(render_mode in RENDER_MODES, f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
-    _check(rasterize_mode in RASTERIZE_MODES, f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
-    _check(means.ndim >= 2 and means.shape[-1] == 3, f"means must be [..., N, 3], got {tuple(means.shape)}")
+    _check(render_mode in RENDER_MODES, lambda: f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    _check(rasterize_mode in RASTERIZE_MODES,
+           lambda: f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
+    _check(means.ndim >= 2 and means.shape[-1] == 3, lambda: f"means must be [..., N, 3], got {tuple(means.shape)}")
     batch, N = tuple(means.shape[:-2]), means.shape[-2]
-    _check(quats.shape == (*batch, N, 4), f"quats must be [..., N, 4] = {[*batch, N, 4]}, got {tuple(quats.shape)}")
-    _check(scales.shape == (*batch, N, 3), f"scales must be [..., N, 3] = {[*batch, N, 3]}, got {tuple(scales.shape)}")
-    _check(opacities.shape == (*batch, N), f"opacities must be [..., N] = {[*batch, N]}, got {tuple(opacities.shape)}")
+    _check(quats.shape == (*batch, N, 4),
+           lambda: f"quats must be [..., N, 4] = {[*batch, N, 4]}, got {tuple(quats.shape)}")
+    _check(scales.shape == (*batch, N, 3),
+           lambda: f"scales must be [..., N, 3] = {[*batch, N, 3]}, got {tuple(scales.shape)}")
+    _check(opacities.shape == (*batch, N),
+           lambda: f"opacities must be [..., N] = {[*batch, N]}, got {tuple(opacities.shape)}")
     _check(viewmats.ndim == len(batch) + 3 and viewmats.shape[:len(batch)] == batch and viewmats.shape[-2:] == (4, 4),
-           f"viewmats must be [..., C, 4, 4] with the leading dims {list(batch)} of means, got {tuple(viewmats.shape)}")
+           lambda: f"viewmats must be [..., C, 4, 4] with the leading dims {list(batch)} of means, "
+                   f"got {tuple(viewmats.shape)}")
     C = viewmats.shape[-3]
-    _check(Ks.shape == (*batch, C, 3, 3), f"Ks must be [..., C, 3, 3] = {[*batch, C, 3, 3]}, got {tuple(Ks.shape)}")
-    _check(int(width) >= 1 and int(height) >= 1, f"width and height must be >= 1, got {width}x{height}")
-    _check(int(tile_size) >= 1 and int(tile_size) <= 64, f"tile_size must be in 1..64, got {tile_size}")
-    _check(0.0 < max_alpha <= 1.0, f"max_alpha must be in (0, 1], got {max_alpha}")
+    _check(Ks.shape == (*batch, C, 3, 3),
+           lambda: f"Ks must be [..., C, 3, 3] = {[*batch, C, 3, 3]}, got {tuple(Ks.shape)}")
+    _check(int(width) >= 1 and int(height) >= 1, lambda: f"width and height must be >= 1, got {width}x{height}")
+    _check(int(tile_size) >= 1 and int(tile_size) <= 64, lambda: f"tile_size must be in 1..64, got {tile_size}")
+    _check(0.0 < max_alpha <= 1.0, lambda: f"max_alpha must be in (0, 1], got {max_alpha}")
     if sh_degree is not None:
-        _check(0 <= sh_degree <= 3, f"sh_degree must be 0..3 or None, got {sh_degree}")
+        _check(0 <= sh_degree <= 3, lambda: f"sh_degree must be 0..3 or None, got {sh_degree}")
         _check(
             colors.ndim == len(batch) + 3 and colors.shape[:-2] == (*batch, N) and colors.shape[-1] == 3
             and colors.shape[-2] >= num_sh_bases(sh_degree),
-            f"colors must be [..., N, K>={num_sh_bases(sh_degree)}, 3] = {[*batch, N, 'K', 3]} SH coefficients "
+            lambda: f"colors must be [..., N, K>={num_sh_bases(sh_degree)}, 3] = {[*batch, N, 'K', 3]} SH coefficients "
             f"for sh_degree={sh_degree}, got {tuple(colors.shape)}",
         )
     else:
         _check(colors.ndim == len(batch) + 2 and colors.shape[:-1] == (*batch, N),
-               f"colors must be [..., N, D] = {[*batch, N, 'D']} without sh_degree, got {tuple(colors.shape)}")
+               lambda: f"colors must be [..., N, D] = {[*batch, N, 'D']} without sh_degree, got {tuple(colors.shape)}")
     tensors = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
                    viewmats=viewmats, Ks=Ks)
     if backgrounds is not None:
         tensors["backgrounds"] = backgrounds
     for name, t in tensors.items():
-        _check(t.dtype == torch.float32, f"{name} must be float32, got {t.dtype}")
-        _check(t.device == means.device, f"{name} is on {t.device}, means on {means.device}")
+        _check(t.dtype == torch.float32, lambda: f"{name} must be float32, got {t.dtype}")
+        _check(t.device == means.device, lambda: f"{name} is on {t.device}, means on {means.device}")
     with_rgb = render_mode in ("RGB", "RGB+D", "RGB+ED")
     with_depth = render_mode != "RGB"
     if backgrounds is not None and with_rgb:
         D = 3 if sh_degree is not None else colors.shape[-1]
         _check(backgrounds.shape == (*batch, C, D),
-               f"backgrounds must be [..., C, D] = {[*batch, C, D]}, got {tuple(backgrounds.shape)}")
+               lambda: f"backgrounds must be [..., C, D] = {[*batch, C, D]}, got {tuple(backgrounds.shape)}")
     width, height, tile_size = int(width), int(height), int(tile_size)
 
     # One flat batch: B scenes of N Gaussians end to end, B * C cameras (scene b's camera c is b * C + c).
     B = math.prod(batch)
-    means_b = means.reshape(B, N, 3)
-    viewmats_b = viewmats.reshape(B, C, 4, 4)
-    proj = autograd.project(means_b.reshape(B * N, 3), quats.reshape(B * N, 4), scales.reshape(B * N, 3),
-                            opacities.reshape(B * N), viewmats_b.reshape(B * C, 4, 4), Ks.reshape(B * C, 3, 3),
-                            width, height, near_plane, far_plane, eps2d, rasterize_mode == "antialiased",
-                            tile_size, B)
+    means_flat, viewmats_flat = means.reshape(B * N, 3), viewmats.reshape(B * C, 4, 4)
+    proj = autograd.project(means_flat, quats.reshape(B * N, 4), scales.reshape(B * N, 3), opacities.reshape(B * N),
+                            viewmats_flat, Ks.reshape(B * C, 3, 3), width, height, near_plane, far_plane, eps2d,
+                            rasterize_mode == "antialiased", tile_size, B)
     # The scan's total travels to the host while the GPU evaluates the colours.
     pending = start_binning(proj, width, height, tile_size)
     channels = []
     if with_rgb:
         if sh_degree is not None:
-            if sh_degree > 0:
-                # camera centre = -R^T t for a rigid world-to-camera [R t]
-                campos = -(viewmats_b[..., :3, :3].transpose(-1, -2) @ viewmats_b[..., :3, 3:])[..., 0]
-                dirs = (means_b[:, None, :, :] - campos[:, :, None, :]).reshape(B * C, N, 3)
-            else:  # degree 0 never reads directions: a placeholder, not a [C, N, 3] tensor
-                dirs = means.new_empty(1, 1, 3)
             coeffs = colors.reshape(B * N, *colors.shape[-2:])
-            channels.append(autograd.sh_colors(sh_degree, dirs, coeffs, proj.radii, B))
+            channels.append(autograd.sh_colors(sh_degree, means_flat, viewmats_flat, coeffs, proj.radii, B))
         else:
             D = colors.shape[-1]
             channels.append(colors.reshape(B, 1, N, D).expand(B, C, N, D).reshape(B * C, N, D))

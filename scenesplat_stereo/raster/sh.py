@@ -1,8 +1,10 @@
 """View-dependent colour from real spherical harmonics, degrees 0..3 (SPEC section 1, "Colour").
 
 rgb = max(SH(d) + 0.5, 0) with d = normalise(mean - camera centre), in the INRIA/gsplat basis order and
-sign convention. The kernel is compiled per degree: a degree-0 scene never reads directions and only
-touches its DC coefficient. Culled (camera, Gaussian) pairs (radii (0, 0)) get colour 0 and no work.
+sign convention; the camera centre -R^T t of a rigid world-to-camera matrix [R t] is taken in the kernel
+(``view_direction``), so no [C, N, 3] direction tensor is built. The kernel is compiled per degree: a
+degree-0 scene never reads means or cameras and only touches its DC coefficient. Culled (camera, Gaussian)
+pairs (radii (0, 0)) get colour 0 and no work.
 """
 
 # No ``from __future__ import annotations``: Warp evaluates the annotations of the per-degree basis
@@ -12,7 +14,7 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import on_device_of, to_wp, vector_type
+from ._warp import launch, to_wp, vector_type
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -69,16 +71,28 @@ def sh_basis_func(degree: int):
     return sh_basis
 
 
+@wp.func
+def view_direction(mean: wp.vec3, V: wp.mat44) -> wp.vec3:
+    """mean - camera centre (world units) for the world-to-camera matrix V = [R t; 0 1]: the centre is
+    -R^T t, so the direction is mean + R^T t."""
+    return wp.vec3(
+        mean[0] + V[0, 0] * V[0, 3] + V[1, 0] * V[1, 3] + V[2, 0] * V[2, 3],
+        mean[1] + V[0, 1] * V[0, 3] + V[1, 1] * V[1, 3] + V[2, 1] * V[2, 3],
+        mean[2] + V[0, 2] * V[0, 3] + V[1, 2] * V[1, 3] + V[2, 2] * V[2, 3],
+    )
+
+
 @functools.cache
 def sh_kernel(degree: int):
     """Per (camera, Gaussian) colour kernel, compiled per SH degree. For a batch of scenes laid end to end,
-    camera c reads the coefficients of Gaussian (c / cameras_per_scene) * N + g."""
+    camera c sees Gaussian (c / cameras_per_scene) * N + g (its mean and coefficients)."""
     sh_basis = sh_basis_func(degree)
     K = num_sh_bases(degree)
 
     @wp.kernel(enable_backward=False, module="unique")
     def eval_sh(
-        dirs: wp.array2d(dtype=wp.vec3),
+        means: wp.array(dtype=wp.vec3),
+        viewmats: wp.array(dtype=wp.mat44),
         coeffs: wp.array2d(dtype=wp.vec3),
         radii: wp.array2d(dtype=wp.vec2i),
         cameras_per_scene: int,
@@ -92,7 +106,7 @@ def sh_kernel(degree: int):
             return
         v = wp.vec3(0.0, 0.0, 0.0)
         if wp.static(degree >= 1):
-            d = dirs[c, g]
+            d = view_direction(means[gi], viewmats[c])
             n = wp.length(d)
             if n > 0.0:
                 v = d / n
@@ -107,11 +121,12 @@ def sh_kernel(degree: int):
     return eval_sh
 
 
-def eval_sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor,
-                   scenes: int = 1) -> torch.Tensor:
-    """Colours [C, N, 3] from SH ``coeffs`` [N, K, 3] (K >= (degree+1)^2; extra bands are ignored) viewed
-    along ``dirs`` [C, N, 3] (mean - camera centre, any length); zero for culled pairs. A batch of
-    ``scenes`` scenes lies end to end: coeffs [scenes * N, K, 3], dirs and radii [scenes * C, N, ...]."""
+def eval_sh_colors(degree: int, means: torch.Tensor, viewmats: torch.Tensor, coeffs: torch.Tensor,
+                   radii: torch.Tensor, scenes: int = 1) -> torch.Tensor:
+    """Colours [C, N, 3] of Gaussians at ``means`` [N, 3] with SH ``coeffs`` [N, K, 3] (K >= (degree+1)^2;
+    extra bands are ignored) seen from the cameras of world-to-camera ``viewmats`` [C, 4, 4]; zero for
+    culled pairs (``radii`` [C, N, 2] of the projection). A batch of ``scenes`` scenes lies end to end:
+    means [scenes * N, 3], coeffs [scenes * N, K, 3], viewmats [scenes * C, 4, 4], radii [scenes * C, N, 2]."""
     if not 0 <= degree <= 3:
         raise ValueError(f"sh_degree must be 0..3, got {degree}")
     C, N = radii.shape[:2]
@@ -121,12 +136,8 @@ def eval_sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii:
     out = torch.empty(C, N, 3, device=coeffs.device, dtype=torch.float32)  # every pair is written
     if C == 0 or N == 0:
         return out
-    with on_device_of(coeffs) as device:
-        wp.launch(
-            sh_kernel(degree),
-            dim=(C, N),
-            inputs=[to_wp(dirs, wp.vec3), to_wp(coeffs, wp.vec3), to_wp(radii, wp.vec2i), C // scenes],
-            outputs=[to_wp(out, wp.vec3)],
-            device=device,
-        )
+    launch(sh_kernel(degree), (C, N),
+           [to_wp(means, wp.vec3), to_wp(viewmats, wp.mat44), to_wp(coeffs, wp.vec3), to_wp(radii, wp.vec2i),
+            C // scenes, to_wp(out, wp.vec3)],
+           coeffs)
     return out

@@ -3,9 +3,11 @@ d = normalise(dir), dir = mean - camera centre (world units), real SH in the INR
 
 Gradients: d rgb / d coeff_k = Y_k(d) per channel (zero in channels where the clamp at 0 binds);
 d rgb / d d = sum_k coeff_k dY_k/dd, taken through the normalisation, d dir = (g - d (d . g)) / |dir|
-(a zero direction, a Gaussian at the camera centre, gets a zero gradient). One thread per Gaussian walks
-the cameras of its scene in order, so the coefficient gradients are summed without atomics (reproducible).
-Compiled per degree: degree 0 never reads or writes directions. Culled (camera, Gaussian) pairs contribute nothing.
+(a zero direction, a Gaussian at the camera centre, gets a zero gradient), and d dir / d mean = I. One
+thread per Gaussian walks the cameras of its scene in order, sums its coefficient and mean gradients in
+registers and writes each once (no zero-fill first), without atomics (reproducible). Compiled per degree:
+degree 0 never reads means or cameras and has no mean gradient. Culled (camera, Gaussian) pairs contribute
+nothing.
 """
 
 from __future__ import annotations
@@ -15,8 +17,8 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import on_device_of, to_wp
-from .sh import SH_C1, SH_C2, SH_C3, num_sh_bases, sh_basis_func
+from ._warp import launch, to_wp, vector_type
+from .sh import SH_C1, SH_C2, SH_C3, num_sh_bases, sh_basis_func, view_direction
 
 
 @functools.cache
@@ -27,19 +29,26 @@ def sh_backward_kernel(degree: int):
     C3_0, C3_1, C3_2, C3_3, C3_4, C3_5, C3_6 = SH_C3
     sh_basis = sh_basis_func(degree)
     K = num_sh_bases(degree)
+    vecK = vector_type(K)
 
     @wp.kernel(enable_backward=False, module="unique")
     def sh_backward(
-        dirs: wp.array2d(dtype=wp.vec3),
+        means: wp.array(dtype=wp.vec3),
+        viewmats: wp.array(dtype=wp.mat44),
         coeffs: wp.array2d(dtype=wp.vec3),
         radii: wp.array2d(dtype=wp.vec2i),
         v_colors: wp.array2d(dtype=wp.vec3),
         cameras_per_scene: int,
         out_v_coeffs: wp.array2d(dtype=wp.vec3),
-        out_v_dirs: wp.array2d(dtype=wp.vec3),
+        out_v_means: wp.array(dtype=wp.vec3),
     ):
         b, g = wp.tid()
         gi = b * radii.shape[1] + g
+        # Sums over the cameras, per coefficient and channel (red, green, blue), and of the mean's gradient.
+        sum_r = vecK()
+        sum_g = vecK()
+        sum_b = vecK()
+        v_mean = wp.vec3(0.0, 0.0, 0.0)
         for c in range(b * cameras_per_scene, (b + 1) * cameras_per_scene):
             r = radii[c, g]
             if r[0] <= 0 and r[1] <= 0:
@@ -48,7 +57,7 @@ def sh_backward_kernel(degree: int):
             v = wp.vec3(0.0, 0.0, 0.0)
             n = float(0.0)
             if wp.static(degree >= 1):
-                v = dirs[c, g]
+                v = view_direction(means[gi], viewmats[c])
                 n = wp.length(v)
                 if n > 0.0:
                     v = v / n
@@ -63,7 +72,9 @@ def sh_backward_kernel(degree: int):
                 wp.where(rgb[2] + 0.5 >= 0.0, vc[2], 0.0),
             )
             for k in range(K):
-                out_v_coeffs[gi, k] += basis[k] * vc
+                sum_r[k] = sum_r[k] + basis[k] * vc[0]
+                sum_g[k] = sum_g[k] + basis[k] * vc[1]
+                sum_b[k] = sum_b[k] + basis[k] * vc[2]
             if wp.static(degree >= 1):
                 # d rgb / d v, contracted with vc: sum_k (coeff_k . vc) grad Y_k(v)
                 w1 = wp.dot(coeffs[gi, 1], vc)
@@ -103,32 +114,33 @@ def sh_backward_kernel(degree: int):
                         v_v += w14 * C3_5 * wp.vec3(2.0 * x * z, -2.0 * y * z, xx - yy)
                         v_v += w15 * C3_6 * wp.vec3(3.0 * (xx - yy), -6.0 * x * y, 0.0)
                 if n > 0.0:
-                    out_v_dirs[c, g] = (v_v - v * wp.dot(v, v_v)) / n
+                    v_mean += (v_v - v * wp.dot(v, v_v)) / n
+        for k in range(K):
+            out_v_coeffs[gi, k] = wp.vec3(sum_r[k], sum_g[k], sum_b[k])
+        for k in range(K, out_v_coeffs.shape[1]):  # bands beyond the degree
+            out_v_coeffs[gi, k] = wp.vec3(0.0, 0.0, 0.0)
+        if wp.static(degree >= 1):
+            out_v_means[gi] = v_mean
 
     return sh_backward
 
 
 def eval_sh_colors_backward(
-    degree: int, dirs: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor, v_colors: torch.Tensor,
-    scenes: int = 1,
+    degree: int, means: torch.Tensor, viewmats: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor,
+    v_colors: torch.Tensor, scenes: int = 1,
 ) -> tuple[torch.Tensor | None, torch.Tensor]:
-    """Gradients (dirs [C,N,3] or None for degree 0, coeffs [N,K,3]) of ``sh.eval_sh_colors`` from the
+    """Gradients (means [N,3], None for degree 0; coeffs [N,K,3]) of ``sh.eval_sh_colors`` from the
     cotangent ``v_colors`` [C,N,3]; bands beyond ``degree`` get zero gradient. For a batch of ``scenes``
-    scenes laid end to end, C and the coefficients' N are scenes times larger (see ``eval_sh_colors``)."""
+    scenes laid end to end, C and every N are scenes times larger (see ``eval_sh_colors``)."""
     C, N = radii.shape[:2]
     f32 = dict(device=coeffs.device, dtype=torch.float32)
-    v_coeffs = torch.zeros(coeffs.shape, **f32)
-    v_dirs = torch.zeros(dirs.shape, **f32) if degree > 0 else None
     if C == 0 or N == 0:
-        return v_dirs, v_coeffs
-    dirs_arg = dirs if degree > 0 else torch.zeros(1, 1, 3, **f32)
-    with on_device_of(coeffs) as device:
-        wp.launch(
-            sh_backward_kernel(degree),
-            dim=(scenes, N),
-            inputs=[to_wp(dirs_arg, wp.vec3), to_wp(coeffs, wp.vec3), to_wp(radii, wp.vec2i),
-                    to_wp(v_colors, wp.vec3), C // scenes],
-            outputs=[to_wp(v_coeffs, wp.vec3), to_wp(v_dirs if v_dirs is not None else dirs_arg, wp.vec3)],
-            device=device,
-        )
-    return v_dirs, v_coeffs
+        return (torch.zeros(means.shape, **f32) if degree > 0 else None), torch.zeros(coeffs.shape, **f32)
+    v_coeffs = torch.empty(coeffs.shape, **f32)  # every entry is written
+    v_means = torch.empty(means.shape, **f32) if degree > 0 else None
+    launch(sh_backward_kernel(degree), (scenes, N),
+           [to_wp(means, wp.vec3), to_wp(viewmats, wp.mat44), to_wp(coeffs, wp.vec3), to_wp(radii, wp.vec2i),
+            to_wp(v_colors, wp.vec3), C // scenes, to_wp(v_coeffs, wp.vec3),
+            to_wp(v_means if v_means is not None else means, wp.vec3)],
+           coeffs)
+    return v_means, v_coeffs

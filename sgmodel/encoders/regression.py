@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 import warp as wp
 
-from scenesplat_stereo.raster._warp import on_device_of, to_wp
+from scenesplat_stereo.raster._warp import launch, to_wp
 
 
 def soft_argmin_reference(cost: torch.Tensor, max_disparity: int, height: int, width: int) -> torch.Tensor:
@@ -93,8 +93,7 @@ def soft_argmin(cost: torch.Tensor, max_disparity: int, height: int, width: int)
     b, coarse, h, w = cost.shape
     cost = cost.detach().float().contiguous()
     out = torch.empty(b, height, width, dtype=torch.float32, device=cost.device)
-    with on_device_of(cost) as device:
-        wp.launch(_soft_argmin_kernel, dim=(b, height, width), device=device,
-                  inputs=[to_wp(cost), max_disparity, _scale(coarse, max_disparity), _scale(h, height),
-                          _scale(w, width), to_wp(out)])
+    launch(_soft_argmin_kernel, (b, height, width),
+           [to_wp(cost), max_disparity, _scale(coarse, max_disparity), _scale(h, height), _scale(w, width),
+            to_wp(out)], cost)
     return out.unsqueeze(1)
