@@ -98,18 +98,28 @@ class CompositeTiles(torch.autograd.Function):
         return (*grads, *(None,) * 9)
 
 
+def _differentiable(*tensors: torch.Tensor) -> bool:
+    """Whether autograd would record a stage on these inputs; when it would not (inference, or no input
+    that needs a gradient), the stages run without a Function, whose bookkeeping costs host time."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
 def project(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
             antialiased, tile_size, scenes: int = 1) -> Projection:
     """Differentiable projection (see projection.project_gaussians; ``scenes`` scenes laid end to end)."""
-    out = ProjectGaussians.apply(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane,
-                                 far_plane, eps2d, antialiased, tile_size, scenes)
-    return Projection(*out)
+    args = (means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, antialiased,
+            tile_size, scenes)
+    if not _differentiable(means, quats, scales, opacities):
+        return project_gaussians(*args)
+    return Projection(*ProjectGaussians.apply(*args))
 
 
 def sh_colors(degree: int, means: torch.Tensor, viewmats: torch.Tensor, coeffs: torch.Tensor, radii: torch.Tensor,
               scenes: int = 1) -> torch.Tensor:
     """Differentiable SH colours (see sh.eval_sh_colors; ``scenes`` scenes laid end to end); gradients flow
     to the means (through the view directions) and the coefficients, not to the cameras."""
+    if not _differentiable(means, coeffs):
+        return eval_sh_colors(degree, means, viewmats, coeffs, radii, scenes)
     return SHColors.apply(degree, means, viewmats, coeffs, radii, scenes)
 
 
@@ -117,6 +127,8 @@ def composite(means2d, conics, colors, opacities, bins: Bins, width, height, til
               deterministic: bool = False):
     """Differentiable compositing (see composite.composite_forward): (render, alphas, last_ids);
     ``deterministic`` selects the bit-reproducible backward reduction."""
+    if not _differentiable(means2d, conics, colors, opacities):
+        return composite_forward(means2d, conics, colors, opacities, bins, width, height, tile_size, max_alpha)
     return CompositeTiles.apply(means2d, conics, colors, opacities, bins.tile_ranges, bins.flatten_ids,
                                 bins.tiles_x, bins.tiles_y, width, height, tile_size, max_alpha,
                                 bool(deterministic))

@@ -42,8 +42,16 @@ def _write_keys(
     tiles_per_camera: int,
     keys: wp.array(dtype=wp.int64),
     values: wp.array(dtype=wp.int32),
+    ranges: wp.array2d(dtype=wp.int32),
 ):
     c, g = wp.tid()
+    # Empty tiles keep the range (0, 0): the threads clear the ranges first (``_tile_ranges`` runs after the
+    # sort), thread c * N + g every (C * N)-th tile from its own index.
+    t = c * rects.shape[1] + g
+    while t < ranges.shape[0]:
+        ranges[t, 0] = 0
+        ranges[t, 1] = 0
+        t += rects.shape[0] * rects.shape[1]
     count = tiles_touched[c, g]
     if count == 0:  # culled or off-screen: no keys, and no need to read the rectangle
         return
@@ -85,7 +93,7 @@ class PendingBins:
     N: int
     tiles_x: int
     tiles_y: int
-    ranges: torch.Tensor  # [max(tiles, 1), 2] int32, zero: empty tiles stay (0, 0)
+    ranges: torch.Tensor  # [max(tiles, 1), 2] int32, cleared by ``_write_keys`` (empty tiles stay (0, 0))
     total: torch.Tensor | None  # [1] int64 on the host (pinned, filled once ``ready``), None: nothing to bin
     ready: torch.cuda.Event | None  # recorded after the copy of the total on CUDA, None on the CPU
     key_inputs: list
@@ -101,7 +109,7 @@ def start_binning(proj: Projection, width: int, height: int, tile_size: int) -> 
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     n_tiles = C * tiles_x * tiles_y
-    ranges = torch.zeros(max(n_tiles, 1), 2, device=device, dtype=torch.int32)
+    ranges = torch.empty(max(n_tiles, 1), 2, device=device, dtype=torch.int32)
     pending = PendingBins(C, N, tiles_x, tiles_y, ranges, None, None, [],
                           32 + max(1, int(n_tiles - 1).bit_length()))
     if C * N == 0:
@@ -130,10 +138,10 @@ def finish_binning(pending: PendingBins) -> Bins:
     if total >= 2**31:
         raise RuntimeError(f"{total} tile intersections exceed int32 indexing; render fewer cameras per call")
     if total == 0:
-        return Bins(p.ranges[:n_tiles], torch.zeros(0, device=device, dtype=torch.int32), p.tiles_x, p.tiles_y)
+        return Bins(p.ranges[:n_tiles].zero_(), torch.zeros(0, device=device, dtype=torch.int32), p.tiles_x, p.tiles_y)
     keys = torch.empty(2 * total, device=device, dtype=torch.int64)  # the sort's double buffers
     values = torch.empty(2 * total, device=device, dtype=torch.int32)
-    launch(_write_keys, (p.C, p.N), [*p.key_inputs, to_wp(keys), to_wp(values)], keys)
+    launch(_write_keys, (p.C, p.N), [*p.key_inputs, to_wp(keys), to_wp(values), to_wp(p.ranges)], keys)
     radix_sort_pairs(keys, values, total, p.end_bit)
     launch(_tile_ranges, total, [to_wp(keys), total, to_wp(p.ranges)], keys)
     return Bins(p.ranges[:n_tiles], values[:total], p.tiles_x, p.tiles_y)
