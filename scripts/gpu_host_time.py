@@ -13,19 +13,17 @@ too (a smoke test of this script, without gsplat or the profiler table).
 
 from __future__ import annotations
 
-import argparse
 import collections
 import statistics
 import sys
 import time
 
 import torch
+from gpu_vs_gsplat import call, report, script_args, single_scenes
 
 import scenesplat_stereo.raster.rendering as rendering
-from scenesplat_stereo.bench.render import GUITAR, guitar_scene, identity_camera, load_gsplat, random_scene
 from scenesplat_stereo.raster import rasterization
 
-KEYS = ("means", "quats", "scales", "opacities", "colors")
 _marks: dict[str, float] = {}
 
 
@@ -38,19 +36,6 @@ def _timed_finish(pending):
 
 
 _FINISH = rendering.finish_binning
-
-
-def call(impl, data, W, H, sh, grad):
-    leaves = {k: data[k].detach().requires_grad_(grad) for k in KEYS}
-    kw = dict(sh_degree=sh, rasterize_mode="antialiased")
-    if impl is rasterization:
-        kw["max_alpha"] = 0.999
-    with torch.set_grad_enabled(grad):
-        _marks["call"] = time.perf_counter()
-        out = impl(*(leaves[k] for k in KEYS), data["viewmats"], data["Ks"], W, H, **kw)[0]
-        _marks["returned"] = time.perf_counter()
-        if grad:
-            out.square().mean().backward()
 
 
 def ms(values) -> str:
@@ -80,11 +65,11 @@ def gpu_busy(fn, iters: int = 10) -> tuple[float, list[tuple[float, str]]]:
 
 
 def workload(name, data, W, H, sh, dev, gs, repeats) -> list[str]:
-    fns = {"ours forward": lambda: call(rasterization, data, W, H, sh, False),
-           "ours fwd+bwd": lambda: call(rasterization, data, W, H, sh, True)}
+    fns = {"ours forward": lambda: call(rasterization, data, W, H, sh, False, _marks),
+           "ours fwd+bwd": lambda: call(rasterization, data, W, H, sh, True, _marks)}
     if gs is not None:
-        fns |= {"gsplat forward": lambda: call(gs, data, W, H, sh, False),
-                "gsplat fwd+bwd": lambda: call(gs, data, W, H, sh, True)}
+        fns |= {"gsplat forward": lambda: call(gs, data, W, H, sh, False, _marks),
+                "gsplat fwd+bwd": lambda: call(gs, data, W, H, sh, True, _marks)}
     sync = torch.cuda.synchronize if dev == "cuda" else (lambda: None)
     for fn in fns.values():
         fn(), fn()
@@ -116,28 +101,10 @@ def workload(name, data, W, H, sh, dev, gs, repeats) -> list[str]:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--repeats", type=int, default=30)
-    p.add_argument("--out", default=None)
-    a = p.parse_args()
+    a = script_args(__doc__, 30)
     dev = "cuda" if torch.cuda.is_available() else "cpu"
-    gs = load_gsplat() if dev == "cuda" else None
-    n1m, W, H = (5000, 160, 96) if a.quick else (1_000_000, 1280, 720)
-    vm, K = identity_camera(W, H, dev)
-    work = [(f"random {n1m:,} SH3 {W}x{H}", random_scene(n1m, 3, dev) | dict(viewmats=vm, Ks=K), W, H, 3)]
-    if GUITAR.exists() and not a.quick:
-        g, gv, gK = guitar_scene(dev, W, H)
-        work.insert(0, (f"guitar {g['means'].shape[0]:,} SH0 {W}x{H}", g | dict(viewmats=gv, Ks=gK), W, H, 0))
-    name = torch.cuda.get_device_name() if dev == "cuda" else "CPU"
-    lines = [f"### Host time against GPU time ({name}, {a.repeats} interleaved runs, medians)", ""]
-    for w in work:
-        block = workload(*w, dev, gs, a.repeats)
-        lines += block
-        print("\n".join(block), flush=True)
-    if a.out:
-        with open(a.out, "w") as f:
-            f.write("\n".join(lines) + "\n")
+    work = single_scenes(a.quick, dev)[::-1]  # the guitar first
+    report("Host time against GPU time, medians", work, workload, dev, a.repeats, a.out)
     return 0
 
 

@@ -32,13 +32,19 @@ from scenesplat_stereo.raster.sh import eval_sh_colors
 KEYS = ("means", "quats", "scales", "opacities", "colors")
 
 
-def call(impl, data, W, H, sh, grad):
+def call(impl, data, W, H, sh, grad, marks: dict | None = None):
+    """One call of ``impl`` (ours or gsplat's) on the workload, with mean(render^2) backward when ``grad``;
+    ``marks`` receives the host times (perf_counter) at the call and when it returned."""
     leaves = {k: data[k].detach().requires_grad_(grad) for k in KEYS}
     kw = dict(sh_degree=sh, rasterize_mode="antialiased")
     if impl is rasterization:
         kw["max_alpha"] = 0.999
     with torch.set_grad_enabled(grad):
+        if marks is not None:
+            marks["call"] = time.perf_counter()
         out = impl(*(leaves[k] for k in KEYS), data["viewmats"], data["Ks"], W, H, **kw)[0]
+        if marks is not None:
+            marks["returned"] = time.perf_counter()
         if grad:
             out.square().mean().backward()
     return leaves
@@ -115,31 +121,49 @@ def workload_rows(name, data, W, H, sh, dev, gs, repeats) -> list[str]:
     return lines + [""]
 
 
-def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def script_args(doc: str, repeats: int) -> argparse.Namespace:
+    """``--quick``, ``--repeats``, ``--out`` of these GPU scripts."""
+    p = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true")
-    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--repeats", type=int, default=repeats)
     p.add_argument("--out", default=None)
-    a = p.parse_args()
-    dev = "cuda" if torch.cuda.is_available() else "cpu"
-    gs = load_gsplat() if dev == "cuda" else None
-    scenes, side, n1m, W, H = (2, 32, 5000, 160, 96) if a.quick else (32, 256, 1_000_000, 1280, 720)
-    work = [(f"model: {scenes} scenes x 4 targets {side}x{side}, SH 2, batched", rb.workload(scenes, side, dev),
-             side, side, rb.SH_DEGREE)]
+    return p.parse_args()
+
+
+def single_scenes(quick: bool, dev: str) -> list[tuple]:
+    """(name, data, W, H, sh_degree) of the single-scene workloads: 1M random SH3 at 1280x720 and the
+    guitar teacher when present (``quick``: 5,000 Gaussians at 160x96, no guitar)."""
+    n1m, W, H = (5000, 160, 96) if quick else (1_000_000, 1280, 720)
     vm, K = identity_camera(W, H, dev)
-    work.append((f"random {n1m:,} SH3 {W}x{H}", random_scene(n1m, 3, dev) | dict(viewmats=vm, Ks=K), W, H, 3))
-    if GUITAR.exists() and not a.quick:
+    work = [(f"random {n1m:,} SH3 {W}x{H}", random_scene(n1m, 3, dev) | dict(viewmats=vm, Ks=K), W, H, 3)]
+    if GUITAR.exists() and not quick:
         g, gv, gK = guitar_scene(dev, W, H)
         work.append((f"guitar {g['means'].shape[0]:,} SH0 {W}x{H}", g | dict(viewmats=gv, Ks=gK), W, H, 0))
+    return work
+
+
+def report(title: str, work: list[tuple], rows, dev: str, repeats: int, out: str | None) -> None:
+    """Print ``rows(*workload, dev, gsplat, repeats)`` (markdown lines) per workload under ``title``
+    (followed by the device and the repeats), and write them all to ``out`` when given."""
+    gs = load_gsplat() if dev == "cuda" else None
     name = torch.cuda.get_device_name() if dev == "cuda" else "CPU"
-    lines = [f"### Ours against gsplat ({name}, {a.repeats} interleaved runs)", ""]
+    lines = [f"### {title} ({name}, {repeats} interleaved runs)", ""]
     for w in work:
-        block = workload_rows(*w, dev, gs, a.repeats)
+        block = rows(*w, dev, gs, repeats)
         lines += block
         print("\n".join(block), flush=True)
-    if a.out:
-        with open(a.out, "w") as f:
+    if out:
+        with open(out, "w") as f:
             f.write("\n".join(lines) + "\n")
+
+
+def main() -> int:
+    a = script_args(__doc__, 20)
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    scenes, side = (2, 32) if a.quick else (32, 256)
+    work = [(f"model: {scenes} scenes x 4 targets {side}x{side}, SH 2, batched", rb.workload(scenes, side, dev),
+             side, side, rb.SH_DEGREE), *single_scenes(a.quick, dev)]
+    report("Ours against gsplat", work, workload_rows, dev, a.repeats, a.out)
     return 0
 
 
