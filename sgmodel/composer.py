@@ -53,7 +53,7 @@ CHANNELS = {
     "quat": slice(6, 10),  # quaternion residual delta_q (w, x, y, z)
     "sh": slice(10, 37),  # degree-2 SH residuals, coefficient-major: channel 10 + 3k + c
 }
-LAYER_CHANNELS = 37
+LAYER_CHANNELS = CHANNELS["sh"].stop  # 37
 SH_COEFFS = 9  # degree 2
 _SPLIT = tuple(s.stop - s.start for s in CHANNELS.values())  # the ranges are contiguous and in this order
 _SH_DEGREE = (0, 1, 1, 1, 2, 2, 2, 2, 2)  # degree j of SH coefficient k
