@@ -33,6 +33,7 @@ from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION
                            MIN_REGISTERED_FRAMES, Filters, VariantConfig, run_dataset, summary_table)
 from scenesplat_stereo.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera, RecoveryOptions,
                                       image_size, recover_poses, recovery_json)
+from scenesplat_stereo.commandline import Parser
 from scenesplat_stereo.files import atomic_write_json, check_writable
 from scenesplat_stereo.text import argtype, parse_size, positive_number, whole_number
 
@@ -65,8 +66,8 @@ def _options(args: argparse.Namespace) -> RecoveryOptions:
 
 
 def dataset_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m pipelines.irs_pose_recovery", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser(prog="python -m pipelines.irs_pose_recovery", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("root", type=Path, metavar="DATASET_ROOT", help="IRS dataset root (searched recursively)")
     p.add_argument("--out", type=Path, required=True, help="output folder (one sub-folder per variant)")
     p.add_argument("--workers", type=whole_number("--workers"), default=1, help="variants processed in parallel (processes; default 1)")
@@ -88,9 +89,9 @@ def dataset_parser() -> argparse.ArgumentParser:
 
 
 def recover_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m pipelines.irs_pose_recovery recover",
-                                description="Recover camera poses (c2w, OpenCV axes, arbitrary units) of the "
-                                            "images of one folder seen by one fixed pinhole camera.")
+    p = Parser(prog="python -m pipelines.irs_pose_recovery recover",
+               description="Recover camera poses (c2w, OpenCV axes, arbitrary units) of the "
+                           "images of one folder seen by one fixed pinhole camera.")
     p.add_argument("--images", type=Path, required=True, help="folder of images (natural name order)")
     p.add_argument("--intrinsics", required=True, help="fx,fy,cx,cy in pixels (pixel centres at +0.5)")
     p.add_argument("--out", type=Path, required=True, help="output poses.json")

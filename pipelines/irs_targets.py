@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.irs import IRS_FOCAL_BASELINE, depth_from_disparity, read_disparity
+from scenesplat_stereo.commandline import Parser
 from scenesplat_stereo.text import format_table, key_safe_name, positive_number, whole_number
 
 # Paper appendix F, "IRS target selection and training".
@@ -373,8 +374,8 @@ def summary_table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m pipelines.irs_targets", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = Parser(prog="python -m pipelines.irs_targets", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("poses_dir", type=Path, metavar="POSES_DIR", help="output folder of irs_pose_recovery.py")
     p.add_argument("--out", type=Path, required=True, help="shard folder (OUT/<split>/shard-*.tar)")
     p.add_argument("--val-variants", type=whole_number("--val-variants", 0), default=VAL_VARIANTS,

@@ -10,6 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from scenesplat_stereo.commandline import Parser
 from scenesplat_stereo.text import argtype, parse_size, whole_number
 
 
@@ -98,7 +99,7 @@ _COMMANDS = [_add_render, _add_build, _add_inspect, _add_demo_teachers, _add_ben
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="scenesplat-stereo",
         description="SceneSplat-Stereo: calibrated stereo pairs and nearby target views rendered from "
         "3DGS teacher scenes. Cameras are OpenCV (x right, y down, z forward); poses on disk are "

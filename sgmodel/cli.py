@@ -12,102 +12,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenesplat_stereo.text import positive_number, whole_number
+from scenesplat_stereo.commandline import Parser
 
+from .args import add_model_arguments, add_train_arguments, device_from_flag, params_from_args
 from .checkpoint import CheckpointError
-from .config import PRESETS, ModelParams, TrainParams
 from .weights import SOURCES, WeightsError
 
 EXIT_USAGE = 2
-
-
-def add_model_arguments(p: argparse.ArgumentParser) -> None:
-    """Flags of ModelParams (defaults: the paper's, or the --preset's). Shared by train, ablate, bench."""
-    g = p.add_argument_group("model (defaults: the paper's values, or the preset's)")
-    g.add_argument("--preset", choices=sorted(PRESETS), default="paper",
-                   help="'paper' (default): the paper's sizes and schedule; 'cpu-small': 64x64, padding 4, "
-                        "32-channel decoder/predictor, sgbm encoder, batch 4, 2 targets, 200 steps (minutes on 2 "
-                        "CPU cores)")
-    g.add_argument("--encoder", help="frozen stereo encoder (default psmnet-kitti; see `sgmodel weights`)")
-    g.add_argument("--encoder-weights", help="local weights file of the encoder (default: the fetched cache)")
-    g.add_argument("--encoder-repo", help="the encoder's code checkout (foundation-stereo variants)")
-    g.add_argument("--resolution", type=whole_number("--resolution"),
-                   help="S: square input and target size, pixels (default 256)")
-    g.add_argument("--padding", type=whole_number("--padding", 0),
-                   help="P: canvas padding per side, pixels (default 16)")
-    g.add_argument("--decoder-channels", type=whole_number("--decoder-channels"),
-                   help="DPT descriptor width (default 128)")
-    g.add_argument("--predictor-channels", type=whole_number("--predictor-channels"),
-                   help="predictor width (default 128)")
-    g.add_argument("--no-back-layer", action="store_true", help="ablation: front layer only")
-    g.add_argument("--no-descriptor", action="store_true", help="ablation: no DPT descriptor in the predictor")
-    g.add_argument("--no-rgbd", action="store_true", help="ablation: no RGB-D in the decoder and predictor inputs")
-    g.add_argument("--no-composer", action="store_true",
-                   help="ablation: plain activations instead of residual composition (docs/model.md)")
-    g.add_argument("--edge-mask", choices=("none", "hard", "soft"), help="ablation: back-layer opacity gate")
-
-
-def add_train_arguments(p: argparse.ArgumentParser) -> None:
-    """Flags of TrainParams (defaults: the paper's schedule, or the --preset's)."""
-    g = p.add_argument_group("training (defaults: the paper's values, or the preset's)")
-    g.add_argument("--steps", type=whole_number("--steps"), help="optimiser steps (default 30000)")
-    g.add_argument("--batch-size", type=whole_number("--batch-size"),
-                   help="stereo pairs per step over all ranks (default 32)")
-    g.add_argument("--targets", type=whole_number("--targets"),
-                   help="targets per pair per step, of the stored 10 (default 4)")
-    g.add_argument("--lr", type=positive_number("--lr"), help="AdamW peak learning rate (default 4e-4)")
-    g.add_argument("--weight-decay", type=float, help="AdamW weight decay (default 0.01)")
-    g.add_argument("--warmup", type=float, help="OneCycleLR warm-up fraction (default 0.09)")
-    g.add_argument("--lpips-weight", type=float, help="weight of the LPIPS (or 1 - SSIM) term (default 0.05)")
-    g.add_argument("--val-every", type=whole_number("--val-every"), help="steps between validations (default 3000)")
-    g.add_argument("--val-samples", type=whole_number("--val-samples"), help="cap on validation samples (default: all)")
-    g.add_argument("--log-every", type=whole_number("--log-every"),
-                   help="steps between metrics.jsonl records (default 10)")
-    g.add_argument("--seed", type=int, help="data order, target draws and initialisation (default 0)")
-    g.add_argument("--workers", type=whole_number("--workers", 0), help="DataLoader workers per rank (default 4)")
-    g.add_argument("--no-amp", action="store_true", help="float32 convolutions on CUDA (default: bf16 autocast)")
-
-
-_TRAIN_FLAGS = ("steps", "batch_size", "targets", "lr", "weight_decay", "warmup", "lpips_weight", "val_every",
-                "val_samples", "log_every", "seed", "workers")
-
-
-def params_from_args(args: argparse.Namespace) -> tuple[ModelParams, TrainParams]:
-    """Dataclass defaults <- the preset <- flags the user gave."""
-    preset = PRESETS[args.preset]
-    model = ModelParams.from_dict(_merge(ModelParams().to_dict(), preset["model"]))
-    train = TrainParams(**_merge(TrainParams().to_dict(), preset["train"]))
-    if args.encoder:
-        model.encoder.name = args.encoder
-    model.encoder.weights = args.encoder_weights or model.encoder.weights
-    model.encoder.repo = args.encoder_repo or model.encoder.repo
-    for name in ("resolution", "padding"):
-        if getattr(args, name) is not None:
-            setattr(model, name, getattr(args, name))
-    if args.decoder_channels:
-        model.decoder.channels = args.decoder_channels
-    if args.predictor_channels:
-        model.predictor.channels = args.predictor_channels
-    model.composer.back_layer = not args.no_back_layer and model.composer.back_layer
-    model.descriptor = not args.no_descriptor and model.descriptor
-    model.rgbd = not args.no_rgbd and model.rgbd
-    model.composer.composer = not args.no_composer and model.composer.composer
-    if args.edge_mask:
-        model.composer.edge_mask = args.edge_mask
-    for name in _TRAIN_FLAGS:
-        if getattr(args, name, None) is not None:
-            setattr(train, name, getattr(args, name))
-    if getattr(args, "no_amp", False):
-        train.amp = False
-    train.betas = tuple(train.betas)
-    return model, train
-
-
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) else v
-    return out
 
 
 def _add_train(sub) -> None:
@@ -126,23 +37,11 @@ def _add_train(sub) -> None:
 
     def run(args) -> int:
         model, tp = params_from_args(args)
-        train.train(model, tp, args.data, args.out, device=_device(args.device), vgg_path=args.lpips_vgg,
+        train.train(model, tp, args.data, args.out, device=device_from_flag(args.device), vgg_path=args.lpips_vgg,
                     progress=not args.no_progress)
         return 0
 
     p.set_defaults(func=run)
-
-
-def _device(name: str | None) -> str:
-    import torch
-
-    if name is None:
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name != "cpu" and not name.startswith("cuda"):
-        raise ValueError(f"--device must be cpu or cuda[:N], got {name!r}")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: CUDA is not available on this machine")
-    return name
 
 
 def _add_weights(sub) -> None:
@@ -173,7 +72,7 @@ def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split",
                        description=evaluate.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     evaluate.add_arguments(p)
-    p.set_defaults(func=lambda args: evaluate.run(args, _device(args.device)))
+    p.set_defaults(func=lambda args: evaluate.run(args, device_from_flag(args.device)))
 
 
 def _add_predict(sub) -> None:
@@ -196,7 +95,7 @@ def _add_ablate(sub) -> None:
 
     def run(args) -> int:
         model, tp = params_from_args(args)
-        print(ablate.ablate(model, tp, args.data, args.out, _device(args.device), args.lpips_vgg, args.only,
+        print(ablate.ablate(model, tp, args.data, args.out, device_from_flag(args.device), args.lpips_vgg, args.only,
                             not args.no_progress))
         return 0
 
@@ -219,7 +118,7 @@ def _add_bench(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sgmodel", description=__doc__,
+    parser = Parser(prog="sgmodel", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version="sgmodel 0.1.0")
     sub = parser.add_subparsers(dest="command", required=True)

@@ -33,6 +33,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from scenesplat_stereo import encode
+from scenesplat_stereo.commandline import Parser
 from scenesplat_stereo.encode import SampleEncoder, SampleImages
 from scenesplat_stereo.protocol import NUM_TARGETS
 from scenesplat_stereo.shards import ShardWriter
@@ -207,6 +208,6 @@ def run(args) -> int:
 if __name__ == "__main__":
     import argparse
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(parser)
     raise SystemExit(run(parser.parse_args()))

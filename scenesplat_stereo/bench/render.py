@@ -30,6 +30,7 @@ import torch
 
 from scenesplat_stereo.bench.render_batch import batch_table
 from scenesplat_stereo.cameras import look_at, viewmats_from_c2w
+from scenesplat_stereo.commandline import Parser
 from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.reference import as_renderer_sees, reference_rasterization
@@ -321,8 +322,8 @@ def run_batch(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     """``python -m scenesplat_stereo.bench.render``: the same as ``scenesplat-stereo bench render``, with no
     import of the dataset rooms (for GPU machines that lack OpenImageIO)."""
-    parser = argparse.ArgumentParser(prog="bench render", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(prog="bench render", description=__doc__,
+                    formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(parser)
     return run(parser.parse_args(argv))
 

@@ -18,12 +18,11 @@ import torch
 
 from scenesplat_stereo.text import markdown_table
 
-from . import report, synced_clock
-
 from ..data import make_loader
 from ..encoders import create_encoder
 from ..geometry import depth_from_disparity
 from ..train import to_device
+from . import report, synced_clock
 
 
 def disparity_errors(disparity: torch.Tensor, depth: torch.Tensor, fx: torch.Tensor, baseline: torch.Tensor

@@ -20,13 +20,12 @@ import torch
 
 from scenesplat_stereo.text import argtype, markdown_table, parse_size
 
-from . import report, synced_clock
-
 from .. import export
-from ..cli import add_model_arguments, params_from_args
+from ..args import add_model_arguments, params_from_args
 from ..geometry import depth_from_disparity
 from ..model import create_model, load_predictor
 from ..render import render_views
+from . import report, synced_clock
 
 STAGES = ("encoder", "decoder + predictor", "composer", "export .ply", "render one view")
 

@@ -18,15 +18,14 @@ import torch
 
 from scenesplat_stereo.text import markdown_table
 
-from . import report, synced_clock
-
-from ..cli import add_model_arguments, params_from_args
+from ..args import add_model_arguments, params_from_args
 from ..data import make_loader
 from ..geometry import depth_from_disparity
 from ..losses import create_objective
 from ..model import create_model
 from ..render import render_views
 from ..train import to_device, train_step
+from . import report, synced_clock
 
 STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation forward", "loss", "backward",
           "optimiser")
