@@ -5,9 +5,11 @@ Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned 
 section 7, sgmodel.metrics): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
 when the VGG16 weights are available; each over the full image and over the valid mask.
 
-Writes REPORT/ (atomically, after every input is checked): ``metrics.json`` (means, target count, encoder,
-method or checkpoint, split), ``targets.csv`` (one row per target), ``scenes.md`` (a table per scene), and
-``sheet.png`` (the worst and the best targets by PSNR: target | render).
+Writes REPORT/ after every input is checked (the data split, the checkpoint or encoder, the LPIPS weights,
+and REPORT itself: absent, empty or an earlier report, apart from the data): ``metrics.json`` (means,
+target count, encoder, method or checkpoint, split), ``targets.csv`` (one row per target), ``scenes.md`` (a
+table per scene), and ``sheet.png`` (the worst and the best targets by PSNR: target | render). The report
+is built in a staging folder that replaces REPORT as a whole (``scenesplat_stereo.files.StagedFolder``).
 """
 
 from __future__ import annotations
@@ -22,11 +24,11 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.files import atomic_write_bytes
-from scenesplat_stereo.text import markdown_table
+from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable
+from scenesplat_stereo.text import markdown_table, whole_number
 
 from . import baselines, metrics
-from .data import make_loader
+from .data import make_loader, read_split
 from .encoders import create_encoder
 from .geometry import depth_from_disparity
 from .lpips import create_lpips
@@ -38,6 +40,7 @@ from .train import to_device
 METHODS = ("naive-gs", "forward-splat")
 METRICS = ("psnr", "ssim", "lpips")
 SHEET_TARGETS = 4  # worst and best targets shown in sheet.png
+OWNER = "sgmodel eval"  # recorded in REPORT (files.OWNER_FILE): a later evaluation may replace it
 
 
 @dataclass
@@ -62,7 +65,10 @@ def checkpoint_method(checkpoint: Path, device: str, encoder_weights: str | None
 
 
 def baseline_method(name: str, encoder_name: str, weights: str | None, resolution: int, device: str) -> Method:
-    encoder = create_encoder(encoder_name, weights=weights, device=device)
+    try:
+        encoder = create_encoder(encoder_name, weights=weights, device=device)
+    except ValueError as e:
+        raise ValueError(f"--encoder {encoder_name}: {e}") from None
 
     @torch.no_grad()
     def render(batch: dict) -> torch.Tensor:
@@ -143,11 +149,11 @@ def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpi
               "resolution": method.resolution, "targets": len(rows),
               "lpips": "LPIPS-VGG v0.1" if lpips_net is not None else "not computed (no VGG16 ImageNet weights)",
               "mean": summarise(rows)}
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out / "metrics.json", (json.dumps(result, indent=2) + "\n").encode())
-    atomic_write_bytes(out / "targets.csv", _csv(rows))
-    atomic_write_bytes(out / "scenes.md", (scene_table(rows) + "\n").encode())
-    atomic_write_bytes(out / "sheet.png", target_sheet(kept))
+    with StagedFolder(out, OWNER) as tmp:
+        (tmp / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+        (tmp / "targets.csv").write_bytes(_csv(rows))
+        (tmp / "scenes.md").write_text(scene_table(rows) + "\n")
+        (tmp / "sheet.png").write_bytes(target_sheet(kept))
     return result
 
 
@@ -159,19 +165,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     which.add_argument("--method", choices=METHODS, help="a baseline without learned prediction")
     p.add_argument("--encoder", default="psmnet-kitti", help="encoder of a baseline (default psmnet-kitti)")
     p.add_argument("--encoder-weights", help="local weights file of the encoder (default: the fetched cache)")
-    p.add_argument("--resolution", type=int, default=256, help="S for a baseline (a checkpoint uses its own)")
+    p.add_argument("--resolution", type=whole_number("--resolution", 16), default=256,
+                   help="S for a baseline (a checkpoint uses its own)")
     p.add_argument("--out", type=Path, required=True, help="report folder")
-    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
-    p.add_argument("--batch-size", type=int, default=4, help="pairs per batch (default 4)")
+    p.add_argument("--batch-size", type=whole_number("--batch-size"), default=4, help="pairs per batch (default 4)")
     p.add_argument("--lpips-vgg", help="VGG16 ImageNet weights for LPIPS (default: torch's hub cache)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def check_report_folder(out: Path, data: Path, checkpoint: Path | None = None) -> None:
+    """REPORT may be replaced by a new report: absent, empty or an earlier report, writable, apart from the
+    data and the checkpoint (ValueError naming --out). Reads only."""
+    check_replaceable(out, "--out", OWNER)
+    check_apart(out, "--out", {"--data": data, "--checkpoint": checkpoint}, replaced=True)
+
+
 def run(args: argparse.Namespace, device: str) -> int:
-    if args.out.exists() and not args.out.is_dir():
-        raise ValueError(f"--out {args.out}: exists and is not a folder")
-    if args.batch_size < 1:
-        raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
+    check_report_folder(args.out, args.data, args.checkpoint)
+    read_split(args.data, args.split)
     method = checkpoint_method(args.checkpoint, device, args.encoder_weights) if args.checkpoint else \
         baseline_method(args.method, args.encoder, args.encoder_weights, args.resolution, device)
     result = evaluate(method, args.data, args.split, args.out, device, args.lpips_vgg, args.batch_size,

@@ -144,14 +144,14 @@ def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", e
                    encoder_repo: str | None = None) -> Predictor:
     """Rebuild a model from a checkpoint written by ``sgmodel train`` (its ModelParams travel inside it);
     the frozen encoder is rebuilt from the registry (weights from the cache or ``encoder_weights``)."""
-    from .checkpoint import load_checkpoint
+    from .checkpoint import load_checkpoint, load_weights, model_params_of
 
     ckpt = load_checkpoint(checkpoint)
-    params = ModelParams.from_dict(ckpt["model_params"])
+    params = model_params_of(ckpt, checkpoint)
     if encoder_weights is not None:
         params.encoder.weights = encoder_weights
     if encoder_repo is not None:
         params.encoder.repo = encoder_repo
     model = create_model(params, device)
-    model.load_state_dict(ckpt["model"])
+    load_weights(model, ckpt, checkpoint)
     return Predictor(model)

@@ -7,18 +7,23 @@ no Gaussians): its views are the z-buffered warp of the left image.
 
 The pair is resized so its short side is the model's resolution (the checkpoint's, or ``--resolution``,
 or 256 for the baselines), keeping the aspect ratio, each side rounded to a multiple of 16; K (and doffs)
-are scaled by the same factors per axis, and the outputs are at that size. Every input is checked before
-anything is written; outputs go to a temporary folder beside OUT and are moved into OUT at the end.
-Errors in the inputs raise ``PredictError`` (or ``CalibError``); ``run`` turns them into exit status 2.
+are scaled by the same factors per axis, and the outputs are at that size. Images are turned upright by
+their EXIF Orientation tag (as phones store them; the calibration is of the upright pixels).
+
+Every input is checked before anything is written: both images (readable, one size, at least 16 pixels a
+side), the calibration against them (principal point inside the image; a warning when it is far from the
+centre, as with a K of another resolution), the encoder's depth against the calibration (refused when
+``doffs`` puts every pixel at the depth clamp), and OUT (absent, empty, or an earlier prediction; apart
+from the inputs). The outputs are written to a staging folder beside OUT that replaces OUT as a whole at
+the end (``scenesplat_stereo.files.StagedFolder``): no file of an earlier prediction is left beside new
+ones. Errors in the inputs raise ``PredictError`` (or ``CalibError``), which the command line turns into
+one line and exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
-import sys
-import tempfile
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,11 +32,13 @@ import torch
 import torch.nn.functional as F
 
 from scenesplat_stereo.encode import decode_image, encode_png, to_uint8
+from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable
 
 from . import baselines, export
+from .args import add_device_argument, device_from_flag
 from .bench import synced_clock
-from .calib import CalibError, Calibration, calib_from_flags, read_calib
-from .geometry import Z_MAX, depth_from_disparity
+from .calib import Calibration, calib_from_flags, read_calib
+from .geometry import Z_MAX, Z_MIN, depth_from_disparity
 from .render import render_views
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
@@ -42,6 +49,12 @@ SIZE_MULTIPLE = 16
 VIEW_RADIUS = 0.15
 #: Frames in the orbit animation.
 ORBIT_FRAMES = 24
+#: Smallest image side accepted, pixels (stereo matching needs a few pixels of context; 1x1 is no pair).
+MIN_IMAGE_SIDE = SIZE_MULTIPLE
+#: Fraction of matched pixels at the depth clamp above which the depth is refused (doffs or baseline wrong).
+CLAMPED_REFUSED = 0.99
+OWNER = "sgmodel predict"  # recorded in OUT (files.OWNER_FILE): a later prediction may replace OUT
+logger = logging.getLogger(__name__)
 _IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".ppm", ".pgm", ".pfm", ".webp"}
 
 
@@ -66,7 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--encoder-repo", help="source checkout the encoder imports (FoundationStereo)")
     parser.add_argument("--resolution", type=int, help="short side the model runs at (default: the "
                         f"checkpoint's; {DEFAULT_RESOLUTION} for --method)")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    add_device_argument(parser)
 
 
 @dataclass
@@ -91,6 +104,9 @@ def read_image(path: str, flag: str) -> torch.Tensor:
         raise PredictError(f"{flag} {path}: not a readable image ({e})") from None
     if arr.shape[2] not in (1, 2, 3, 4):
         raise PredictError(f"{flag} {path}: expected 1 to 4 channels, got {arr.shape[2]}")
+    if min(arr.shape[:2]) < MIN_IMAGE_SIDE:
+        raise PredictError(f"{flag} {path}: {arr.shape[1]}x{arr.shape[0]} pixels is too small for a stereo pair "
+                           f"(both sides must be >= {MIN_IMAGE_SIDE})")
     arr = arr[:, :, :1].repeat(3, 2) if arr.shape[2] < 3 else arr[:, :, :3]
     img = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
     return img.float() / 255.0 if arr.dtype == np.uint8 else img.float().clamp(0, 1)
@@ -111,6 +127,7 @@ def read_pair(args: argparse.Namespace) -> Pair:
     else:
         raise PredictError("missing calibration: give --calib FILE, or --intrinsics fx,fy,cx,cy and --baseline B")
     calib.check_size(left.shape[3], left.shape[2], args.left)
+    calib.check_principal_point(left.shape[3], left.shape[2], args.left)
     return Pair(left, right, calib)
 
 
@@ -163,20 +180,36 @@ def _check_args(args: argparse.Namespace) -> None:
     if args.resolution is not None and args.resolution < SIZE_MULTIPLE:
         raise PredictError(f"--resolution must be at least {SIZE_MULTIPLE}, got {args.resolution}")
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise PredictError(f"--out {args.out}: exists and is not a folder")
     if not out.resolve().parent.is_dir():
         raise PredictError(f"--out {args.out}: parent folder {out.resolve().parent} does not exist")
-    try:
-        torch.device(args.device)
-    except RuntimeError as e:
-        raise PredictError(f"--device {args.device!r}: {e}") from None
+    check_replaceable(out, "--out", OWNER)
+    check_apart(out, "--out", {f: getattr(args, f[2:]) for f in ("--left", "--right", "--calib", "--checkpoint")},
+                replaced=True)
+
+
+def check_depth(z: torch.Tensor, disparity: torch.Tensor | None, calib: Calibration, source: str) -> None:
+    """PredictError when (nearly) every pixel's depth z [1,1,H,W] is at the clamp z_max or z_min: a ``doffs``
+    or baseline that does not fit the pair (numbers in the message); a warning when most are."""
+    zc = z.flatten()
+    clamped = ((zc >= Z_MAX) | (zc <= Z_MIN)).float().mean().item()
+    if clamped < 0.5:
+        return
+    d = f"; the encoder's disparity spans {disparity.min().item():.1f}..{disparity.max().item():.1f} px" \
+        if disparity is not None else ""
+    text = (f"{source}: {100 * clamped:.1f}% of the pixels get a depth at the clamp ({Z_MIN:g} or {Z_MAX:g} m) "
+            f"with fx={calib.K[0, 0]:.1f} px, baseline {calib.baseline:g} m, doffs {calib.doffs:g} px{d} "
+            f"(z = fx B / (d + doffs); d + doffs <= 0 is 'no match'): check doffs (Middlebury: cx1 - cx0, pixels) "
+            f"and the baseline; or the images do not match (the same image twice?) or the scene lies outside the "
+            f"model's depth range")
+    if clamped >= CLAMPED_REFUSED:
+        raise PredictError(text)
+    logger.warning(text)
 
 
 def predict(args: argparse.Namespace, log=print) -> None:
     """Do the work of ``sgmodel predict`` (raises PredictError / CalibError on bad input)."""
     _check_args(args)
-    device = torch.device(args.device)
+    device = torch.device(device_from_flag(args.device))
     timer = _Timer(device)
     pair = read_pair(args)
     if args.checkpoint:
@@ -205,18 +238,19 @@ def predict(args: argparse.Namespace, log=print) -> None:
         if args.checkpoint:
             extra = {"doffs": pair.calib.doffs} if pair.calib.doffs else {}
             gaussians, z = predictor.predict(left, right, K, baseline, **extra)
+            check_depth(z, None, pair.calib, pair.calib.source)
             timer.lap("predict")
         else:
             disparity = encoder(left, right).disparity
             z = depth_from_disparity(disparity, K[:, 0, 0], baseline, doffs=pair.calib.doffs)
+            check_depth(z, disparity, pair.calib, pair.calib.source)
             timer.lap("encoder")
             if args.method == "naive-gs":
                 gaussians = baselines.naive_gs(left, z, K)
                 timer.lap("compose")
 
         out = Path(args.out)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.resolve().parent))
-        try:
+        with StagedFolder(out, OWNER) as tmp:
             (tmp / "views").mkdir()
             if gaussians is not None:
                 export.write_ply(gaussians, tmp / "scene.ply")
@@ -241,34 +275,12 @@ def predict(args: argparse.Namespace, log=print) -> None:
                 (tmp / "views" / f"{name}.png").write_bytes(encode_png(frames[i]))
             export.write_orbit_gif(frames[len(named):], tmp / "orbit.gif")
             timer.lap("render views")
-            written = _move_into(tmp, out)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
+            written = sorted(str(p.relative_to(tmp)) for p in tmp.rglob("*") if p.is_file())
     log(timer.table())
     log(f"wrote {out}/: " + ", ".join(written))
 
 
-def _move_into(tmp: Path, out: Path) -> list[str]:
-    """Move every file of ``tmp`` into ``out`` (same file system, one ``os.replace`` each); their names."""
-    written = []
-    for src in sorted(tmp.rglob("*")):
-        dst = out / src.relative_to(tmp)
-        if src.is_dir():
-            dst.mkdir(parents=True, exist_ok=True)
-        else:
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(src, dst)
-            written.append(str(src.relative_to(tmp)))
-    return written
-
-
 def run(args: argparse.Namespace) -> int:
-    """Entry point of the CLI: 0 on success; 2 with one message on stderr for bad input."""
-    from .weights import WeightsError
-
-    try:
-        predict(args)
-    except (PredictError, CalibError, WeightsError) as e:
-        print(f"sgmodel predict: error: {e}", file=sys.stderr)
-        return 2
+    """Entry point of the CLI: 0 on success (bad input raises; the command line makes it one line, exit 2)."""
+    predict(args)
     return 0

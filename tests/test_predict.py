@@ -23,14 +23,12 @@ from scripts.guitar_pair import H, W, render_pair
 
 
 
-def make_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser()
-    predict_mod.add_arguments(p)
-    return p
-
-
 def run(argv) -> int:
-    return predict_mod.run(make_parser().parse_args([str(a) for a in argv]))
+    """``sgmodel predict ARGV``'s exit status (through the command line's one error path)."""
+    try:
+        return sgmodel_main(["predict", *[str(a) for a in argv]])
+    except SystemExit as e:  # argparse's own refusals
+        return e.code
 
 
 class OracleEncoder:
@@ -63,7 +61,7 @@ def test_predict_naive_gs_on_the_guitar_reproduces_the_left_image(guitar_pair, t
     assert rc == 0, log
     assert "| encoder |" in log and "| render views |" in log and f"model size {W}x{H}" in log
     names = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
-    assert names == ["depth.png", "orbit.gif", "scene.ply"] + [
+    assert names == [".written-by", "depth.png", "orbit.gif", "scene.ply"] + [
         f"views/{v}.png" for v in ("center", "down", "forward", "left", "right", "up")]
     scene = load_ply(out / "scene.ply", strict=True)
     assert len(scene) == W * H and scene.sh_degree == 2
