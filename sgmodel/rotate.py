@@ -31,7 +31,8 @@ def sh_rotation(R: np.ndarray, degree: int) -> np.ndarray:
     Y = sh_basis(degree, d).numpy()                                   # [n, K] at d
     Y_old = sh_basis(degree, d @ torch.from_numpy(R)).numpy()         # [n, K] at R^T d (rows d^T R)
     A = np.zeros((Y.shape[1], Y.shape[1]))
-    for l in range(degree + 1):
+    A[0, 0] = 1.0                                                     # band 0 is constant: exactly kept
+    for l in range(1, degree + 1):
         band = slice(l * l, (l + 1) * (l + 1))
         A[band, band] = np.linalg.lstsq(Y[:, band], Y_old[:, band], rcond=None)[0]   # Y M^T = Y_old: M^T
     return A

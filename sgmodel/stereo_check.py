@@ -4,7 +4,8 @@ A rectified pair puts every scene point on one image row in both images, to the 
 the vertical disparity dy = y_right - y_left is zero and the disparity d = x_left - x_right (+ doffs, the
 principal-point offset of Middlebury pairs) is positive. ``measure`` matches SIFT features (OpenCV; the
 images are first scaled so that the long side is at most ``MAX_SIDE``; Lowe's ratio test, then a RANSAC
-fundamental matrix removes gross mismatches) and reports, in pixels of the input images:
+fundamental matrix, then a robust cut of dy far from its median (``OUTLIER_SIGMAS``) remove mismatches) and
+reports, in pixels of the input images:
 
 * the median and the 95th percentile of |dy| (a rectified pair: under ``DY_MEDIAN_MAX`` = 1 px and
   ``DY_P95_MAX`` = 2 px; SIFT places features to a few tenths of a pixel);
@@ -37,6 +38,9 @@ MIN_MATCHES = 30
 MAX_SIDE = 1280
 #: SIFT features per image, Lowe's ratio, RANSAC threshold (pixels of the scaled images).
 MAX_FEATURES, RATIO, RANSAC_PX = 2000, 0.75, 1.5
+#: Mismatches left by RANSAC (repeated texture): dy farther from the median than OUTLIER_SIGMAS robust
+#: standard deviations (1.4826 MAD), and at least OUTLIER_SIGMAS * OUTLIER_FLOOR pixels, are dropped.
+OUTLIER_SIGMAS, OUTLIER_FLOOR = 10.0, 0.5
 
 
 class StereoCheckError(ValueError):
@@ -118,6 +122,10 @@ def measure(left, right, doffs: float = 0.0, rectified_here: bool = False) -> St
     from ``--rig`` (the likely cause of a vertical disparity is then the calibration, not missing
     rectification)."""
     p1, p2 = matches(left, right)
+    if len(p1):
+        dev = np.abs((p2[:, 1] - p1[:, 1]) - np.median(p2[:, 1] - p1[:, 1]))
+        keep = dev <= OUTLIER_SIGMAS * max(1.4826 * np.median(dev), OUTLIER_FLOOR)
+        p1, p2 = p1[keep], p2[keep]
     n = len(p1)
     if n < MIN_MATCHES:
         return StereoCheck(n, float("nan"), float("nan"), float("nan"), float("nan"), (float("nan"),) * 3,
@@ -131,17 +139,21 @@ def measure(left, right, doffs: float = 0.0, rectified_here: bool = False) -> St
     disparity = tuple(float(x) for x in np.percentile(d, [5, 50, 95]))
     warnings = []
     if dy_median > DY_MEDIAN_MAX or dy_p95 > DY_P95_MAX:
-        if abs(shift) > DY_MEDIAN_MAX and np.median(np.abs(dy - shift)) < 0.5 * abs(shift):
-            cause = (f"the right image sits {shift:+.1f} px lower than the left one throughout (the images were "
-                     f"cropped or shifted differently)")
-        elif rectified_here:
+        uniform = abs(shift) > DY_MEDIAN_MAX and np.median(np.abs(dy - shift)) < 0.5 * abs(shift)
+        pattern = (f"nearly the same everywhere (the right image {shift:+.1f} px lower)" if uniform else
+                   "varying across the image")
+        if rectified_here:
             cause = ("the calibration does not fit these images (another rig, another resolution or zoom, a moved "
                      "lens, or cam0 and cam1 mixed up)")
+        elif uniform:
+            cause = ("the images were cropped or shifted differently, or the pair is not rectified (one camera "
+                     "tilted): give the raw calibration with --rig to rectify it")
         else:
             cause = ("the pair is not rectified, or was rectified with another calibration: give the raw "
                      "calibration with --rig and let sgmodel rectify the pair")
         warnings.append(f"vertical disparity median {dy_median:.2f} px, 95th percentile {dy_p95:.2f} px over {n} "
-                        f"matches (a rectified pair stays under {DY_MEDIAN_MAX:g} px and {DY_P95_MAX:g} px): {cause}")
+                        f"matches, {pattern} (a rectified pair stays under {DY_MEDIAN_MAX:g} px and {DY_P95_MAX:g} px): "
+                        f"{cause}")
     if negative > NEGATIVE_MAX:
         warnings.append(f"{negative:.0%} of {n} matches have negative disparity (median {disparity[1]:+.1f} px): the "
                         f"left and right images are probably swapped (--left must be the left camera's image)")
