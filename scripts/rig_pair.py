@@ -33,7 +33,7 @@ from scenesplat_stereo.raster import rasterization
 
 W, H = 320, 240  # pixels, both raw cameras
 BASELINE = 0.1  # metres
-SEED, FRAME, N_FRAMES, N_GAUSSIANS = 0, 3, 12, 60_000
+SEED, FRAME, N_FRAMES, N_GAUSSIANS = 0, 6, 12, 60_000
 # Per camera: (fx, fy, cx, cy) in OpenCV's convention, a rotation vector (radians) from raw to rectified axes.
 INTRINSICS = ((252.0, 250.5, 162.3, 117.6), (240.0, 239.2, 156.8, 122.9))
 ROTATIONS = ((0.035, -0.05, 0.02), (-0.02, 0.03, -0.03))

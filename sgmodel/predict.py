@@ -201,9 +201,6 @@ def predict(args: argparse.Namespace, log=print) -> None:
     if pair.rectification is not None:
         timer.lap("read and rectify")
         log(pair.rectification.summary())
-    check = stereo_check.run_check(pair.left, pair.right, args.strict, pair.calib.doffs, pair.rectification is not None,
-                                   log)
-    timer.lap("stereo check")
     if args.checkpoint:
         from .model import load_predictor
 
@@ -215,6 +212,10 @@ def predict(args: argparse.Namespace, log=print) -> None:
         except ValueError as e:  # an unknown encoder name
             raise PredictError(f"--encoder: {e}") from None
         short = args.resolution or DEFAULT_RESOLUTION
+    timer.lap("load")
+    check = stereo_check.run_check(pair.left, pair.right, args.strict, pair.calib.doffs, pair.rectification is not None,
+                                   log)
+    timer.lap("stereo check")
     pair = resize_pair(pair, short)
     _, _, h, w = pair.left.shape
     log(f"model size {w}x{h} (short side {short}, sides multiples of {SIZE_MULTIPLE}); K scaled to "
@@ -223,7 +224,6 @@ def predict(args: argparse.Namespace, log=print) -> None:
     left, right = pair.left.to(device), pair.right.to(device)
     K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None]
     baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
-    timer.lap("load")
 
     with torch.no_grad():
         gaussians = None

@@ -92,12 +92,13 @@ def _grey(image) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 and image.shape[2] == 3 else image.squeeze()
 
 
-def matches(left, right) -> tuple[np.ndarray, np.ndarray]:
+def matches(left, right, max_side: int = MAX_SIDE) -> tuple[np.ndarray, np.ndarray]:
     """Matched SIFT feature positions [n,2] (x, y; pixels of the input images, OpenCV's integer centres) in
-    the left and the right image, after the ratio test and a RANSAC fundamental matrix."""
+    the left and the right image, after the ratio test and a RANSAC fundamental matrix; SIFT runs on the
+    images scaled to a long side of at most ``max_side`` pixels."""
     grey = [_grey(left), _grey(right)]
     h, w = grey[0].shape
-    scale = min(1.0, MAX_SIDE / max(h, w))
+    scale = min(1.0, max_side / max(h, w))
     if scale < 1:
         grey = [cv2.resize(g, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA) for g in grey]
     sift = cv2.SIFT_create(nfeatures=MAX_FEATURES)
@@ -116,12 +117,12 @@ def matches(left, right) -> tuple[np.ndarray, np.ndarray]:
     return (p1 + 0.5) / scale - 0.5, (p2 + 0.5) / scale - 0.5
 
 
-def measure(left, right, doffs: float = 0.0, rectified_here: bool = False) -> StereoCheck:
+def measure(left, right, doffs: float = 0.0, rectified_here: bool = False, max_side: int = MAX_SIDE) -> StereoCheck:
     """The check of a pair (tensors [1,3,H,W] or arrays [H,W,3], uint8 or float in [0, 1]). ``doffs``: the
     pair's principal-point disparity offset (pixels, Middlebury); ``rectified_here``: the pair was rectified
     from ``--rig`` (the likely cause of a vertical disparity is then the calibration, not missing
-    rectification)."""
-    p1, p2 = matches(left, right)
+    rectification); ``max_side``: see ``matches``."""
+    p1, p2 = matches(left, right, max_side)
     if len(p1):
         dev = np.abs((p2[:, 1] - p1[:, 1]) - np.median(p2[:, 1] - p1[:, 1]))
         keep = dev <= OUTLIER_SIGMAS * max(1.4826 * np.median(dev), OUTLIER_FLOOR)

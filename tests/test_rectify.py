@@ -84,14 +84,13 @@ def test_rectified_cameras_form_an_ideal_pair_and_maps_follow_the_lens_model(rec
 @pytest.mark.parametrize("model", MODELS)
 def test_rectified_images_match_renders_of_the_rectified_cameras(rectified_rigs, model):
     """The raw images were distorted by one bilinear remap and are rectified by another; the renders of the
-    rectified cameras are direct. Measured 40.0-41.0 dB (CPU, this commit); a 1 px error in the maps costs
-    about 10 dB on this texture."""
+    rectified cameras are direct. Measured 42.3-46.4 dB (CPU, this commit)."""
     _, _, left, right, _, rgb, _ = rectified_rigs[model]
     for ours, truth in ((left, rgb[0]), (right, rgb[1])):
         mse = np.mean((ours[8:-8, 8:-8] / 255.0 - truth[8:-8, 8:-8]) ** 2)
         psnr = -10 * math.log10(mse)
         print(f"{model}: rectified image against the rectified camera's render: {psnr:.2f} dB")
-        assert psnr > 37.0
+        assert psnr > 38.0
 
 
 def _sgbm_depth(left, right, K, baseline):
@@ -103,10 +102,11 @@ def _sgbm_depth(left, right, K, baseline):
 @pytest.mark.parametrize("model", MODELS)
 def test_stereo_depth_after_rectification_matches_the_ground_truth(rectified_rigs, model):
     """SGBM on our rectified pair against the rendered depth of the rectified left camera, next to SGBM on
-    the ideal pair (direct renders of the same cameras). Disparities are 8 to 20 px here, so 0.3 px of
-    disparity is about 2% of depth. Measured (this commit): ours median disparity error 0.20-0.21 px, depth
-    1.4-1.7%; ideal pair 0.14-0.16 px, 1.1%: rectification adds 0.05-0.07 px (the two bilinear resamplings).
-    Without rectification (the raw pair with the raw left K) the error is tens of pixels."""
+    the ideal pair (direct renders of the same cameras). The tolerance is SGBM's own sub-pixel error plus
+    what two bilinear resamplings (the synthetic distortion, then the rectification) may add: median
+    disparity error under 0.3 px and at most 0.1 px above the ideal pair's; with disparities of 8 to 13 px
+    here, 0.3 px is 3% of depth. Measured (this commit): ours 0.18-0.21 px, depth 1.6-2.1%; ideal pair
+    0.17-0.18 px, 1.5-1.9%. Without rectification (the raw pair, rectified K) the error is many pixels."""
     r, rect, left, right, _, rgb, depth = rectified_rigs[model]
     gt = depth[0]
     valid = gt > 0
@@ -116,7 +116,7 @@ def test_stereo_depth_after_rectification_matches_the_ground_truth(rectified_rig
         d, z = _sgbm_depth(a, b, rect.K, rect.baseline)
         errors[name] = (np.median(np.abs(d[valid] - d_gt)), np.median(np.abs(z[valid] - gt[valid]) / gt[valid]))
         print(f"{model} {name}: median disparity error {errors[name][0]:.3f} px, depth {100 * errors[name][1]:.2f}%")
-    assert errors["ours"][0] < 0.3 and errors["ours"][1] < 0.025
+    assert errors["ours"][0] < 0.3 and errors["ours"][1] < 0.03
     assert errors["ours"][0] < errors["ideal"][0] + 0.1
     raw_d, _ = _sgbm_depth(read_png(r.folder / "left.png") / 255.0, read_png(r.folder / "right.png") / 255.0,
                            rect.K, rect.baseline)

@@ -155,7 +155,7 @@ def test_mismatches_far_off_the_rows_are_dropped_but_a_real_spread_is_kept(monke
     p1 = rng.uniform([0, 0], [W, H], (60, 2))
     p2 = p1 - [12.0, 0.0] + rng.normal(0, 0.1, (60, 2))
     p2[:3, 1] += [120.0, -90.0, 140.0]
-    monkeypatch.setattr("sgmodel.stereo_check.matches", lambda left, right: (p1, p2))
+    monkeypatch.setattr("sgmodel.stereo_check.matches", lambda left, right, max_side: (p1, p2))
     check = measure(None, None)
     assert check.matches == 57 and check.warnings == () and check.dy_p95 < 0.5
     p2[:, 1] = p1[:, 1] + np.tan(np.radians(3)) * (p1[:, 0] - W / 2)     # a 3 degree roll: |dy| up to 8 px
