@@ -48,11 +48,10 @@ def epipolar_curve(rig: StereoRig, point: np.ndarray) -> np.ndarray:
     x = undistort(point.reshape(1, 1, 2), rig.K1, rig.D1).reshape(2)
     depths = np.geomspace(0.3, 30.0, 200)
     pts = (np.array([x[0], x[1], 1.0])[None] * depths[:, None]) @ rig.R.T + rig.T
-    project = cv2.fisheye.projectPoints if rig.model == FISHEYE else cv2.projectPoints
     if rig.model == FISHEYE:
-        out = project(pts.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), rig.K2, rig.D2)[0]
+        out = cv2.fisheye.projectPoints(pts.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), rig.K2, rig.D2)[0]
     else:
-        out = project(pts, np.zeros(3), np.zeros(3), rig.K2, rig.D2)[0]
+        out = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), rig.K2, rig.D2)[0]
     return out.reshape(-1, 2)
 
 
@@ -112,7 +111,8 @@ def check_table(out: dict, truth) -> None:
     rgb, _ = render(out["scene"], [truth.c2w_rect, right], [K, K], W, H)
     ideal = [to_uint8(x) for x in rgb]
     rl, rr = out["rectified_images"]
-    cases = [("rendered rectified pair (ideal)", ideal, False), ("raw rig pair after our rectification", (rl, rr), True),
+    cases = [("rendered rectified pair (ideal)", ideal, False),
+             ("raw rig pair after our rectification", (rl, rr), True),
              ("raw rig pair, not rectified", out["raw_images"], False),
              ("ideal pair, left and right swapped", ideal[::-1], False),
              ("ideal pair, right image 3 px lower", (ideal[0], _shift(ideal[1], dy=3.0)), False),
@@ -156,7 +156,8 @@ def timing_table(scene, truth, rig: StereoRig, scale: int = 6) -> None:
 
 
 def main() -> None:
-    out_png = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[1] / "docs/images/rectification.png"
+    default = Path(__file__).resolve().parents[1] / "docs" / "images" / "rectification.png"
+    out_png = Path(sys.argv[1]) if len(sys.argv) > 1 else default
     from scripts.rig_pair import room
 
     scene = room()

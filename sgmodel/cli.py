@@ -78,7 +78,8 @@ def _add_eval(sub) -> None:
 def _add_predict(sub) -> None:
     from . import predict
 
-    p = sub.add_parser("predict", help="a stereo pair (rectified, or raw with --rig) -> a 3DGS scene (.ply), depth and novel views",
+    p = sub.add_parser("predict", help="a stereo pair (rectified, or raw with --rig) -> a 3DGS scene (.ply), depth "
+                                       "and novel views",
                        description=predict.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     predict.add_arguments(p)
     p.set_defaults(func=predict.run)

@@ -200,7 +200,7 @@ def predict(args: argparse.Namespace, log=print) -> None:
     pair = read_pair(args)
     if pair.rectification is not None:
         timer.lap("read and rectify")
-        log(pair.rectification.summary())
+        pair.rectification.report(log)
     if args.checkpoint:
         from .model import load_predictor
 

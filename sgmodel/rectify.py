@@ -70,13 +70,12 @@ class Rectification:
             R1, R2, P1, P2, _ = cv2.fisheye.stereoRectify(
                 rig.K1, rig.D1, rig.K2, rig.D2, size, rig.R, T, flags=cv2.CALIB_ZERO_DISPARITY, newImageSize=size,
                 balance=FREE_SCALING, fov_scale=1.0)
-            maps = [cv2.fisheye.initUndistortRectifyMap(K, D, Ri, P, size, cv2.CV_32FC1)
-                    for K, D, Ri, P in ((rig.K1, rig.D1, R1, P1), (rig.K2, rig.D2, R2, P2))]
         else:
             R1, R2, P1, P2 = cv2.stereoRectify(rig.K1, rig.D1, rig.K2, rig.D2, size, rig.R, T,
                                                flags=cv2.CALIB_ZERO_DISPARITY, alpha=FREE_SCALING)[:4]
-            maps = [cv2.initUndistortRectifyMap(K, D, Ri, P, size, cv2.CV_32FC1)
-                    for K, D, Ri, P in ((rig.K1, rig.D1, R1, P1), (rig.K2, rig.D2, R2, P2))]
+        init = cv2.fisheye.initUndistortRectifyMap if rig.model == FISHEYE else cv2.initUndistortRectifyMap
+        maps = [init(K, D, Ri, P, size, cv2.CV_32FC1) for K, D, Ri, P in ((rig.K1, rig.D1, R1, P1),
+                                                                         (rig.K2, rig.D2, R2, P2))]
         K = P1[:, :3].astype(np.float64)
         if not np.isfinite(P2).all() or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise RigError(f"{rig.source}: OpenCV's stereo rectification failed (non-finite or non-positive "
@@ -123,14 +122,16 @@ class Rectification:
     def summary(self) -> str:
         """One line: the rectified K and baseline, and how far the raw left camera turns."""
         K = self.K
-        text = (f"rectified with {self.rig.source} ({self.rig.model} lenses): K fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} "
+        return (f"rectified with {self.rig.source} ({self.rig.model} lenses): K fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} "
                 f"cx={K[0, 2]:.2f} cy={K[1, 2]:.2f}, baseline {self.baseline:.4g} m, {self.size[0]}x{self.size[1]}; "
-                f"the raw left camera is {self.rotation_deg:.2f} deg from the rectified one (scene.ply is in the "
-                f"raw left camera's frame)")
+                f"the raw left camera is {self.rotation_deg:.2f} deg from the rectified one")
+
+    def report(self, log=print, warn=stereo_check.stderr_line) -> None:
+        """The summary to ``log``; a baseline over ``LONG_BASELINE`` to ``warn`` as a likely unit mistake."""
+        log(self.summary())
         if self.baseline > LONG_BASELINE:
-            text += (f"\nwarning: a baseline of {self.baseline:.4g} m is long for a stereo rig: if the calibration's T is "
-                     f"not in metres, give --rig-units mm or cm")
-        return text
+            warn(f"warning: a baseline of {self.baseline:.4g} m is long for a stereo rig: if the calibration's T is "
+                 f"not in metres, give --rig-units mm or cm")
 
     def to_json(self) -> dict:
         """What ``sgmodel rectify`` records beside the images (matrices as row lists)."""
@@ -183,6 +184,7 @@ def predict_from_rig(predictor, left, right, rig: StereoRig, short_side: int | N
         raise RigError(f"left is {left.shape[3]}x{left.shape[2]} but right {right.shape[3]}x{right.shape[2]}: both "
                        f"cameras of a rig deliver one size")
     rect = Rectification.of(rig, (left.shape[3], left.shape[2]))
+    rect.report(log)
     pair = Pair(*rect.rectify_tensors(left, right), rect.calibration, rect)
     check = stereo_check.run_check(pair.left, pair.right, strict, rectified_here=True, log=log)
     pair = resize_pair(pair, short_side or predictor.resolution)
@@ -216,10 +218,11 @@ def rectify_command(args: argparse.Namespace, log=print) -> None:
                        f"{right.shape[3]}x{right.shape[2]}: both cameras of a rig deliver one size")
     rect = Rectification.of(rig, (left.shape[3], left.shape[2]))
     left, right = rect.rectify_tensors(left, right)
-    log(rect.summary())
+    rect.report(log)
     check = stereo_check.run_check(left, right, args.strict, rectified_here=True, log=log)
     out = check_writable(args.out, "--out")
-    images = {name: encode_png(to_uint8(x[0].permute(1, 2, 0).numpy())) for name, x in (("left", left), ("right", right))}
+    images = {name: encode_png(to_uint8(x[0].permute(1, 2, 0).numpy()))
+              for name, x in (("left", left), ("right", right))}
     for name, data in images.items():
         atomic_write_bytes(out / f"{name}.png", data)
     atomic_write_bytes(out / "K.txt", foundation_stereo_text(rect.K, rect.baseline).encode())

@@ -111,7 +111,7 @@ def add_arguments(parser: argparse.ArgumentParser, required: bool = False) -> No
     parser.add_argument("--rig", nargs="+", metavar="FILE", required=required,
                         help="raw stereo calibration: OpenCV FileStorage YAML/XML from stereoCalibrate (one file, or "
                              "intrinsics.yml extrinsics.yml) or a Kalibr camchain.yaml; the pair is rectified for you "
-                             "(docs/calibration.md)")
+                             "and predict's scene.ply comes back in the raw left camera's frame (docs/calibration.md)")
     parser.add_argument("--rig-units", choices=sorted(UNITS), default="m",
                         help="unit of the rig's translation T (default m; OpenCV's is that of the target's squares)")
 
@@ -200,7 +200,8 @@ def _read_opencv(paths: list[Path]) -> dict:
     for field in ("K1", "K2", "R", "T"):
         if field not in fields:
             names = _OPENCV_NAMES[field]
-            raise RigError(f"{first}: missing field {field}" + (f" (one of {', '.join(names)})" if len(names) > 1 else ""))
+            alternatives = f" (one of {', '.join(names)})" if len(names) > 1 else ""
+            raise RigError(f"{first}: missing field {field}{alternatives}")
     out = {k: fields[k] for k in ("K1", "K2", "R", "T")}
     model, where = fields.get("model", ("radtan", first))
     if model.lower() not in _OPENCV_MODELS:
@@ -345,7 +346,7 @@ def _make_rig(fields: dict, metres_per_unit: float, source: str) -> StereoRig:
         raise RigError(f"{where_T}: the second camera sits at {centre.round(4).tolist()} m from the first, not beside "
                        f"it along x: a side-by-side (horizontal) rig is needed")
     if centre[0] < 0:
-        raise RigError(f"{where_T}: the second camera sits {-centre[0]:.3g} m to the LEFT of the first; cam0/K1 must be "
-                       f"the left camera (swap the cameras in the calibration and --left/--right)")
+        raise RigError(f"{where_T}: the second camera sits {-centre[0]:.3g} m to the LEFT of the first; cam0/K1 must "
+                       f"be the left camera (swap the cameras in the calibration and --left/--right)")
     size, size_field = (image_size(*fields["size"]), fields["size"][1]) if "size" in fields else (None, "")
     return StereoRig(K1, D1, K2, D2, R, T, model, size, source, size_field)

@@ -153,20 +153,21 @@ def measure(left, right, doffs: float = 0.0, rectified_here: bool = False, max_s
             cause = ("the pair is not rectified, or was rectified with another calibration: give the raw "
                      "calibration with --rig and let sgmodel rectify the pair")
         warnings.append(f"vertical disparity median {dy_median:.2f} px, 95th percentile {dy_p95:.2f} px over {n} "
-                        f"matches, {pattern} (a rectified pair stays under {DY_MEDIAN_MAX:g} px and {DY_P95_MAX:g} px): "
-                        f"{cause}")
+                        f"matches, {pattern} (a rectified pair stays under {DY_MEDIAN_MAX:g} px and "
+                        f"{DY_P95_MAX:g} px): {cause}")
     if negative > NEGATIVE_MAX:
         warnings.append(f"{negative:.0%} of {n} matches have negative disparity (median {disparity[1]:+.1f} px): the "
                         f"left and right images are probably swapped (--left must be the left camera's image)")
     return StereoCheck(n, dy_median, dy_p95, shift, negative, disparity, tuple(warnings))
 
 
-def _stderr(line: str) -> None:
+def stderr_line(line: str) -> None:
+    """Print one warning line on stderr."""
     print(line, file=sys.stderr)
 
 
 def run_check(left, right, strict: bool, doffs: float = 0.0, rectified_here: bool = False, log=print,
-              warn=_stderr) -> StereoCheck:
+              warn=stderr_line) -> StereoCheck:
     """``measure`` with its summary line logged and its warnings given to ``warn`` as one line (stderr);
     StereoCheckError under ``strict`` when it warns."""
     check = measure(left, right, doffs, rectified_here)

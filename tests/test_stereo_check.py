@@ -135,7 +135,8 @@ def test_predict_warns_reports_and_strict_exits_2(ideal_pair, raw_rig, tmp_path,
     r = raw_rig("radtan")
     assert _predict(["--left", r.folder / "left.png", "--right", r.folder / "right.png", *common, "--out", out,
                      "--strict"]) == 2
-    assert "the pair is not rectified (one camera tilted): give the raw calibration with --rig" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "the pair is not rectified (one camera tilted): give the raw calibration with --rig" in err
 
 
 def test_rectify_strict_refuses_a_swapped_rig_pair(raw_rig, tmp_path, capsys):
