@@ -111,9 +111,12 @@ class Rectification:
         return out[0], out[1]
 
     def rectify_tensors(self, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The same for float images [1,3,H,W] (``sgmodel.predict.read_image``'s layout)."""
-        images = [np.ascontiguousarray(x[0].permute(1, 2, 0).numpy(), dtype=np.float32) for x in (left, right)]
-        return tuple(torch.from_numpy(x).permute(2, 0, 1)[None].contiguous() for x in self.rectify(*images))
+        """The same for batches of float images [B,3,H,W] on the CPU (``sgmodel.predict``'s layout; a video's
+        frames reuse the maps)."""
+        pairs = [self.rectify(*(np.ascontiguousarray(x[b].permute(1, 2, 0).numpy(), dtype=np.float32)
+                                for x in (left, right))) for b in range(left.shape[0])]
+        return tuple(torch.from_numpy(np.stack([p[i] for p in pairs])).permute(0, 3, 1, 2).contiguous()
+                     for i in (0, 1))
 
     def to_raw_frame(self, gaussians: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Gaussians predicted in the rectified left camera's frame -> the raw left camera's frame."""

@@ -27,7 +27,7 @@ from sgmodel.encoders import create_encoder
 from sgmodel.geometry import depth_from_disparity
 from sgmodel.model import Predictor, create_model
 from sgmodel.rectify import Rectification, predict_from_rig
-from sgmodel.rig import read_rig
+from sgmodel.rig import RigError, read_rig
 
 MODELS = ["radtan", "equidistant"]
 CALIB_FILES = {"radtan": "opencv.yml", "equidistant": "camchain.yaml"}
@@ -255,3 +255,18 @@ def test_predict_from_rig_python_api(raw_rig, capsys):
     torch.testing.assert_close(out.gaussians["means"][0].double(), means, atol=1e-5, rtol=1e-5)
     with pytest.raises(ValueError, match=r"left: expected an RGB image \[H, W, 3\]"):
         predict_from_rig(predictor, left[..., 0], right, rig)
+
+
+def test_batches_of_frames_reuse_the_maps(raw_rig):
+    r = raw_rig("radtan")
+    rect = Rectification.of(read_rig(r.folder / "opencv.yml"), (W, H))
+    left, right = (torch.from_numpy(read_png(r.folder / f"{n}.png") / np.float32(255)).permute(2, 0, 1)
+                   for n in ("left", "right"))
+    batch = [torch.stack([left, left.flip(-1), left * 0.5]), torch.stack([right, right.flip(-1), right * 0.5])]
+    out = rect.rectify_tensors(*batch)
+    assert out[0].shape == (3, 3, H, W) and out[0].dtype == torch.float32
+    for b in range(3):
+        one = rect.rectify_tensors(batch[0][b:b + 1], batch[1][b:b + 1])
+        assert torch.equal(out[0][b], one[0][0]) and torch.equal(out[1][b], one[1][0])
+    with pytest.raises(RigError, match=r"the left image is 160x120, the rectification was made for 320x240"):
+        rect.rectify_tensors(batch[0][:, :, :120, :160], batch[1][:, :, :120, :160])
