@@ -1,6 +1,6 @@
 """Rectification of a raw stereo rig's pair with OpenCV, and the way back to the raw left camera.
 
-``Rectification(rig, size)`` runs ``cv2.stereoRectify`` (``cv2.fisheye.stereoRectify`` for equidistant
+``Rectification.of(rig, size)`` runs ``cv2.stereoRectify`` (``cv2.fisheye.stereoRectify`` for equidistant
 lenses) with ``CALIB_ZERO_DISPARITY`` and alpha / balance 0 (the rectified images hold only pixels both raw
 images see: no black borders), and builds the ``initUndistortRectifyMap`` maps once (a video reuses them);
 ``rectify(left, right)`` remaps a pair (bilinear, edge pixels replicated). The rectified pair has one K, the

@@ -71,9 +71,11 @@ class StereoCheck:
         return f"stereo check: {figures}: {'WARNING' if self.warnings else 'ok'}"
 
     def to_json(self) -> dict:
-        return {"matches": self.matches, "dy_median_px": self.dy_median, "dy_p95_px": self.dy_p95,
-                "dy_shift_px": self.dy_shift, "negative_fraction": self.negative_fraction,
-                "disparity_p5_p50_p95_px": list(self.disparity), "warnings": list(self.warnings)}
+        """The figures as JSON values (null where too few matches left nothing to measure)."""
+        number = lambda x: None if np.isnan(x) else x  # noqa: E731
+        return {"matches": self.matches, "dy_median_px": number(self.dy_median), "dy_p95_px": number(self.dy_p95),
+                "dy_shift_px": number(self.dy_shift), "negative_fraction": number(self.negative_fraction),
+                "disparity_p5_p50_p95_px": [number(x) for x in self.disparity], "warnings": list(self.warnings)}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

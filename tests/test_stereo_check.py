@@ -5,6 +5,7 @@ ground truth; a swapped, a vertically shifted, a rotated, an unrectified and a t
 from __future__ import annotations
 
 import argparse
+import json
 import re
 
 import cv2
@@ -96,6 +97,7 @@ def test_textureless_and_tiny_pairs_cannot_be_verified():
         check = measure(flat, flat)
         assert check.matches == 0 and "the check cannot tell" in check.warnings[0]
         assert "too few to measure" in check.summary()
+        assert json.loads(json.dumps(check.to_json(), allow_nan=False))["dy_median_px"] is None
 
 
 def test_middlebury_doffs_makes_image_disparities_valid(ideal_pair):
