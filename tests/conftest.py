@@ -59,3 +59,27 @@ def demo_dataset(tmp_path_factory) -> Path:
     if report.failed:
         raise RuntimeError(f"demo dataset build failed: {[r.error for r in report.failed]}")
     return out
+
+
+@pytest.fixture(scope="session")
+def stereonvs_scenes(tmp_path_factory) -> list:
+    """A StereoNVS-Real-like ROOT of two scenes rendered at known cameras (``tests/stereonvs_fixture.py``):
+    "lab" with JPEG images, "office" with PNG images; 7 stereo pairs each, 96x48 pixels. Returns the
+    ``FixtureScene`` records (their ``folder.parent`` is ROOT). Read-only: copy it to damage it."""
+    from stereonvs_fixture import write_scene
+
+    root = tmp_path_factory.mktemp("stereonvs") / "root"
+    return [write_scene(root, "lab", seed=1, suffix=".jpg"), write_scene(root, "office", seed=2, suffix=".png")]
+
+
+@pytest.fixture(scope="session")
+def stereonvs_dataset(stereonvs_scenes, tmp_path_factory) -> Path:
+    """``scenesplat-stereo import stereonvs`` of ``stereonvs_scenes`` (baseline 0.12 m): OUT with a test
+    split of 9 samples, 14 targets, in shards of 4 samples. Read-only."""
+    from stereonvs_fixture import BASELINE
+
+    from scenesplat_stereo.stereonvs import import_stereonvs
+
+    out = tmp_path_factory.mktemp("stereonvs_out") / "StereoNVS"
+    import_stereonvs(stereonvs_scenes[0].folder.parent, out, BASELINE, samples_per_shard=4, progress=False)
+    return out
