@@ -185,9 +185,10 @@ def add_arguments(p) -> None:
             default = {} if f.metadata["cli"].get("required") else {
                 "default": _Default(f.default_factory() if f.default_factory is not MISSING else f.default)}
             p.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **default, **f.metadata["cli"])
-    p.add_argument("--preset", choices=sorted(PRESETS), help="replicags: the paper's ReplicaGS test set: --split-mode "
-                   "test (100 evenly spaced pairs per scene, 10 targets), native resolution, --baseline 0.1, rho from the "
-                   "PSNR tier, --min-psnr 30; any of these flags given beside it wins (docs/dataset.md)")
+    p.add_argument("--preset", choices=sorted(PRESETS),
+                   help="replicags: the paper's ReplicaGS test set: --split-mode test (100 evenly spaced pairs per "
+                        "scene, 10 targets), native resolution, --baseline 0.1, rho from the PSNR tier, --min-psnr 30; "
+                        "any of these flags given beside it wins (docs/dataset.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the per-sample effect parameters (default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 

@@ -150,7 +150,8 @@ def find_scenes(root: Path, names: list[str] | None = None) -> list[Path]:
     root = Path(root)
     if not root.is_dir():
         raise StereoNvsError(f"ROOT {root}: not a folder")
-    found = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".") and (p / POSES_NAME).is_file())
+    found = sorted(p for p in root.iterdir()
+                   if p.is_dir() and not p.name.startswith(".") and (p / POSES_NAME).is_file())
     if names:
         missing = sorted(set(names) - {p.name for p in found})
         if missing:

@@ -17,6 +17,7 @@ import argparse
 import csv
 import io
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -111,8 +112,11 @@ def measure(method: Method, loader, device: str, lpips_net, progress: bool = Tru
 
 
 def summarise(rows: list[dict]) -> dict:
+    """Means over targets; a masked metric of a target without a valid pixel (NaN) is left out of its mean
+    (NaN only when no target has one)."""
     keys = [k for k in rows[0] if k not in ("key", "scene", "target")]
-    return {k: sum(r[k] for r in rows) / len(rows) for k in keys}
+    values = {k: [r[k] for r in rows if not math.isnan(r[k])] for k in keys}
+    return {k: sum(v) / len(v) if v else math.nan for k, v in values.items()}
 
 
 def scene_table(rows: list[dict]) -> str:

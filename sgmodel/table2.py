@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,8 +82,9 @@ def columns(data: list[tuple[str, Path]], split: str) -> list[Column]:
 
 def cell(means: dict, metric: str, masked: bool) -> float | None:
     """One number of a row's means: ``<metric>_masked`` over valid masks, else ``<metric>``; None when it
-    was not computed (LPIPS without weights)."""
-    return means.get(f"{metric}_masked" if masked else metric)
+    was not computed (LPIPS without weights) or undefined (NaN: no target had a valid pixel)."""
+    value = means.get(f"{metric}_masked" if masked else metric)
+    return None if value is None or math.isnan(value) else value
 
 
 def table_markdown(cols: list[Column], rows: list[Row]) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -82,4 +83,32 @@ def stereonvs_dataset(stereonvs_scenes, tmp_path_factory) -> Path:
 
     out = tmp_path_factory.mktemp("stereonvs_out") / "StereoNVS"
     import_stereonvs(stereonvs_scenes[0].folder.parent, out, BASELINE, samples_per_shard=4, progress=False)
+    return out
+
+
+#: ``replicags_dataset``: 3 demo rooms (one per PSNR tier) at 96x72, 4 frames each, in a ``ReplicaGS`` folder.
+REPLICAGS_SCENES, REPLICAGS_FRAMES = 3, 4
+
+
+@pytest.fixture(scope="session")
+def replicags_dataset(tmp_path_factory) -> Path:
+    """``scenesplat-stereo build --preset replicags`` of demo teachers in ``<teachers>/ReplicaGS/`` (so their
+    subset is ReplicaGS): a test split of 3 scenes x 4 pairs x 10 targets, B = 0.1 m, rho by tier,
+    ``benchmark.json`` masked. Returns OUT (its ``build.json`` records the settings). Read-only."""
+    from scenesplat_stereo.build import build, settings_from_args
+    from scenesplat_stereo.cli import build_parser
+    from scenesplat_stereo.demo import write_demo_teachers
+
+    base = tmp_path_factory.mktemp("replicags")
+    teachers, out = base / "teachers", base / "ReplicaGS"
+    for folder in write_demo_teachers(teachers / "ReplicaGS", n_scenes=REPLICAGS_SCENES, n_frames=REPLICAGS_FRAMES,
+                                      width=96, height=72, num_gaussians=2000, progress=False):
+        meta = json.loads((folder / "scene.json").read_text())
+        del meta["subset"]  # the subset comes from the folder's name, as for downloaded teachers
+        (folder / "scene.json").write_text(json.dumps(meta))
+    args = build_parser().parse_args(["build", "--teachers", str(teachers), "--out", str(out), "--preset", "replicags",
+                                      "--workers", "1", "--device", "cpu", "--no-progress"])
+    report = build(settings_from_args(args))
+    if report.failed:
+        raise RuntimeError(f"ReplicaGS-style build failed: {[r.error for r in report.failed]}")
     return out

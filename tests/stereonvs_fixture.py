@@ -97,8 +97,9 @@ def write_scene(root: Path, name: str, seed: int, suffix: str = ".jpg", frames: 
     c2w_right = right_camera(c2w_left, BASELINE)
     for i, m in (right_noise or {}).items():
         c2w_right[i] = c2w_right[i] @ m
-    scene = FixtureScene(Path(root) / name, [f"{1000 + 7 * k:06d}{suffix}" for k in range(len(frames))], c2w_left,
-                         true_K(), float(rng.uniform(2.0, 5.0)), rotation_about(rng.normal(size=3), rng.uniform(20, 160)),
+    names = [f"{1000 + 7 * k:06d}{suffix}" for k in range(len(frames))]
+    world = rotation_about(rng.normal(size=3), rng.uniform(20, 160))
+    scene = FixtureScene(Path(root) / name, names, c2w_left, true_K(), float(rng.uniform(2.0, 5.0)), world,
                          rng.normal(size=3) * 3.0, suffix)
     room = make_room(seed, sh_degree=1, num_gaussians=gaussians)
     images = render(room, np.concatenate([c2w_left, c2w_right]), scene.K)
