@@ -37,7 +37,8 @@ of a photograph is real, so the benchmark is measured over the full image (``OUT
 
 Output: ``OUT/test/shard-*.tar`` and ``index.json``, ``OUT/stats.json``, ``OUT/benchmark.json`` and
 ``OUT/stereonvs.json`` (per scene: sizes, K, scale, the pairs' spread, rectification angles, counts).
-Everything is read and checked (every image decoded) before the old test shards of OUT are removed.
+Everything is read and checked (every image decoded) before the old test shards of OUT are removed; OUT
+must be new, empty or an earlier import (a build's folder is refused).
 """
 
 from __future__ import annotations
@@ -57,7 +58,8 @@ from scenesplat_stereo.encode import SampleImages, decode_image, encode_jpeg, en
 from scenesplat_stereo.files import atomic_write_json, check_writable
 from scenesplat_stereo.llff import read_poses_bounds
 from scenesplat_stereo.protocol import SampleMeta, sample_key
-from scenesplat_stereo.shards import ShardWriter, collect_stats, remove_unplanned, write_index, write_stats
+from scenesplat_stereo.shards import (INDEX_NAME, ShardWriter, collect_stats, remove_unplanned, write_index,
+                                      write_stats)
 from scenesplat_stereo.text import format_table, key_safe_name, positive_number, whole_number
 
 SUBSET = "StereoNVS"
@@ -302,6 +304,7 @@ def import_stereonvs(root: Path, out: Path, baseline: float, scenes: list[str] |
     images = [(s, p) for s, _, _ in plans for p in s.left + s.right]
     for scene, path in tqdm(images, desc="check images", unit="image", disable=not progress):
         read_jpeg(path, (scene.width, scene.height))  # every image decodes, before OUT is touched
+    _check_out(Path(out))
     check_writable(out, "--out")
     remove_unplanned(out, SPLIT, set())  # the test shards of an earlier import
     rows, reencoded = [], 0
@@ -323,6 +326,15 @@ def import_stereonvs(root: Path, out: Path, baseline: float, scenes: list[str] |
               "paper": {"scenes": PAPER_SCENES, "targets": PAPER_TARGETS}, "scenes": rows}
     atomic_write_json(Path(out) / REPORT_NAME, report)
     return report
+
+
+def _check_out(out: Path) -> None:
+    """OUT may be new, empty or an earlier import (its ``stereonvs.json``); a folder holding another test split
+    or a build is refused, so an import never replaces shards it did not write."""
+    others = [p for p in (out / SPLIT / INDEX_NAME, out / "build.json") if p.exists()]
+    if others and not (out / REPORT_NAME).exists():
+        raise StereoNvsError(f"--out {out}: holds another dataset ({others[0].name}) and no {REPORT_NAME}; use a new "
+                             "--out (an earlier import is replaced, a build never)")
 
 
 def _scene_row(scene: StereoNvsScene, calibration: Calibration, samples: list[SampleMeta]) -> dict:
@@ -355,7 +367,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("root", type=Path, metavar="ROOT", help="StereoNVS-Real folder: ROOT/<scene>/images/{left,right}/*, "
                    "ROOT/<scene>/poses_bounds.npy (e.g. StereoNeRF's validation folder of 8 scenes)")
     p.add_argument("--out", type=Path, required=True, help="output folder (OUT/test/shard-*.tar, index.json, "
-                   "stats.json, benchmark.json, stereonvs.json); its test split is replaced")
+                   "stats.json, benchmark.json, stereonvs.json): new, or an earlier import (replaced); never a build")
     p.add_argument("--baseline", type=positive_number("--baseline"), required=True,
                    help="the stereo rig's baseline in metres: fixes the scale of the COLMAP poses")
     p.add_argument("--scenes", type=lambda t: [s for s in t.split(",") if s], metavar="A,B,...",

@@ -324,6 +324,15 @@ def test_one_pair_scenes_and_unknown_scenes_are_refused(stereonvs_scenes, tmp_pa
     assert not (tmp_path / "o").exists()
 
 
+def test_an_import_never_replaces_a_build(stereonvs_scenes, replicags_dataset, tmp_path):
+    out = tmp_path / "build"
+    shutil.copytree(replicags_dataset, out)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    with pytest.raises(S.StereoNvsError, match="holds another dataset"):
+        S.import_stereonvs(stereonvs_scenes[0].folder.parent, out, BASELINE, progress=False)
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
 def test_cli_import_prints_the_table_and_replaces_an_earlier_import(stereonvs_scenes, tmp_path, capsys):
     root = copy_root(stereonvs_scenes, tmp_path)
     out = tmp_path / "out"
