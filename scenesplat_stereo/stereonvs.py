@@ -250,7 +250,7 @@ def scene_samples(scene: StereoNvsScene, calibration: Calibration, baseline: flo
     return out
 
 
-def read_jpeg(path: Path, size: tuple[int, int]) -> tuple[bytes, bool]:
+def image_as_jpeg(path: Path, size: tuple[int, int]) -> tuple[bytes, bool]:
     """An image file as JPEG bytes for a shard: a 3-channel JPEG as it is on disk, anything else decoded
     (grey repeated, alpha dropped) and encoded at quality 92. Returns (bytes, re-encoded?); StereoNvsError
     naming the file when it does not decode or is not ``size`` (W, H)."""
@@ -272,7 +272,7 @@ def sample_members(scene: StereoNvsScene, meta: SampleMeta) -> tuple[dict[str, b
     """The shard members of one sample (SPEC section 5) and how many of its images were re-encoded."""
     size = (scene.width, scene.height)
     files = [scene.left[meta.frame], scene.right[meta.frame]] + [scene.left[i] for i in meta.target_frames]
-    images = [read_jpeg(p, size) for p in files]
+    images = [image_as_jpeg(p, size) for p in files]
     names = ["left.jpg", "right.jpg"] + [f"target_{j:02d}.jpg" for j in meta.target_ids]
     sample = SampleImages(key=meta.key, left=None, right=None, targets=None,
                           masks=np.ones((meta.num_targets, scene.height, scene.width), dtype=bool),
@@ -303,7 +303,7 @@ def import_stereonvs(root: Path, out: Path, baseline: float, scenes: list[str] |
         plans.append((scene, calibration, scene_samples(scene, calibration, baseline)))
     images = [(s, p) for s, _, _ in plans for p in s.left + s.right]
     for scene, path in tqdm(images, desc="check images", unit="image", disable=not progress):
-        read_jpeg(path, (scene.width, scene.height))  # every image decodes, before OUT is touched
+        image_as_jpeg(path, (scene.width, scene.height))  # every image decodes, before OUT is touched
     _check_out(Path(out))
     check_writable(out, "--out")
     remove_unplanned(out, SPLIT, set())  # the test shards of an earlier import
