@@ -15,7 +15,7 @@ from scenesplat_stereo import stereonvs as S
 from scenesplat_stereo.cameras import translation
 from scenesplat_stereo.cli import main as cli_main
 from scenesplat_stereo.demo import make_room
-from scenesplat_stereo.encode import decode_image
+from scenesplat_stereo.encode import decode_image, encode_jpeg
 from scenesplat_stereo.inspection import inspect_dataset
 from scenesplat_stereo.llff import LlffError, llff_to_opencv, opencv_to_llff, read_poses_bounds
 from scenesplat_stereo.protocol import SampleMeta
@@ -268,6 +268,8 @@ def scaled_right(rows, pair, factor):
     (lambda root: (root / "lab/images/right/001042.jpg").unlink(), "7 left and 6 right images"),
     (lambda root: (root / "office/images/left/001000.png").write_bytes(b"broken"), "001000.png"),
     (lambda root: shutil.rmtree(root / "office/images/right"), "office/images/right: missing"),
+    (lambda root: (root / "lab/images/right/001007.jpg").write_bytes(encode_jpeg(np.zeros((40, 96, 3), np.uint8))),
+     "001007.jpg: 96x40 pixels, 001000.jpg has 96x48"),
 ])
 def test_a_refused_import_names_the_problem_and_leaves_out_alone(stereonvs_scenes, tmp_path, capsys, change,
                                                                  message):
