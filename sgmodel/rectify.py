@@ -20,7 +20,6 @@ and its K.txt for other tools.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from dataclasses import dataclass
 
@@ -28,6 +27,7 @@ import cv2
 import numpy as np
 import torch
 
+from scenesplat_stereo.cameras import rotation_angle_deg
 from scenesplat_stereo.encode import encode_png, to_uint8
 from scenesplat_stereo.files import atomic_write_bytes, atomic_write_json, check_writable
 
@@ -97,7 +97,9 @@ class Rectification:
     @property
     def rotation_deg(self) -> float:
         """Angle between the raw and the rectified left camera, degrees."""
-        return math.degrees(math.acos(np.clip((np.trace(self.R1) - 1) / 2, -1.0, 1.0)))
+        turned = np.eye(4)
+        turned[:3, :3] = self.R1
+        return float(rotation_angle_deg(np.eye(4), turned))
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raw images [H,W] or [H,W,C] (uint8, uint16 or float32, H x W = ``size``) -> the rectified pair,
