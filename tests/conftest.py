@@ -112,3 +112,23 @@ def replicags_dataset(tmp_path_factory) -> Path:
     if report.failed:
         raise RuntimeError(f"ReplicaGS-style build failed: {[r.error for r in report.failed]}")
     return out
+
+
+@pytest.fixture(scope="session")
+def raw_rig(tmp_path_factory):
+    """``raw_rig(model)``: a raw stereo rig's pair of a demo room (scripts/rig_pair.py; "radtan" or
+    "equidistant" lenses) written once per session: namespace(folder, rig = the ground truth, scene)."""
+    import argparse
+
+    from scripts.rig_pair import room, write_rig
+
+    cache, scene = {}, []
+
+    def make(model: str = "radtan"):
+        if model not in cache:
+            scene[:] = scene or [room()]
+            folder = tmp_path_factory.mktemp(f"rig_{model}")
+            cache[model] = argparse.Namespace(folder=folder, rig=write_rig(folder, model, scene[0]), scene=scene[0])
+        return cache[model]
+
+    return make
