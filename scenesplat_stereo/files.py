@@ -178,21 +178,21 @@ def check_writable(folder: str | os.PathLike, flag: str, create: bool = True) ->
     return folder
 
 
-def check_apart(out: str | os.PathLike, flag: str, inputs: dict[str, str | os.PathLike | None],
-                replaced: bool = False) -> None:
+def check_apart(out: str | os.PathLike, flag: str, inputs: dict[str, Any], replaced: bool = False) -> None:
     """ValueError naming both flags when the output ``out`` lies inside an input folder or file given as
-    ``{flag: path}`` (a run folder inside the dataset), or, when ``out`` is ``replaced`` as a whole, when an
-    input lies inside it (replacing it would delete the input)."""
+    ``{flag: path, or a list of paths, or None}`` (a run folder inside the dataset), or, when ``out`` is
+    ``replaced`` as a whole, when an input lies inside it (replacing it would delete the input)."""
     o = Path(out).resolve()
-    for name, path in inputs.items():
-        if path is None:
-            continue
-        p = Path(path).resolve()
-        if o == p or p in o.parents:
-            raise ValueError(f"{flag} {out}: inside {name} {path}; write outputs apart from the inputs")
-        if replaced and o in p.parents:
-            raise ValueError(f"{flag} {out}: holds {name} {path}, and the whole folder is replaced; choose "
-                             f"another {flag}")
+    for name, given in inputs.items():
+        for path in given if isinstance(given, (list, tuple)) else [given]:
+            if path is None:
+                continue
+            p = Path(path).resolve()
+            if o == p or p in o.parents:
+                raise ValueError(f"{flag} {out}: inside {name} {path}; write outputs apart from the inputs")
+            if replaced and o in p.parents:
+                raise ValueError(f"{flag} {out}: holds {name} {path}, and the whole folder is replaced; choose "
+                                 f"another {flag}")
 
 
 def _owner(folder: Path) -> str | None:

@@ -107,7 +107,16 @@ def _add_eval(sub) -> None:
                        description=evaluate.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     evaluate.add_arguments(p)
     add_device_argument(p)
-    p.set_defaults(func=lambda args: evaluate.run(args, device_from_flag(args.device)))
+
+    def run(args) -> int:
+        methods = evaluate.methods_of(args)
+        if len(args.data) > 1 or len(methods) > 1:  # a table in the layout of the paper's Table 2
+            from . import table2
+
+            return table2.run_table(args, methods, device_from_flag(args.device))
+        return evaluate.run(args, methods[0], device_from_flag(args.device))
+
+    p.set_defaults(func=run)
 
 
 def _add_predict(sub) -> None:

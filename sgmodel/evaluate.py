@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable, check_writable
+from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.text import markdown_table, whole_number
 
 from . import baselines, metrics
@@ -195,26 +195,29 @@ def check_report_folder(out: Path, inputs: dict[str, Path | None]) -> None:
     check_apart(out, "--out", inputs, replaced=True)
 
 
-def run(args: argparse.Namespace, device: str) -> int:
+def methods_of(args: argparse.Namespace) -> list[str]:
+    """What ``sgmodel eval`` measures: "checkpoint" (``--checkpoint``) and the ``--method`` baselines, in
+    order, each once; ValueError when there is none. Several methods or ``--data`` folders make a table
+    (``sgmodel.table2.run_table``), one of each a report (``run``)."""
     methods = (["checkpoint"] if args.checkpoint else []) + list(dict.fromkeys(args.method or []))
     if not methods:
         raise ValueError("--checkpoint / --method: give a checkpoint, a baseline, or both")
-    inputs = {f"--data {name}={path}": path for name, path in args.data} | {"--checkpoint": args.checkpoint}
+    return methods
+
+
+def eval_inputs(args: argparse.Namespace) -> dict[str, Path | None]:
+    """The inputs a report must stay apart from, by flag: each ``--data`` folder (its split checked to exist)
+    and ``--checkpoint``."""
     for _, path in args.data:
         read_split(path, args.split)
-    if len(args.data) > 1 or len(methods) > 1:
-        from .table2 import columns, run_table  # the table is made of this module's evaluations
+    return {f"--data {name}={path}": path for name, path in args.data} | {"--checkpoint": args.checkpoint}
 
-        columns(args.data, args.split)  # the benchmark names (they name report folders) first
-        check_writable(args.out, "--out", create=False)
-        check_apart(args.out, "--out", inputs)
-        for name, _ in args.data:  # each report folder of the table is replaced as a whole
-            for m in methods:
-                check_replaceable(args.out / name / m, "--out", OWNER)
-        return run_table(args, methods, device)
-    check_report_folder(args.out, inputs)
-    method = checkpoint_method(args.checkpoint, device, args.encoder_weights) if args.checkpoint else \
-        baseline_method(methods[0], args.encoder, args.encoder_weights, args.resolution, device)
+
+def run(args: argparse.Namespace, method_name: str, device: str) -> int:
+    """``sgmodel eval`` with one ``--data`` folder and one method: REPORT is ``--out``."""
+    check_report_folder(args.out, eval_inputs(args))
+    method = checkpoint_method(args.checkpoint, device, args.encoder_weights) if method_name == "checkpoint" else \
+        baseline_method(method_name, args.encoder, args.encoder_weights, args.resolution, device)
     result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
                       not args.no_progress)
     print((args.out / "scenes.md").read_text())

@@ -29,14 +29,12 @@ from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
-from scenesplat_stereo.encode import decode_image, encode_png, to_uint8
+from scenesplat_stereo.encode import encode_png, to_uint8
 from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable
 
 from . import baselines, export, rig, stereo_check
@@ -44,24 +42,20 @@ from .args import add_device_argument, device_from_flag
 from .bench import synced_clock
 from .calib import Calibration, calib_from_flags, read_calib
 from .geometry import Z_MAX, Z_MIN, depth_from_disparity
+from .pair import SIZE_MULTIPLE, Pair, read_image, resize_pair
 from .rectify import Rectification
 from .render import render_views
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
 DEFAULT_RESOLUTION = 256
-#: Model input sides are multiples of this (the decoder's coarsest feature stride).
-SIZE_MULTIPLE = 16
 #: Novel views sit this fraction of the median matched depth (z < z_max) away from the left camera.
 VIEW_RADIUS = 0.15
 #: Frames in the orbit animation.
 ORBIT_FRAMES = 24
-#: Smallest image side accepted, pixels (stereo matching needs a few pixels of context; 1x1 is no pair).
-MIN_IMAGE_SIDE = SIZE_MULTIPLE
 #: Fraction of matched pixels at the depth clamp above which the depth is refused (doffs or baseline wrong).
 CLAMPED_REFUSED = 0.99
 OWNER = "sgmodel predict"  # recorded in OUT (files.OWNER_FILE): a later prediction may replace OUT
 logger = logging.getLogger(__name__)
-_IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".ppm", ".pgm", ".pfm", ".webp"}
 
 
 class PredictError(ValueError):
@@ -90,38 +84,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_device_argument(parser)
 
 
-@dataclass
-class Pair:
-    """The decoded pair [1,3,H,W] float32 in [0,1] and its calibration (of these H x W pixels); with
-    ``--rig``, the pair as rectified and the rectification."""
-
-    left: torch.Tensor
-    right: torch.Tensor
-    calib: Calibration
-    rectification: Rectification | None = None
-
-
-def read_image(path: str, flag: str) -> torch.Tensor:
-    """Decode an image file with OpenImageIO -> [1,3,H,W] float32 in [0,1] (grey repeated, alpha dropped)."""
-    p = Path(path)
-    if not p.is_file():
-        raise PredictError(f"{flag} {path}: file not found")
-    if p.suffix.lower() not in _IMAGE_EXTS:
-        raise PredictError(f"{flag} {path}: unsupported image type {p.suffix!r} ({', '.join(sorted(_IMAGE_EXTS))})")
-    try:
-        arr = decode_image(p.read_bytes(), p.suffix)
-    except (ValueError, OSError) as e:
-        raise PredictError(f"{flag} {path}: not a readable image ({e})") from None
-    if arr.shape[2] not in (1, 2, 3, 4):
-        raise PredictError(f"{flag} {path}: expected 1 to 4 channels, got {arr.shape[2]}")
-    if min(arr.shape[:2]) < MIN_IMAGE_SIDE:
-        raise PredictError(f"{flag} {path}: {arr.shape[1]}x{arr.shape[0]} pixels is too small for a stereo pair "
-                           f"(both sides must be >= {MIN_IMAGE_SIDE})")
-    arr = arr[:, :, :1].repeat(3, 2) if arr.shape[2] < 3 else arr[:, :, :3]
-    img = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
-    return img.float() / 255.0 if arr.dtype == np.uint8 else img.float().clamp(0, 1)
-
-
 def read_pair(args: argparse.Namespace) -> Pair:
     """Validate and read the images and the calibration (all checks that need no model)."""
     left, right = read_image(args.left, "--left"), read_image(args.right, "--right")
@@ -148,23 +110,6 @@ def read_pair(args: argparse.Namespace) -> Pair:
     calib.check_size(left.shape[3], left.shape[2], args.left)
     calib.check_principal_point(left.shape[3], left.shape[2], args.left)
     return Pair(left, right, calib)
-
-
-def model_size(width: int, height: int, short_side: int) -> tuple[int, int]:
-    """(W', H'): short side scaled to ``short_side``, aspect kept, each side rounded to a multiple of 16."""
-    s = short_side / min(width, height)
-    return tuple(max(SIZE_MULTIPLE, SIZE_MULTIPLE * round(x * s / SIZE_MULTIPLE)) for x in (width, height))
-
-
-def resize_pair(pair: Pair, short_side: int) -> Pair:
-    """The pair resized to ``model_size`` (bilinear, antialiased) with K and doffs scaled per axis."""
-    h, w = pair.left.shape[2:]
-    w2, h2 = model_size(w, h, short_side)
-    if (w2, h2) == (w, h):
-        return pair
-    resize = lambda x: F.interpolate(x, size=(h2, w2), mode="bilinear", antialias=True,  # noqa: E731
-                                     align_corners=False).clamp(0, 1)
-    return Pair(resize(pair.left), resize(pair.right), pair.calib.scaled(w2 / w, h2 / h), pair.rectification)
 
 
 def make_encoder(name: str | None, weights: str | None, repo: str | None, device: str):

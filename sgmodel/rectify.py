@@ -33,6 +33,7 @@ from scenesplat_stereo.files import atomic_write_bytes, atomic_write_json, check
 from . import rig as rig_mod
 from . import stereo_check
 from .calib import Calibration, foundation_stereo_text
+from .pair import Pair, read_image, resize_pair
 from .rig import FISHEYE, RigError, StereoRig
 from .rotate import rotate_gaussians
 
@@ -181,8 +182,6 @@ def predict_from_rig(predictor, left, right, rig: StereoRig, short_side: int | N
     when it warns and ``strict``), resized to the model's size (short side ``short_side`` or the checkpoint's,
     sides multiples of 16) and predicted; the Gaussians are turned back into the raw left camera's frame.
     """
-    from .predict import Pair, resize_pair
-
     left, right = _as_tensor(left, "left"), _as_tensor(right, "right")
     if left.shape != right.shape:
         raise RigError(f"left is {left.shape[3]}x{left.shape[2]} but right {right.shape[3]}x{right.shape[2]}: both "
@@ -211,8 +210,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def rectify_command(args: argparse.Namespace, log=print) -> None:
     """Do the work of ``sgmodel rectify`` (raises a CalibError / ValueError naming the flag on bad input)."""
-    from .predict import read_image
-
     rig = rig_mod.read_rig(args.rig, args.rig_units)
     left, right = read_image(args.left, "--left"), read_image(args.right, "--right")
     for flag, image in (("--left", left), ("--right", right)):

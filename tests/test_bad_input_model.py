@@ -57,6 +57,8 @@ def broken_data(demo_dataset, tmp_path_factory) -> dict[str, Path]:
     (out["shard_not_tar"] / "train" / "shard-000000.tar").write_bytes(b"not a tar" * 100)
     (root / "empty").mkdir()
     out["empty"] = root / "empty"
+    (root / "a_file").write_text("not a dataset")
+    out["a_file"] = root / "a_file"
     return out
 
 
@@ -126,6 +128,7 @@ def test_train_refuses_before_writing(demo_dataset, earlier_run, capsys, flags, 
 
 DATA_CASES = [
     ("missing", "nothing-here: data folder does not exist"),
+    ("a_file", "a_file: not a folder"),
     ("empty", r"empty/train: split 'train' does not exist \(splits here: none\)"),
     ("no_val", r"no_val/val: split 'val' does not exist \(splits here: \['train'\]\)"),
     ("bad_index", r"bad_index/train/index.json: malformed"),

@@ -3,7 +3,8 @@ imports on its own.
 
 The graph is built from the source with ``ast``: an edge A -> B for every ``import B`` / ``from B import x``
 anywhere in A (at the top or inside a function: a lazy import that closes a circle is still a circle), with
-relative imports resolved, and ``from P import m`` counted as an edge to the module ``P.m`` when m is one.
+relative imports resolved, and ``from P import m`` counted as an edge to the module ``P.m`` when m is one;
+imports under ``if TYPE_CHECKING:`` (for annotations, never run) are left out.
 """
 
 from __future__ import annotations
@@ -30,13 +31,26 @@ def modules() -> dict[str, Path]:
     return found
 
 
+def _runtime_nodes(tree: ast.AST):
+    """Every node of ``tree`` except the bodies of ``if TYPE_CHECKING:`` (imports for annotations only,
+    which never run)."""
+    stack = [tree]
+    while stack:
+        node = stack.pop()
+        yield node
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            stack.extend(node.orelse)
+            continue
+        stack.extend(ast.iter_child_nodes(node))
+
+
 def import_graph(found: dict[str, Path]) -> dict[str, set[str]]:
     """Module -> the modules of the three packages it imports (see the module docstring)."""
     graph: dict[str, set[str]] = {}
     for name, path in found.items():
         package = name if path.name == "__init__.py" else name.rpartition(".")[0]
         edges = set()
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        for node in _runtime_nodes(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.Import):
                 targets = [alias.name for alias in node.names]
             elif isinstance(node, ast.ImportFrom):
