@@ -14,8 +14,8 @@ import urllib.request
 import pytest
 import torch
 import torch.nn.functional as F
-from foundation_standins import (FFS_CFG, FFS_REPO, FS_CFG, FS_REPO, PRUNED_WIDTHS, SHIFT, copy_checkout, save_ffs_model,
-                                 save_fs_checkpoint, shifted_pair)
+from foundation_standins import (FFS_CFG, FFS_REPO, FS_CFG, FS_REPO, PRUNED_WIDTHS, SHIFT, copy_checkout,
+                                 save_ffs_model, save_fs_checkpoint, shifted_pair)
 
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams
 from sgmodel.encoders import create_encoder
