@@ -9,10 +9,9 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-import yaml
 from torch import nn
 
-from sgmodel.encoders.foundation import REPO_FLAG, _Config, checkout
+from scripts.foundation_releases import save_ffs_release, save_fs_release
 
 STANDIN = Path(__file__).parent / "standin_foundation_stereo"
 FS_REPO, FFS_REPO = STANDIN / "FoundationStereo", STANDIN / "Fast-FoundationStereo"
@@ -38,33 +37,15 @@ def copy_checkout(repo: Path, dest: Path) -> Path:
     return dest
 
 
-def save_fs_checkpoint(folder: Path, repo: Path = FS_REPO, cfg: dict | None = None, seed: int = 0) -> Path:
+def save_fs_checkpoint(folder: Path, repo: Path = FS_REPO, cfg: dict | None = None) -> Path:
     """``folder/model_best_bp2.pth`` (``{"model": state_dict, "global_step", "epoch"}``) and ``folder/cfg.yaml``."""
-    cfg = dict(FS_CFG if cfg is None else cfg)
-    folder.mkdir(parents=True, exist_ok=True)
-    code = checkout(repo, "foundation-stereo", "FoundationStereo", "")
-    with code.building(REPO_FLAG):
-        torch.manual_seed(seed)
-        model = code.import_module("core.foundation_stereo", REPO_FLAG).FoundationStereo(_Config(cfg))
-    (folder / "cfg.yaml").write_text(yaml.safe_dump(cfg))
-    path = folder / "model_best_bp2.pth"
-    torch.save({"model": model.state_dict(), "global_step": 0, "epoch": 0}, path)
-    return path
+    return save_fs_release(repo, folder, FS_CFG if cfg is None else cfg)
 
 
-def save_ffs_model(path: Path, repo: Path = FFS_REPO, cfg: dict | None = None, pruned: bool = False,
-                   seed: int = 0) -> Path:
+def save_ffs_model(path: Path, repo: Path = FFS_REPO, cfg: dict | None = None, pruned: bool = False) -> Path:
     """The whole FastFoundationStereo pickled to ``path`` (their release's format), ``pruned`` as in ``prune``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    code = checkout(repo, "fast-foundation-stereo", "Fast-FoundationStereo", "")
-    with code.building(REPO_FLAG):
-        module = code.import_module("core.foundation_stereo", REPO_FLAG)
-        torch.manual_seed(seed)
-        model = module.FastFoundationStereo(module.Config(FFS_CFG if cfg is None else cfg))
-        if pruned:
-            prune(model)
-        torch.save(model, path)  # pickling needs the checkout's modules, as loading does
-    return path
+    saved = save_ffs_release(repo, path.parent, FFS_CFG if cfg is None else cfg, edit=prune if pruned else None)
+    return saved.rename(path)
 
 
 def prune(model: nn.Module) -> None:

@@ -207,7 +207,7 @@ def test_missing_vendored_hub_repository(tmp_path, fs_checkpoint):
                    lambda: fs(fs_checkpoint, repo))
 
 
-def test_import_failures_say_what_is_missing(tmp_path, fs_checkpoint):
+def test_import_failures_say_what_is_missing(tmp_path, fs_checkpoint, monkeypatch):
     repo = copy_checkout(FS_REPO, tmp_path / "a" / "FoundationStereo")
     module = repo / "core" / "foundation_stereo.py"
     module.write_text("import skimage_not_installed_xyz\n" + module.read_text())
@@ -218,6 +218,14 @@ def test_import_failures_say_what_is_missing(tmp_path, fs_checkpoint):
     text = one_line_error(r"importing core.foundation_stereo failed \(ImportError: cannot import name "
                           r"'freeze_model' from 'Utils'", lambda: fs(fs_checkpoint, repo))
     assert "install" not in text
+    broken = tmp_path / "site" / "broken_pkg_xyz"  # installed, but its native library is missing (open3d, libusb)
+    broken.mkdir(parents=True)
+    (broken / "__init__.py").write_text("raise ImportError('libusb-1.0.so.0: cannot open shared object file')\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    repo = copy_checkout(FS_REPO, tmp_path / "c" / "FoundationStereo")
+    (repo / "Utils.py").write_text("import broken_pkg_xyz\n" + (repo / "Utils.py").read_text())
+    one_line_error(r"imports 'broken_pkg_xyz', which fails to load here \(ImportError: libusb-1.0.so.0",
+                   lambda: fs(fs_checkpoint, repo))
 
 
 def test_every_failure_is_one_line(tmp_path, fs_checkpoint, ffs_model_file):
@@ -245,5 +253,5 @@ def test_every_failure_is_one_line(tmp_path, fs_checkpoint, ffs_model_file):
     garbage.write_bytes(b"not a pickle")
     one_line_error("not a serialised Fast-FoundationStereo model", lambda: ffs(garbage))
     broken = save_ffs_model(tmp_path / "broken.pth", cfg={k: v for k, v in FFS_CFG.items() if k != "mixed_precision"})
-    one_line_error(r"the loaded fast-foundation-stereo model fails on a 64x64 test pair \(AttributeError: "
+    one_line_error(r"the loaded fast-foundation-stereo model fails on a 32x32 test pair \(AttributeError: "
                    r"mixed_precision\)", lambda: ffs(broken))

@@ -103,17 +103,32 @@ class Checkout:
         """``name`` from the checkout (call inside ``active()``); a WeightsError naming ``flag`` if that fails."""
         try:
             return importlib.import_module(name)
-        except ModuleNotFoundError as e:
-            top = (e.name or "").split(".")[0]
-            if top and top not in self.names:
-                raise WeightsError(f"{flag} {self.root}: NVlabs/{self.project} needs the Python package "
-                                   f"'{PIP_NAMES.get(top, top)}', which is not installed here (pip install "
-                                   f"{PIP_NAMES.get(top, top)}; docs/encoders.md lists what to install)") from e
-            raise WeightsError(f"{flag} {self.root}: importing {name} failed ({one_line(e)}); is it a checkout of "
-                               f"NVlabs/{self.project}?") from e
         except Exception as e:  # noqa: BLE001 - anything their modules raise on import is one user error
+            missing = (e.name or "").split(".")[0] if isinstance(e, ModuleNotFoundError) else ""
+            if missing and missing not in self.names:
+                pip = PIP_NAMES.get(missing, missing)
+                raise WeightsError(f"{flag} {self.root}: NVlabs/{self.project} needs the Python package '{pip}', "
+                                   f"which is not installed here (pip install {pip}; docs/encoders.md lists what to "
+                                   f"install)") from e
+            package = self._failing_package(e)
+            if package:
+                raise WeightsError(f"{flag} {self.root}: NVlabs/{self.project} imports '{package}', which fails to "
+                                   f"load here ({one_line(e)}; docs/encoders.md lists what to install)") from e
             raise WeightsError(f"{flag} {self.root}: importing {name} failed ({one_line(e)}); is it a checkout of "
                                f"NVlabs/{self.project}?") from e
+
+    def _failing_package(self, e: BaseException) -> str | None:
+        """The top-level package outside the checkout in which ``e`` was raised, if it was raised outside."""
+        tb = e.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        if tb is None or _inside(Path(tb.tb_frame.f_code.co_filename), self.root):
+            return None
+        file = Path(tb.tb_frame.f_code.co_filename).resolve()
+        entries = [Path(p).resolve() for p in sys.path if p and _inside(file, Path(p))]
+        if not entries:  # not a file on sys.path (importlib's own frames)
+            return None
+        return file.relative_to(max(entries, key=lambda p: len(p.parts))).parts[0].removesuffix(".py")
 
 
 class _CheckoutFinder(importlib.abc.MetaPathFinder):

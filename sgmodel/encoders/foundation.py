@@ -28,7 +28,7 @@ loading or test-running them is one ``WeightsError`` line naming the flag and fi
 
 Their releases are pruned: layer widths differ from the constants in their code (``feature.d_out`` and the
 like). So the feature scales and channel counts are measured, not read from attributes: at construction the
-loaded model runs once (one update) on a 64 x 64 pair, and each captured map's scale is the input size over its
+loaded model runs once (one update) on a 32 x 32 pair, and each captured map's scale is the input size over its
 own. Both networks take RGB in [0, 255] (they apply the ImageNet normalisation themselves), so inputs in
 [0, 1] are scaled by 255; images are padded at the bottom and right to a multiple of 32 (edge replication)
 and outputs cropped back. Disparity: pixels of the input, left reference.
@@ -52,9 +52,9 @@ PAD_MULTIPLE = 32  # their demos pad to a multiple of 32
 FOUNDATION_ITERS = 32  # FoundationStereo demo's valid_iters
 FAST_FOUNDATION_ITERS = 8  # paper appendix A: eight recurrent updates (their demo's default too)
 FAST_FOUNDATION_MAX_DISP = 192  # Fast-FoundationStereo demo's --max_disp default, set on the loaded model
-PROBE_SIZE = 64  # pixels: the pair the loaded model runs once to measure its feature maps
+PROBE_SIZE = PAD_MULTIPLE  # pixels: the pair the loaded model runs once to measure its feature maps
 REPO_FLAG, WEIGHTS_FLAG = "--encoder-repo", "--encoder-weights"
-_CHECKOUTS: dict[Path, Checkout] = {}
+_CHECKOUTS: dict[tuple[Path, str], Checkout] = {}
 
 
 class _Config(dict):
@@ -71,7 +71,7 @@ class _Config(dict):
 
 
 def checkout(repo: str | os.PathLike | None, name: str, project: str, weights_hint: str) -> Checkout:
-    """The pinned checkout at ``repo`` (one per folder and process), or a WeightsError saying what to pass."""
+    """The pinned checkout at ``repo`` (one per folder, project and process), or a WeightsError saying what to pass."""
     if repo is None:
         raise WeightsError(f"encoder {name!r} needs your checkout of NVlabs/{project}: pass {REPO_FLAG} PATH "
                            f"(the folder with core/foundation_stereo.py) and {WEIGHTS_FLAG} PATH ({weights_hint})")
@@ -79,9 +79,9 @@ def checkout(repo: str | os.PathLike | None, name: str, project: str, weights_hi
     if not (root / "core" / "foundation_stereo.py").is_file():
         raise WeightsError(f"{REPO_FLAG} {repo}: no core/foundation_stereo.py there (expected a checkout of "
                            f"NVlabs/{project})")
-    if root not in _CHECKOUTS:
-        _CHECKOUTS[root] = Checkout(root, project)
-    return _CHECKOUTS[root]
+    if (root, project) not in _CHECKOUTS:
+        _CHECKOUTS[root, project] = Checkout(root, project)
+    return _CHECKOUTS[root, project]
 
 
 def _weights_path(weights: str | os.PathLike | None, name: str, hint: str) -> Path:

@@ -19,19 +19,6 @@ from core.utils.utils import block_match, correlation, normalise  # noqa: E402
 sys.modules['foundation_stereo_ori'] = sys.modules['core']
 
 
-class Config(dict):
-    """Their ``args`` is an OmegaConf DictConfig: attribute access and ``get``."""
-
-    def __getattr__(self, key):
-        try:
-            return self[key]
-        except KeyError as e:
-            raise AttributeError(key) from e
-
-    def __setattr__(self, key, value):
-        self[key] = value
-
-
 class FastFoundationStereo(nn.Module):
     def __init__(self, args):
         super().__init__()
