@@ -62,7 +62,7 @@ FFSF=(--encoder fast-foundation-stereo --encoder-weights "$FFSW" --encoder-repo 
 PRF=(--encoder fast-foundation-stereo --encoder-weights "$PRW" --encoder-repo "$FFS")
 
 echo "== parity with the upstream modules, both encoders in one process"
-"$PY" scripts/foundation_parity.py --fs-repo "$FS" --ffs-repo "$FFS" --releases "$R"
+"$PY" scripts/foundation_parity.py --fs-repo "$FS" --ffs-repo "$FFS" --releases "$R" --size 64x32
 
 echo "== a tiny demo dataset"
 "$PY" -m scenesplat_stereo.cli demo-teachers "$WORK/teachers" --scenes 2 --frames 4 --gaussians 3000 --size 64x48 \
