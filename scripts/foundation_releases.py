@@ -27,7 +27,7 @@ import torch
 import yaml
 from torch import nn
 
-from sgmodel.encoders.foundation import REPO_FLAG, _load_config, checkout
+from sgmodel.encoders.foundation import REPO_FLAG, checkout, load_config
 
 #: The model settings of FoundationStereo's 23-51-11 release cfg.yaml.
 FS_RELEASE_CFG = {"corr_implementation": "reg", "corr_levels": 2, "corr_radius": 4, "hidden_dims": [128, 128, 128],
@@ -50,7 +50,7 @@ def save_fs_release(repo: Path, folder: Path, cfg: dict = FS_RELEASE_CFG, seed: 
     with code.building(REPO_FLAG):
         torch.manual_seed(seed)
         model = code.import_module("core.foundation_stereo", REPO_FLAG).FoundationStereo(
-            _load_config(folder / "cfg.yaml"))
+            load_config(folder / "cfg.yaml"))
     path = folder / "model_best_bp2.pth"
     torch.save({"model": model.state_dict(), "global_step": 0, "epoch": 0}, path)
     return path
@@ -66,7 +66,7 @@ def save_ffs_release(repo: Path, folder: Path, cfg: dict = FFS_RELEASE_CFG, edit
     with code.building(REPO_FLAG):
         module = code.import_module("core.foundation_stereo", REPO_FLAG)
         torch.manual_seed(seed)
-        model = module.FastFoundationStereo(_load_config(folder / "cfg.yaml"))
+        model = module.FastFoundationStereo(load_config(folder / "cfg.yaml"))
         if edit is not None:
             edit(model)
         torch.save(model, path)  # pickling needs the checkout's modules, as loading does

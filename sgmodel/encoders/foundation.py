@@ -93,7 +93,9 @@ def _weights_path(weights: str | os.PathLike | None, name: str, hint: str) -> Pa
     return path
 
 
-def _load_config(path: Path) -> Any:
+def load_config(path: Path) -> Any:
+    """FoundationStereo's ``cfg.yaml`` (``vit_size`` defaulting to ``vitl``) as their demo reads it: an OmegaConf
+    DictConfig, or a dict with attribute access when omegaconf is absent; a WeightsError naming the file."""
     import yaml
 
     if not path.is_file():
@@ -190,7 +192,7 @@ class FoundationStereoEncoder(_HookedStereo):
         hint = "model_best_bp2.pth with its cfg.yaml beside it"
         code = checkout(repo, self.name, "FoundationStereo", hint)
         path = _weights_path(weights, self.name, hint)
-        args = _load_config(path.parent / "cfg.yaml")
+        args = load_config(path.parent / "cfg.yaml")
         try:
             with code.building(REPO_FLAG):
                 model = code.import_module("core.foundation_stereo", REPO_FLAG).FoundationStereo(args)
