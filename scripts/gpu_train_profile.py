@@ -90,7 +90,8 @@ def main() -> int:
     for name, (ms, _) in per_name.items():
         by_kind[kind(name)] = by_kind.get(kind(name), 0.0) + ms
     lines += ["", "| kind (by kernel name) | ms / step | share |", "|---|---:|---:|"]
-    lines += [f"| {k} | {ms:.1f} | {100 * ms / busy_total:.0f}% |" for k, ms in sorted(by_kind.items(), key=lambda kv: -kv[1])]
+    lines += [f"| {k} | {ms:.1f} | {100 * ms / busy_total:.0f}% |"
+              for k, ms in sorted(by_kind.items(), key=lambda kv: -kv[1])]
     lines += [""] + gaps(kernels, [e for e in events if e.device_type == torch.autograd.DeviceType.CPU], n)
     text = "\n".join(lines) + "\n"
     print(text)

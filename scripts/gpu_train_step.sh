@@ -2,10 +2,13 @@
 # The training step's speed on the lent GPU (issue 22; docs/benchmarks.md "The training step"), from the
 # repository root there. Here, once (git-ignored folders; see scripts/gpu_model.sh for the same kit):
 #   bash ../shared/tools/warp-gpu-kit .gpukit
-#   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 -d .whl OpenImageIO
-#   mkdir -p .devdata && cp ~/.cache/sgmodel/* .devdata/ && cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 \
+#     -d .whl OpenImageIO
+#   mkdir -p .devdata && cp ~/.cache/sgmodel/* .devdata/
+#   cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
 # Device call 1 (carry .gpukit/a):                 bash .gpukit/a/stash.sh
-# Device call 2 (carry .gpukit/b, .whl, .devdata): bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve]
+# Device call 2 (carry .gpukit/b, .whl, .devdata):
+#   bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve]
 #   tests:   the CUDA tests of the model's layers (Triton GroupNorm kernels), LPIPS and the soft-argmin
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
 #            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
@@ -34,11 +37,14 @@ tests)
 bench)
   run "${bench[@]}" --lpips-random-vgg --out /tmp/bench_new.md && cat /tmp/bench_new.md >> "$OUT/bench.md"
   if [[ -n $base ]]; then  # the code before: its bench times one loss per call; random VGG16 in torchvision's format
-    run python3 -c "import torch; from sgmodel.lpips import VGG16Trunk; torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.pth')"
-    run in_base "${bench[@]}" --out /tmp/bench_base.md && { echo "## before"; cat /tmp/bench_base.md; } >> "$OUT/bench.md"
+    run python3 -c "import torch; from sgmodel.lpips import VGG16Trunk
+torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.pth')"
+    run in_base "${bench[@]}" --out /tmp/bench_base.md \
+      && { echo "## before"; cat /tmp/bench_base.md; } >> "$OUT/bench.md"
     run in_base "${bench[@]}" --lpips-vgg /tmp/vgg16-random.pth --out /tmp/bench_base.md \
       && { echo "## before, LPIPS"; cat /tmp/bench_base.md; } >> "$OUT/bench.md"
-    run "${bench[@]}" --lpips-random-vgg --out /tmp/bench_new.md && { echo "## again"; cat /tmp/bench_new.md; } >> "$OUT/bench.md"
+    run "${bench[@]}" --lpips-random-vgg --out /tmp/bench_new.md \
+      && { echo "## again"; cat /tmp/bench_new.md; } >> "$OUT/bench.md"
   fi ;;
 profile)
   run python3 scripts/gpu_train_profile.py --out /tmp/profile.md && cat /tmp/profile.md >> "$OUT/profile.md"
@@ -48,7 +54,8 @@ big)
   for b in 32 24 16 12; do
     if "${bench[@]}" --resolution 512 --padding 32 --batch-size $b --warmup 1 --repeats 3 --lpips-random-vgg \
         --out /tmp/big.md > /tmp/big.log 2>&1; then cat /tmp/big.md >> "$OUT/big.md"; break; fi
-    { echo "batch $b at 512x512:"; grep -m1 -i "out of memory" /tmp/big.log || tail -3 /tmp/big.log; echo; } >> "$OUT/big.md"
+    { echo "batch $b at 512x512:"; grep -m1 -i "out of memory" /tmp/big.log || tail -3 /tmp/big.log; echo; } \
+      >> "$OUT/big.md"
   done ;;
 curve)
   data=/tmp/sgdata
@@ -71,7 +78,8 @@ curve)
   run python3 - "${runs[@]}" > "$OUT/curves.md" <<'EOF'
 import json, sys
 from pathlib import Path
-runs = {Path(r).name: [json.loads(l) for l in (Path(r) / "metrics.jsonl").read_text().splitlines()] for r in sys.argv[1:]}
+runs = {Path(r).name: [json.loads(line) for line in (Path(r) / "metrics.jsonl").read_text().splitlines()]
+        for r in sys.argv[1:]}
 steps = sorted({m["step"] for ms in runs.values() for m in ms if "val_psnr" in m})
 val = {k: {m["step"]: m["val_psnr"] for m in ms if "val_psnr" in m} for k, ms in runs.items()}
 ms = {k: sorted(m["step_ms"] for m in v if "step_ms" in m) for k, v in runs.items()}
