@@ -29,6 +29,7 @@ On the CPU (no autocast) every block computes exactly what its PyTorch counterpa
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 
 import torch
@@ -254,6 +255,7 @@ def fused_group_norm_available(x: torch.Tensor) -> bool:
             and x.is_contiguous(memory_format=torch.channels_last) and _triton_installed())
 
 
+@functools.cache
 def _triton_installed() -> bool:
     return importlib.util.find_spec("triton") is not None
 
