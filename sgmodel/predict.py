@@ -10,6 +10,11 @@ or 256 for the baselines), keeping the aspect ratio, each side rounded to a mult
 are scaled by the same factors per axis, and the outputs are at that size. Every input is checked before
 anything is written; outputs go to a temporary folder beside OUT and are moved into OUT at the end.
 Errors in the inputs raise ``PredictError`` (or ``CalibError``); ``run`` turns them into exit status 2.
+
+With ``--rig`` the pair is raw: it is rectified first (``sgmodel.rectify``), ``scene.ply`` is then in the raw
+left camera's frame, while ``depth.png`` and the views stay images of the rectified left camera (the model's
+input). Before the model runs, ``sgmodel.stereo_check`` measures the pair's vertical disparity and the sign
+of its disparity and warns (``--strict``: exit 2); the summary repeats its figures.
 """
 
 from __future__ import annotations
@@ -28,12 +33,13 @@ import torch.nn.functional as F
 
 from scenesplat_stereo.encode import decode_image, encode_png, to_uint8
 
-from . import baselines, export
+from . import baselines, export, rig, stereo_check
 from .bench import synced_clock
 from .calib import CalibError, Calibration, calib_from_flags, read_calib
 from .encoders import DEFAULT_ENCODER, EncoderFlagError
 from .encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
 from .geometry import Z_MAX, depth_from_disparity
+from .rectify import Rectification
 from .render import render_views
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
@@ -53,12 +59,14 @@ class PredictError(ValueError):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags of ``sgmodel predict``."""
-    parser.add_argument("--left", required=True, help="left (reference) image of a rectified pair")
+    parser.add_argument("--left", required=True, help="left (reference) image of a rectified pair (raw with --rig)")
     parser.add_argument("--right", required=True, help="right image, same size as the left")
     parser.add_argument("--calib", help="FoundationStereo K.txt (K row-major; baseline in metres) or "
                         "Middlebury 2014 calib.txt")
     parser.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels of the input images (instead of --calib)")
     parser.add_argument("--baseline", help="baseline in metres (with --intrinsics)")
+    rig.add_arguments(parser)
+    stereo_check.add_arguments(parser)
     parser.add_argument("--checkpoint", help="trained model checkpoint")
     parser.add_argument("--method", choices=baselines.METHODS,
                         help="a baseline without learned prediction instead of --checkpoint")
@@ -71,11 +79,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 @dataclass
 class Pair:
-    """The decoded pair [1,3,H,W] float32 in [0,1] and its calibration (of these H x W pixels)."""
+    """The decoded pair [1,3,H,W] float32 in [0,1] and its calibration (of these H x W pixels); with
+    ``--rig``, the pair as rectified and the rectification."""
 
     left: torch.Tensor
     right: torch.Tensor
     calib: Calibration
+    rectification: Rectification | None = None
 
 
 def read_image(path: str, flag: str) -> torch.Tensor:
@@ -104,12 +114,21 @@ def read_pair(args: argparse.Namespace) -> Pair:
                            f"is {right.shape[3]}x{right.shape[2]}: a rectified pair has one size")
     if args.calib and (args.intrinsics or args.baseline):
         raise PredictError("give either --calib or --intrinsics with --baseline, not both")
+    if args.rig and (args.calib or args.intrinsics or args.baseline):
+        raise PredictError("--rig rectifies a raw pair with its own calibration: give no --calib, --intrinsics or "
+                           "--baseline with it")
+    if args.rig:
+        stereo_rig = rig.read_rig(args.rig, args.rig_units)
+        stereo_rig.check_size(left.shape[3], left.shape[2], f"--left {args.left}")
+        rectification = Rectification.of(stereo_rig, (left.shape[3], left.shape[2]))
+        return Pair(*rectification.rectify_tensors(left, right), rectification.calibration, rectification)
     if args.calib:
         calib = read_calib(args.calib)
     elif args.intrinsics and args.baseline is not None:
         calib = calib_from_flags(args.intrinsics, args.baseline)
     else:
-        raise PredictError("missing calibration: give --calib FILE, or --intrinsics fx,fy,cx,cy and --baseline B")
+        raise PredictError("missing calibration: give --calib FILE, --intrinsics fx,fy,cx,cy and --baseline B, or the "
+                           "raw rig's --rig FILE")
     calib.check_size(left.shape[3], left.shape[2], args.left)
     return Pair(left, right, calib)
 
@@ -128,7 +147,7 @@ def resize_pair(pair: Pair, short_side: int) -> Pair:
         return pair
     resize = lambda x: F.interpolate(x, size=(h2, w2), mode="bilinear", antialias=True,  # noqa: E731
                                      align_corners=False).clamp(0, 1)
-    return Pair(resize(pair.left), resize(pair.right), pair.calib.scaled(w2 / w, h2 / h))
+    return Pair(resize(pair.left), resize(pair.right), pair.calib.scaled(w2 / w, h2 / h), pair.rectification)
 
 
 def make_encoder(name: str | None, weights: str | None, repo: str | None, device: str):
@@ -177,6 +196,9 @@ def predict(args: argparse.Namespace, log=print) -> None:
     device = torch.device(args.device)
     timer = _Timer(device)
     pair = read_pair(args)
+    if pair.rectification is not None:
+        timer.lap("read and rectify")
+        pair.rectification.report(log)
     if args.checkpoint:
         from .model import load_predictor
 
@@ -185,6 +207,10 @@ def predict(args: argparse.Namespace, log=print) -> None:
     else:
         encoder = make_encoder(args.encoder, args.encoder_weights, args.encoder_repo, device)
         short = args.resolution or DEFAULT_RESOLUTION
+    timer.lap("load")
+    check = stereo_check.run_check(pair.left, pair.right, args.strict, pair.calib.doffs, pair.rectification is not None,
+                                   log)
+    timer.lap("stereo check")
     pair = resize_pair(pair, short)
     _, _, h, w = pair.left.shape
     log(f"model size {w}x{h} (short side {short}, sides multiples of {SIZE_MULTIPLE}); K scaled to "
@@ -193,7 +219,6 @@ def predict(args: argparse.Namespace, log=print) -> None:
     left, right = pair.left.to(device), pair.right.to(device)
     K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None]
     baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
-    timer.lap("load")
 
     with torch.no_grad():
         gaussians = None
@@ -214,7 +239,8 @@ def predict(args: argparse.Namespace, log=print) -> None:
         try:
             (tmp / "views").mkdir()
             if gaussians is not None:
-                export.write_ply(gaussians, tmp / "scene.ply")
+                raw = gaussians if pair.rectification is None else pair.rectification.to_raw_frame(gaussians)
+                export.write_ply(raw, tmp / "scene.ply")
             zc = z[0, 0].cpu().numpy()
             matched = zc[zc < Z_MAX] if (zc < Z_MAX).any() else zc.ravel()   # z_max marks "no match"
             near, far = np.percentile(matched, 2), np.percentile(matched, 98)
@@ -240,6 +266,7 @@ def predict(args: argparse.Namespace, log=print) -> None:
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
     log(timer.table())
+    log(check.summary())
     log(f"wrote {out}/: " + ", ".join(written))
 
 
@@ -263,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         predict(args)
-    except (PredictError, CalibError, WeightsError, EncoderFlagError) as e:
+    except (PredictError, CalibError, stereo_check.StereoCheckError, WeightsError, EncoderFlagError) as e:
         print(f"sgmodel predict: error: {e}", file=sys.stderr)
         return 2
     return 0
