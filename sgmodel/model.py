@@ -20,7 +20,8 @@ from . import canvas
 from .composer import compose
 from .config import ModelParams
 from .decoder import DPTDecoder
-from .encoders import StereoEncoder, create_encoder
+from .encoders import StereoEncoder
+from .encoders.flags import build_encoder, merge_encoder
 from .geometry import depth_from_disparity
 from .predictor import GaussianPredictor
 
@@ -117,8 +118,7 @@ def create_model(params: ModelParams, device: str | torch.device = "cpu", encode
     """Build the model; the encoder comes from the registry (``params.encoder``) unless one is given."""
     params.validate()
     if encoder is None:
-        e = params.encoder
-        encoder = create_encoder(e.name, weights=e.weights, repo=e.repo, device=str(device))
+        encoder = build_encoder(params.encoder, device)
     return StereoGaussians(params, encoder).to(device)
 
 
@@ -141,17 +141,16 @@ class Predictor:
 
 
 def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", encoder_weights: str | None = None,
-                   encoder_repo: str | None = None) -> Predictor:
+                   encoder_repo: str | None = None, encoder: str | None = None) -> Predictor:
     """Rebuild a model from a checkpoint written by ``sgmodel train`` (its ModelParams travel inside it);
-    the frozen encoder is rebuilt from the registry (weights from the cache or ``encoder_weights``)."""
+    the frozen encoder is rebuilt from the registry with the checkpoint's settings, ``encoder_weights`` and
+    ``encoder_repo`` over them (``--encoder-weights``, ``--encoder-repo``; ``encoder``, the ``--encoder`` flag,
+    may only repeat the checkpoint's)."""
     from .checkpoint import load_checkpoint
 
     ckpt = load_checkpoint(checkpoint)
     params = ModelParams.from_dict(ckpt["model_params"])
-    if encoder_weights is not None:
-        params.encoder.weights = encoder_weights
-    if encoder_repo is not None:
-        params.encoder.repo = encoder_repo
+    params.encoder = merge_encoder(params.encoder, encoder, encoder_weights, encoder_repo, checkpoint)
     model = create_model(params, device)
     model.load_state_dict(ckpt["model"])
     return Predictor(model)

@@ -36,6 +36,8 @@ from scenesplat_stereo.encode import decode_image, encode_png, to_uint8
 from . import baselines, export, rig, stereo_check
 from .bench import synced_clock
 from .calib import CalibError, Calibration, calib_from_flags, read_calib
+from .encoders import DEFAULT_ENCODER, EncoderFlagError
+from .encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
 from .geometry import Z_MAX, depth_from_disparity
 from .rectify import Rectification
 from .render import render_views
@@ -69,9 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=baselines.METHODS,
                         help="a baseline without learned prediction instead of --checkpoint")
     parser.add_argument("--out", required=True, help="output folder (created; existing files replaced)")
-    parser.add_argument("--encoder", help="encoder of the baselines (default: sgmodel.encoders' default)")
-    parser.add_argument("--encoder-weights", help="weights file of the encoder")
-    parser.add_argument("--encoder-repo", help="source checkout the encoder imports (FoundationStereo)")
+    add_encoder_arguments(parser, f"the checkpoint's; {DEFAULT_ENCODER} for --method")
     parser.add_argument("--resolution", type=int, help="short side the model runs at (default: the "
                         f"checkpoint's; {DEFAULT_RESOLUTION} for --method)")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -152,9 +152,7 @@ def resize_pair(pair: Pair, short_side: int) -> Pair:
 
 def make_encoder(name: str | None, weights: str | None, repo: str | None, device: str):
     """The frozen stereo encoder of the baselines (``sgmodel.encoders``; its default when name is None)."""
-    from .encoders import DEFAULT_ENCODER, create_encoder
-
-    return create_encoder(name or DEFAULT_ENCODER, weights, repo, device)
+    return build_encoder(merge_encoder(None, name, weights, repo), device)
 
 
 class _Timer:
@@ -204,13 +202,10 @@ def predict(args: argparse.Namespace, log=print) -> None:
     if args.checkpoint:
         from .model import load_predictor
 
-        predictor = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo)
+        predictor = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
         short = args.resolution or predictor.resolution
     else:
-        try:
-            encoder = make_encoder(args.encoder, args.encoder_weights, args.encoder_repo, device)
-        except ValueError as e:  # an unknown encoder name
-            raise PredictError(f"--encoder: {e}") from None
+        encoder = make_encoder(args.encoder, args.encoder_weights, args.encoder_repo, device)
         short = args.resolution or DEFAULT_RESOLUTION
     timer.lap("load")
     check = stereo_check.run_check(pair.left, pair.right, args.strict, pair.calib.doffs, pair.rectification is not None,
@@ -295,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         predict(args)
-    except (PredictError, CalibError, stereo_check.StereoCheckError, WeightsError) as e:
+    except (PredictError, CalibError, stereo_check.StereoCheckError, WeightsError, EncoderFlagError) as e:
         print(f"sgmodel predict: error: {e}", file=sys.stderr)
         return 2
     return 0

@@ -43,7 +43,7 @@ def synthetic_pair(width: int, height: int, device: torch.device) -> tuple[torch
 def run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
     if args.checkpoint:
-        model = load_predictor(args.checkpoint, device).model
+        model = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder).model
     else:
         model = create_model(params_from_args(args)[0], device).eval()
     width, height = args.size
