@@ -18,7 +18,7 @@ from scenesplat_stereo.raster import rasterization
 from sgmodel import predict as predict_mod
 from sgmodel.baselines import naive_gs
 from sgmodel.cli import main as sgmodel_main
-from sgmodel.export import depth_png, orbit_cameras, write_ply
+from sgmodel.export import depth_png, orbit_cameras, to_scene, write_scene
 from scripts.guitar_pair import H, W, render_pair
 
 
@@ -43,6 +43,9 @@ class OracleEncoder:
         assert left.shape[-2:] == self.disparity.shape[-2:]
         return argparse.Namespace(disparity=self.disparity, features=[])
 
+    def max_disparity(self, width: int) -> float:
+        return math.inf
+
 
 @pytest.fixture(scope="module")
 def guitar_pair(guitar_ply, tmp_path_factory):
@@ -63,13 +66,16 @@ def test_predict_naive_gs_on_the_guitar_reproduces_the_left_image(guitar_pair, t
     assert rc == 0, log
     assert "| encoder |" in log and "| render views |" in log and f"model size {W}x{H}" in log
     names = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
-    assert names == ["depth.png", "orbit.gif", "scene.ply"] + [
+    assert names == ["cameras.json", "depth.png", "orbit.gif", "scene.ply", "settings.json"] + [
         f"views/{v}.png" for v in ("center", "down", "forward", "left", "right", "up")]
     scene = load_ply(out / "scene.ply", strict=True)
-    assert len(scene) == W * H and scene.sh_degree == 2
+    dropped, produced, kept = (int(x.replace(",", "")) for x in re.search(
+        r"([\d,]+) of ([\d,]+) Gaussians dropped: no valid stereo depth .*; ([\d,]+) kept", log).groups())
+    assert produced == W * H and kept == produced - dropped == len(scene)
+    assert scene.sh_degree == 0 and f"SH degree 0" in log  # naive-GS has plain colours
     g = scene.to_torch()
     rgb, a, _ = rasterization(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
-                              torch.eye(4)[None], torch.tensor(K, dtype=torch.float32)[None], W, H, sh_degree=2)
+                              torch.eye(4)[None], torch.tensor(K, dtype=torch.float32)[None], W, H, sh_degree=0)
     left = torch.from_numpy(decode_image((folder / "left.png").read_bytes(), "png")).float() / 255
     valid = alpha > 0.99
 
@@ -100,7 +106,7 @@ def test_export_round_trip_through_load_ply(tmp_path):
     gaussians.update(quats=q / q.norm(dim=-1, keepdim=True), sh=torch.randn(1, n, 9, 3, generator=g),
                      opacities=torch.rand(1, n, generator=g) * 0.98 + 0.01,
                      scales=torch.rand(1, n, 3, generator=g) * 0.1 + 1e-3)
-    scene = load_ply(write_ply(gaussians, tmp_path / "s.ply"), strict=True)
+    scene = load_ply(write_scene(to_scene(gaussians), tmp_path / "s.ply"), strict=True)
     for name, key in (("means", "means"), ("quats", "quats"), ("scales", "scales"),
                       ("opacities", "opacities"), ("sh", "sh")):
         np.testing.assert_allclose(getattr(scene, name), gaussians[key][0].numpy(), rtol=2e-6, atol=2e-7,
