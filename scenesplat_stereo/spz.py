@@ -20,9 +20,10 @@ followed by attribute blocks, each point after point:
   reference writer does; read back as (q - 128) / 128.
 
 The reference writer rounds half away from zero (``std::round``) and clamps every byte to 0..255; so does
-this one, so an encoded value's error is at most half a step: 2^-(fractionalBits+1) metres in position
-(12 fractional bits, or fewer when the scene is too large for 24 bits), 1/32 in ln s, 1/(2 0.15 255) in
-f_dc, 1/510 in opacity, 4/128 (degree 1) or 8/128 (degrees 2, 3) in SH inside [-1, 1) (clamped outside).
+this one, so an encoded value inside a field's range is off by at most half a step: 2^-(fractionalBits+1)
+metres in position (12 fractional bits, or fewer when the scene is too large for 24 bits), 1/32 in ln s
+(range [-10, 5.94]), 1/(2 0.15 255) in f_dc (|f_dc| <= 3.33), 1/510 in opacity, and in SH (range [-1, 1))
+half a step of 1/128 plus half a bucket: 4.5/128 (degree 1) or 8.5/128 (degrees 2 and 3).
 
 Coordinates are stored as they are, without an axis change: that is what Niantic's own ``ply_to_spz``
 (``CoordinateSystem::UNSPECIFIED``) and PlayCanvas' splat-transform write and read, so a scene keeps the
