@@ -68,22 +68,21 @@ class StereoSource:
     def __init__(self, left: str, right: str | None = None) -> None:
         self.paths = [left] if right is None else [left, right]
         flags = ["--video"] if right is None else ["--left-video", "--right-video"]
-        self.captures = []
+        self.captures, first = [], []
         for path, flag in zip(self.paths, flags):
             if not Path(path).is_file():
                 self.close()
                 raise PredictError(f"{flag} {path}: file not found")
             cap = cv2.VideoCapture(str(path))
-            ok, first = cap.read() if cap.isOpened() else (False, None)
+            self.captures.append(cap)
+            ok, frame = cap.read() if cap.isOpened() else (False, None)
             if not ok:
-                cap.release()
                 self.close()
                 raise PredictError(f"{flag} {path}: not a video OpenCV can decode")
-            cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
-            self.captures.append((cap, first.shape))
-        shapes = [s for _, s in self.captures]
-        fps = [c.get(cv2.CAP_PROP_FPS) for c, _ in self.captures]
-        counts = [int(c.get(cv2.CAP_PROP_FRAME_COUNT)) for c, _ in self.captures]
+            first.append(frame)
+        shapes = [f.shape for f in first]
+        fps = [c.get(cv2.CAP_PROP_FPS) for c in self.captures]
+        counts = [int(c.get(cv2.CAP_PROP_FRAME_COUNT)) for c in self.captures]
         if right is None and shapes[0][1] % 2:
             self.close()
             raise PredictError(f"--video {left}: a side-by-side video has an even width, got {shapes[0][1]}")
@@ -96,15 +95,20 @@ class StereoSource:
         self.width = shapes[0][1] // 2 if right is None else shapes[0][1]
         self.fps = fps[0] if fps[0] > 0 else DEFAULT_FPS
         self.frame_count = counts[0] if counts[0] > 0 else None
+        self._first: list[np.ndarray] | None = first  # decoded to check the input; the first read returns it
 
     def read(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Up to n next frames: (left, right) uint8 RGB [m,H,W,3], m < n only at the end of the video."""
         lefts, rights = [], []
         for _ in range(n):
-            frames = [cap.read() for cap, _ in self.captures]
-            if not all(ok for ok, _ in frames):
-                break
-            rgb = [f[..., ::-1] for _, f in frames]
+            if self._first is not None:
+                frames, self._first = self._first, None
+            else:
+                read = [cap.read() for cap in self.captures]
+                if not all(ok for ok, _ in read):
+                    break
+                frames = [f for _, f in read]
+            rgb = [f[..., ::-1] for f in frames]
             left, right = (rgb[0][:, :self.width], rgb[0][:, self.width:]) if len(rgb) == 1 else rgb
             lefts.append(left)
             rights.append(right)
@@ -112,7 +116,7 @@ class StereoSource:
         return (np.stack(lefts), np.stack(rights)) if lefts else (empty, empty)
 
     def close(self) -> None:
-        for cap, _ in self.captures:
+        for cap in self.captures:
             cap.release()
         self.captures = []
 
