@@ -4,6 +4,7 @@ trip, and every bad input (exit 2, nothing written)."""
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import re
 
@@ -205,3 +206,36 @@ def test_bench_predict_times_every_stage_on_the_cpu(tmp_path, capsys):
         assert re.search(rf"\| {re.escape(stage)} \| \d+\.\d \|", text), stage
     n = (48 + 2 * 4) * (32 + 2 * 4) * 2  # two layers on the padded canvas (cpu-small: padding 4)
     assert f"to {n:,} Gaussians" in text
+    for fmt in ("ply", "compressed-ply", "spz", "ply, fsync'd"):
+        assert re.search(rf"\| {re.escape(fmt)} \| \d+\.\d \| \d+\.\d\d \| \d+\.\d \|", text), fmt
+
+
+def test_bench_predict_video_on_the_cpu(tmp_path):
+    out = tmp_path / "bench.md"
+    assert sgmodel_main(["bench", "predict", "--video", "--preset", "cpu-small", "--device", "cpu", "--size", "48x32",
+                         "--frames", "5", "--batch-size", "2", "--warmup", "0", "--repeats", "2", "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "Stereo video of 48x32 per eye" in text and "5 frames in batches of 2" in text
+    for row in ("model alone (encoder to Gaussians)", "end to end (decode, model, one novel view, encode)"):
+        assert re.search(rf"\| {re.escape(row)} \| 2 \| [\d.]+ \| [\d.]+ \| [\d.]+ \|", text), row
+
+
+@pytest.mark.parametrize("fmt,suffix", [("spz", ".spz"), ("compressed-ply", ".compressed.ply")])
+def test_predict_writes_the_chosen_format_and_viewer_files(small_pair, capsys, monkeypatch, fmt, suffix):
+    d = torch.full((1, 1, 32, 48), 2.0)
+    d[..., :4, :] = 0.0  # four rows without a match
+    monkeypatch.setattr(predict_mod, "make_encoder", lambda *a: OracleEncoder(d))
+    out = small_pair / fmt
+    assert run(["--left", small_pair / "l.png", "--right", small_pair / "r.png", "--calib", small_pair / "K.txt",
+                "--method", "naive-gs", "--resolution", "32", "--format", fmt, "--out", out, "--device", "cpu"]) == 0
+    log = capsys.readouterr().out
+    assert f"{4 * 48:,} of {32 * 48:,} Gaussians dropped" in log and "SH degree 0" in log
+    from scenesplat_stereo.scene_files import load_scene
+
+    scene = load_scene(out / f"scene{suffix}")
+    assert len(scene) == 28 * 48 and scene.sh_degree == 0
+    assert scene.means[:, 2].max() < 2.6  # z = fx B / d = 50 * 0.1 / 2 = 2.5 m: nothing at the far clamp
+    settings = json.loads((out / "settings.json").read_text())
+    assert settings["cameras"][0]["initial"]["target"] == [0.0, 0.0, 2.5]  # the median valid depth
+    depth = decode_image((out / "depth.png").read_bytes(), "png")
+    assert not depth[:4].any() and depth[4:].any()  # black where there is no stereo depth
