@@ -206,8 +206,10 @@ def test_bench_predict_times_every_stage_on_the_cpu(tmp_path, capsys):
         assert re.search(rf"\| {re.escape(stage)} \| \d+\.\d \|", text), stage
     n = (48 + 2 * 4) * (32 + 2 * 4) * 2  # two layers on the padded canvas (cpu-small: padding 4)
     assert f"to {n:,} Gaussians" in text
-    for fmt in ("ply", "compressed-ply", "spz", "ply, fsync'd"):
-        assert re.search(rf"\| {re.escape(fmt)} \| \d+\.\d \| \d+\.\d\d \| \d+\.\d \|", text), fmt
+    for scene in ("as predicted (SH degree 0)", "SH degree 2 (a trained model's)"):  # a fresh model: SH 0
+        for fmt in ("ply", "compressed-ply", "spz", "ply, fsync'd"):
+            assert re.search(rf"\| {re.escape(scene)} \| {re.escape(fmt)} \| \d+\.\d \| \d+\.\d\d \| \d+\.\d \|",
+                             text), (scene, fmt)
 
 
 def test_bench_predict_video_on_the_cpu(tmp_path):

@@ -1,5 +1,6 @@
-"""``sgmodel bench predict``: one stereo pair to a 3DGS scene in a warm process, split by stage; with
-``--video``, a stereo video's pairs per second and latency (``sgmodel.bench.predict_video``).
+"""``sgmodel bench predict``: one pair to a scene by stage, or (``--video``) a stereo video's pairs/s and latency.
+
+``--video`` is described in ``sgmodel.bench.predict_video``.
 
 What ``sgmodel predict`` does for one pair once the process is warm (CUDA context, cuDNN plans and the
 rasteriser's kernels loaded, the model on the device): encoder, decoder + predictor, composer, the scene
@@ -21,9 +22,10 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
-from scenesplat_stereo.gaussians import save_ply
+from scenesplat_stereo.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene_files import FORMATS, save_scene
 from scenesplat_stereo.text import argtype, markdown_table, parse_size
 
@@ -31,7 +33,7 @@ from .. import export
 from ..args import add_model_arguments, params_from_args
 from ..geometry import depth_from_disparity
 from ..model import Predictor, create_model, load_predictor
-from ..render import render_views
+from ..render import SH_DEGREE, render_views
 from . import report, synced_clock
 
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
@@ -109,27 +111,37 @@ def run(args: argparse.Namespace) -> int:
            f"medians of {args.repeats} pairs after {args.warmup} warm-up.\n\n"
            f"{markdown_table(['stage', 'median ms'], rows)}\n\n"
            f"Writing that scene ({len(scene):,} Gaussians) in each format, median of {args.repeats}:\n\n"
-           f"{markdown_table(['format', 'median ms', 'MB', 'x smaller than .ply'], formats)}\n", args.out)
+           f"{markdown_table(['scene', 'format', 'median ms', 'MB', 'x smaller than .ply'], formats)}\n", args.out)
     return 0
 
 
-def export_times(scene, folder: Path, warmup: int, repeats: int) -> list[list[str]]:
-    """Rows (format, median ms, MB, ratio) of writing ``scene`` in every format as predict does (atomic,
-    no fsync), then the ``.ply`` with fsync (what the fsync costs)."""
-    writers = [(name, lambda p, f=name: save_scene(scene, p, f, durable=False), FORMATS[name].suffix)
-               for name in FORMATS]
-    writers.append(("ply, fsync'd", lambda p: save_ply(scene, p, durable=True), ".ply"))
-    rows, sizes = [], {}
-    for name, write, suffix in writers:
-        path, times = folder / f"export{suffix}", []
-        for i in range(warmup + repeats):
-            t = time.perf_counter()
-            write(path)
-            if i >= warmup:
-                times.append(time.perf_counter() - t)
-        sizes[name] = path.stat().st_size
-        rows.append([name, f"{1e3 * statistics.median(times):.1f}", f"{sizes[name] / 1e6:.2f}",
-                     f"{sizes['ply'] / sizes[name]:.1f}"])
+def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) -> list[list[str]]:
+    """Rows (scene, format, median ms, MB, ratio to its .ply) of writing ``scene`` in every format as predict
+    does (atomic, no fsync), and the ``.ply`` with fsync (what the fsync costs). When the prediction has no
+    higher SH (a fresh model's SH heads start at zero), the same Gaussians with degree-2 SH as a trained
+    model predicts are timed too (coefficients drawn from N(0, 0.02^2): sizes of incompressible values)."""
+    scenes = [(f"as predicted (SH degree {scene.sh_degree})", scene)]
+    if scene.sh_degree < SH_DEGREE:
+        rng = np.random.default_rng(0)
+        rest = rng.normal(0, 0.02, (len(scene), (SH_DEGREE + 1) ** 2 - scene.sh.shape[1], 3)).astype(np.float32)
+        scenes.append((f"SH degree {SH_DEGREE} (a trained model's)", GaussianScene(
+            scene.means, scene.quats, scene.scales, scene.opacities, np.concatenate([scene.sh, rest], 1), SH_DEGREE)))
+    rows = []
+    for label, s in scenes:
+        writers = [(name, lambda p, f=name: save_scene(s, p, f, durable=False), FORMATS[name].suffix)
+                   for name in FORMATS]
+        writers.append(("ply, fsync'd", lambda p: save_ply(s, p, durable=True), ".ply"))
+        sizes = {}
+        for name, write, suffix in writers:
+            path, times = folder / f"export{suffix}", []
+            for i in range(warmup + repeats):
+                t = time.perf_counter()
+                write(path)
+                if i >= warmup:
+                    times.append(time.perf_counter() - t)
+            sizes[name] = path.stat().st_size
+            rows.append([label, name, f"{1e3 * statistics.median(times):.1f}", f"{sizes[name] / 1e6:.2f}",
+                         f"{sizes['ply'] / sizes[name]:.1f}"])
     return rows
 
 
