@@ -91,8 +91,8 @@ def main() -> int:
         try:
             url = f"http://127.0.0.1:{port}/{page}"
             shot = site / "shot.png"
-            run = subprocess.run(["node", str(VIEWER / "screenshot.mjs"), url, str(shot), str(W), str(H), args.chromium],
-                                 capture_output=True, text=True, timeout=600)
+            command = ["node", str(VIEWER / "screenshot.mjs"), url, str(shot), str(W), str(H), args.chromium]
+            run = subprocess.run(command, capture_output=True, text=True, timeout=600, check=False)
         finally:
             server.shutdown()
         if run.returncode or not shot.is_file():

@@ -237,8 +237,8 @@ class StreamReport:
                 ("render s", f"{stage(lambda x: x.render_end - x.model_end):.2f}"),
                 ("wall s", f"{self.wall:.2f}"), ("frames/s end to end", f"{self.frames / max(self.wall, 1e-9):.2f}"),
                 ("batch latency median / max ms", f"{1e3 * statistics.median(latency):.0f} / {1e3 * max(latency):.0f}"),
-                ("Gaussians kept per frame", f"{self.kept / max(self.frames, 1):,.0f} of "
-                                             f"{self.produced / max(self.frames, 1):,.0f}"),
+                ("Gaussians kept per frame",
+                 f"{self.kept / max(self.frames, 1):,.0f} of {self.produced / max(self.frames, 1):,.0f}"),
                 ("focus (first frame's median depth) m", f"{self.focus:.3f}")]
         return "\n".join(["| | |", "|---|---:|"] + [f"| {k} | {v} |" for k, v in rows])
 

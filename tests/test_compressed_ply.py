@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ply_helpers import EPS32, random_scene
+
 from scenesplat_stereo.compressed_ply import morton_order, save_compressed_ply
 from scenesplat_stereo.gaussians import SH_C0, GaussianScene, load_ply
 

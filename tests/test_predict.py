@@ -16,12 +16,11 @@ import torch
 from scenesplat_stereo.encode import decode_image, encode_png
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
+from scripts.guitar_pair import H, W, render_pair
 from sgmodel import predict as predict_mod
 from sgmodel.baselines import naive_gs
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.export import depth_png, orbit_cameras, to_scene, write_scene
-from scripts.guitar_pair import H, W, render_pair
-
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -73,7 +72,7 @@ def test_predict_naive_gs_on_the_guitar_reproduces_the_left_image(guitar_pair, t
     dropped, produced, kept = (int(x.replace(",", "")) for x in re.search(
         r"([\d,]+) of ([\d,]+) Gaussians dropped: no valid stereo depth .*; ([\d,]+) kept", log).groups())
     assert produced == W * H and kept == produced - dropped == len(scene)
-    assert scene.sh_degree == 0 and f"SH degree 0" in log  # naive-GS has plain colours
+    assert scene.sh_degree == 0 and "SH degree 0" in log  # naive-GS has plain colours
     g = scene.to_torch()
     rgb, a, _ = rasterization(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
                               torch.eye(4)[None], torch.tensor(K, dtype=torch.float32)[None], W, H, sh_degree=0)
@@ -215,7 +214,8 @@ def test_bench_predict_times_every_stage_on_the_cpu(tmp_path, capsys):
 def test_bench_predict_video_on_the_cpu(tmp_path):
     out = tmp_path / "bench.md"
     assert sgmodel_main(["bench", "predict", "--video", "--preset", "cpu-small", "--device", "cpu", "--size", "48x32",
-                         "--frames", "5", "--batch-size", "2", "--warmup", "0", "--repeats", "2", "--out", str(out)]) == 0
+                         "--frames", "5", "--batch-size", "2", "--warmup", "0", "--repeats", "2",
+                         "--out", str(out)]) == 0
     text = out.read_text()
     assert "Stereo video of 48x32 per eye" in text and "5 frames in batches of 2" in text
     for row in ("model alone (encoder to Gaussians)", "end to end (decode, model, one novel view, encode)"):

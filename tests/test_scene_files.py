@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ply_helpers import random_scene
+
 from scenesplat_stereo.compressed_ply import morton_order
 from scenesplat_stereo.gaussians import PlyError, load_ply, save_ply
 from scenesplat_stereo.scene_files import FORMATS, load_scene, save_scene
@@ -67,7 +67,7 @@ def splat_transform(*args: str) -> subprocess.CompletedProcess:
     if not SPLAT_TRANSFORM.is_file():
         pytest.skip(f"{SPLAT_TRANSFORM} is absent: run `npm install` in {VIEWER}")
     run = subprocess.run(["node", str(SPLAT_TRANSFORM), "-q", "-w", *args], capture_output=True, text=True,
-                         timeout=300)
+                         timeout=300, check=False)
     assert run.returncode == 0, run.stderr
     return run
 
@@ -126,6 +126,6 @@ def test_supersplat_viewer_accepts_our_settings(tmp_path: Path) -> None:
               "require('fs').readFileSync(process.argv[1], 'utf8')); m.validateSettings(s, { limits: true }); "
               "console.log(JSON.stringify(m.importSettings(s).cameras[0].initial)); })")
     run = subprocess.run(["node", "-e", script, str(tmp_path / "settings.json")], capture_output=True, text=True,
-                         cwd=VIEWER, timeout=60)
+                         cwd=VIEWER, timeout=60, check=False)
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout) == settings["cameras"][0]["initial"]

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ply_helpers import EPS32, random_scene
+
 from scenesplat_stereo.gaussians import GaussianScene
 from scenesplat_stereo.spz import SpzError, encode_spz, load_spz, save_spz
 
@@ -116,7 +116,8 @@ def test_round_trip_within_the_quantisation_step(tmp_path: Path, degree: int) ->
     # Each of the three stored components is off by <= h = sqrt(1/2) / (2 * 511), the largest m >= 1/2 by
     # <= 3h, and normalising at most doubles the distance (as for the compressed .ply's 10-bit codes).
     h = math.sqrt(0.5) / (2 * 511)
-    dist = np.minimum(np.linalg.norm(back.quats - scene.quats, axis=1), np.linalg.norm(back.quats + scene.quats, axis=1))
+    dist = np.minimum(np.linalg.norm(back.quats - scene.quats, axis=1),
+                      np.linalg.norm(back.quats + scene.quats, axis=1))
     assert (dist <= 2 * math.sqrt(12) * h).all()
 
 

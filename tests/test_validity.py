@@ -28,7 +28,7 @@ def reference_validity(d: float, fx: float, b: float, doffs: float, dmax: float)
 
 
 def test_disparity_validity_matches_the_rule():
-    fx, b = torch.tensor([80.0, 200.0]), torch.tensor([0.125, 0.25])  # fx B = 10 and 50 (exact): d in [1, 100], [5, 500]
+    fx, b = torch.tensor([80.0, 200.0]), torch.tensor([0.125, 0.25])  # fx B = 10, 50 (exact): d in [1, 100], [5, 500]
     special = [math.nan, math.inf, -math.inf, 0.0, -3.0, 1.0, 0.999, 100.0, 100.01, 5.0, 4.99, 191.0, 190.99, 500.0]
     rng = np.random.default_rng(0)
     values = np.concatenate([special, rng.uniform(-5, 600, 200)]).astype(np.float32)

@@ -103,16 +103,22 @@ def run(args: argparse.Namespace) -> int:
     rows = [[s, f"{med[s]:.1f}"] for s in STAGES]
     rows += [["**prediction** (encoder to Gaussians)", f"{sum(med[s] for s in STAGES[:3]):.1f}"],
              ["**total**", f"{sum(med.values()):.1f}"]]
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     n = next(iter(gaussians.values())).shape[1]
     report(f"One pair of {width}x{height} to {n:,} Gaussians ({len(scene):,} with a stereo depth, SH degree "
-           f"{scene.sh_degree}) in a warm process on {name} ({'checkpoint ' + str(args.checkpoint) if args.checkpoint else 'fresh model'}, "
-           f"encoder {model.params.encoder.name}, {'bf16 autocast' if predictor.amp and device.type == 'cuda' else 'float32'}); "
-           f"medians of {args.repeats} pairs after {args.warmup} warm-up.\n\n"
+           f"{scene.sh_degree}) in a warm process on {describe(args, predictor, device)}; medians of {args.repeats} "
+           f"pairs after {args.warmup} warm-up.\n\n"
            f"{markdown_table(['stage', 'median ms'], rows)}\n\n"
            f"Writing that scene ({len(scene):,} Gaussians) in each format, median of {args.repeats}:\n\n"
            f"{markdown_table(['scene', 'format', 'median ms', 'MB', 'x smaller than .ply'], formats)}\n", args.out)
     return 0
+
+
+def describe(args: argparse.Namespace, predictor: Predictor, device: torch.device) -> str:
+    """'<device> (<checkpoint or fresh model>, encoder <name>, <bf16 autocast or float32>)' for a report."""
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    model = f"checkpoint {args.checkpoint}" if args.checkpoint else "fresh model"
+    dtype = "bf16 autocast" if predictor.amp and device.type == "cuda" else "float32"
+    return f"{name} ({model}, encoder {predictor.model.params.encoder.name}, {dtype})"
 
 
 def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) -> list[list[str]]:
@@ -128,9 +134,9 @@ def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) 
             scene.means, scene.quats, scene.scales, scene.opacities, np.concatenate([scene.sh, rest], 1), SH_DEGREE)))
     rows = []
     for label, s in scenes:
-        writers = [(name, lambda p, f=name: save_scene(s, p, f, durable=False), FORMATS[name].suffix)
+        writers = [(name, lambda p, f=name, s=s: save_scene(s, p, f, durable=False), FORMATS[name].suffix)
                    for name in FORMATS]
-        writers.append(("ply, fsync'd", lambda p: save_ply(s, p, durable=True), ".ply"))
+        writers.append(("ply, fsync'd", lambda p, s=s: save_ply(s, p, durable=True), ".ply"))
         sizes = {}
         for name, write, suffix in writers:
             path, times = folder / f"export{suffix}", []

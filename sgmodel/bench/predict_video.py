@@ -32,7 +32,7 @@ from ..model import Predictor
 from ..pairs import Pair, prepare_pairs, to_tensor
 from ..video import CODECS, StereoSource, Trajectory, VideoSink, stream
 from . import report, synced_clock
-from .predict import synthetic_pair
+from .predict import describe, synthetic_pair
 
 #: The novel view of the end-to-end run: the left camera moved 5 cm to the right.
 OFFSET = (0.05, 0.0, 0.0)
@@ -83,15 +83,12 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
     latency = [x.latency for x in result.batches for _ in range(x.frames)]
     e2e = [f"{result.frames / result.wall:.1f}", f"{1e3 * np.median(latency):.1f}",
            f"{1e3 * np.percentile(latency, 99):.1f}"]
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     rows = [["model alone (encoder to Gaussians)", b, *_stats(model_times, b)],
             ["end to end (decode, model, one novel view, encode)", b, *e2e]]
     stages = {k: sum(getattr(x, e) - getattr(x, s) for x in result.batches) / result.frames * 1e3
               for k, s, e in (("decode", "decode_start", "decode_end"), ("model", "model_start", "model_end"),
                               ("render", "model_end", "render_end"))}
-    report(f"Stereo video of {width}x{height} per eye on {name} ({'checkpoint ' + str(args.checkpoint) if args.checkpoint else 'fresh model'}, "
-           f"encoder {predictor.model.params.encoder.name}, {'bf16 autocast' if predictor.amp and device.type == 'cuda' else 'float32'}), "
-           f"{result.frames} frames in batches of {b}; model alone: {args.repeats} batches after "
+    report(f"Stereo video of {width}x{height} per eye on {describe(args, predictor, device)}, {result.frames} frames in batches of {b}; model alone: {args.repeats} batches after "
            f"{args.warmup} warm-up.\n\n"
            f"{markdown_table(['measure', 'batch', 'pairs/s', 'latency median ms', 'latency p99 ms'], rows)}\n\n"
            f"End to end per frame: decode {stages['decode']:.1f} ms (reader thread), model {stages['model']:.1f} ms, "
