@@ -58,6 +58,8 @@ CODECS = {"mp4v": Codec("mp4v", ".mp4", False), "mjpg": Codec("MJPG", ".avi", Fa
 DEFAULT_FPS = 30.0
 #: The orbit's default radius (a fraction of the first frame's median depth) and its period in seconds.
 ORBIT_RADIUS, ORBIT_PERIOD = 0.15, 8.0
+#: Batches queued for the writer thread at most: the model waits beyond that (frames and scenes held in memory).
+MAX_QUEUED = 2
 
 
 # ---------------------------------------------------------------- input
@@ -252,7 +254,7 @@ def stream(source: StereoSource, calib: Calibration, prepare: PairTransform, rec
     now = synced_clock(device)
     total = min(x for x in (source.frame_count, max_frames) if x is not None) \
         if (source.frame_count or max_frames) else None
-    report, pending, done = StreamReport(), [], 0
+    report, pending, done, written = StreamReport(), [], 0, 0
     reader = ThreadPoolExecutor(1, thread_name_prefix="video-reader")
 
     def read(n: int) -> tuple[float, float, np.ndarray, np.ndarray]:
@@ -296,7 +298,9 @@ def stream(source: StereoSource, calib: Calibration, prepare: PairTransform, rec
             pending.append(sink.submit(done, frames, scene_list))
             done += n
             bar.update(n)
-        for batch, future in zip(report.batches, pending):
+            while len(pending) - written > MAX_QUEUED:  # back-pressure: the writer is behind
+                report.batches[written].written, written = pending[written].result(), written + 1
+        for batch, future in zip(report.batches[written:], pending[written:]):
             batch.written = future.result()
     finally:
         bar.close()
