@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.irs import IRS_FOCAL_BASELINE, depth_from_disparity, read_disparity
+from scenesplat_stereo.cameras import rotation_angle_deg
 from scenesplat_stereo.commandline import Parser
 from scenesplat_stereo.text import format_table, key_safe_name, positive_number, whole_number
 
@@ -70,13 +71,6 @@ class TargetRules:
     coverage_goal: float = TARGET_COVERAGE_GOAL
     max_targets: int = MAX_TARGETS
     depth_stride: int = DEPTH_STRIDE
-
-
-def rotation_angle_deg(c2w_a: np.ndarray, c2w_b: np.ndarray) -> np.ndarray:
-    """Angle in degrees of the relative rotation R_a^T R_b (broadcasts over leading axes)."""
-    rel = np.swapaxes(c2w_a[..., :3, :3], -1, -2) @ c2w_b[..., :3, :3]
-    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def select_references(c2w: np.ndarray, rules: TargetRules = TargetRules()) -> list[int]:

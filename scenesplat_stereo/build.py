@@ -30,11 +30,13 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo import shards
+from scenesplat_stereo.benchmark import Benchmark, write_benchmark
 from scenesplat_stereo.build_settings import SPLITS_OF_MODE, BuildSettings, add_arguments, settings_from_args
 from scenesplat_stereo.encode import SampleEncoder
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.nvjpeg import NvJpegEncoder
-from scenesplat_stereo.protocol import VAL_SCENES, SamplePlan, filter_teachers, plan_scene, split_scenes
+from scenesplat_stereo.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_PER_SCENE, VAL_SCENES, SamplePlan,
+                                        filter_teachers, plan_scene, split_scenes)
 from scenesplat_stereo.render_pairs import start_render, stream_samples
 from scenesplat_stereo.teachers import (
     Discovery,
@@ -317,8 +319,22 @@ def build(settings: BuildSettings) -> BuildReport:
     for split in SPLITS_OF_MODE[settings.split_mode]:
         shards.write_index(settings.out, split)
     _write_stats(settings, report)
+    if settings.split_mode == "test":
+        write_benchmark(settings.out, rendered_benchmark(settings))
     report.wall_s = time.perf_counter() - t_start
     return report
+
+
+def rendered_benchmark(settings: BuildSettings) -> Benchmark:
+    """How a rendered test set is measured (``OUT/benchmark.json``): over the valid masks, as the paper
+    measures ReplicaGS."""
+    pairs = TEST_PAIRS_PER_SCENE if settings.max_frames is None else min(TEST_PAIRS_PER_SCENE, settings.max_frames)
+    b = "tier" if settings.baseline is None else f"{settings.baseline:g} m"
+    rho = "tier" if settings.rho is None else f"{settings.rho:g} m"
+    return Benchmark(masked=True, source="rendered", protocol=(
+        f"rendered from 3DGS teachers: {pairs} evenly spaced pairs per scene, {settings.targets} targets, B {b}, "
+        f"rho {rho}; metrics over rendered alpha >= {MASK_ALPHA_THRESHOLD}"))
+
 
 
 def _write_stats(settings: BuildSettings, report: BuildReport) -> None:

@@ -1,6 +1,7 @@
 """The settings of ``scenesplat-stereo build``: ``BuildSettings``, the one description of the build's flags
 (each field's metadata makes its flag), checked on construction so that a refused value never reaches the
-output folder; ``add_arguments`` / ``settings_from_args`` between them and argparse."""
+output folder; ``add_arguments`` / ``settings_from_args`` between them and argparse; ``PRESETS``, named sets
+of settings (``--preset``) whose values any flag given on the command line overrides."""
 
 from __future__ import annotations
 
@@ -14,13 +15,22 @@ import torch
 from scenesplat_stereo import nvjpeg
 from scenesplat_stereo.effects import CameraEffects
 from scenesplat_stereo.encode import DEFAULT_ENCODER_MODE, ENCODER_MODES, JPEG_ENCODERS, default_encoder_workers
-from scenesplat_stereo.protocol import JPEG_QUALITY, MIN_TEACHER_PSNR, NUM_TARGETS
+from scenesplat_stereo.protocol import JPEG_QUALITY, MIN_TEACHER_PSNR, NUM_TARGETS, TIERS
 from scenesplat_stereo.raster import check_device
 from scenesplat_stereo.teachers import OrbitSpec
 from scenesplat_stereo.text import (argtype, parse_counts, parse_number_or_none, parse_size, positive_number,
                                    whole_number)
 
 SPLITS_OF_MODE = {"trainval": ("train", "val"), "test": ("test",)}
+#: ``--preset NAME``: settings a preset sets (exactly these; a flag given on the command line wins).
+#: replicags: the paper's ReplicaGS test set (appendices B and C): 100 evenly spaced reference poses per scene
+#: (``--split-mode test``), all 10 targets, the teachers' native resolution (1200x680 for Replica), B = 0.10 m
+#: for every scene, rho from the PSNR tiers (0.20 or 0.30 m above 35 dB), teachers above 30 dB; valid masks
+#: are rendered alpha >= 0.5 in every build.
+PRESETS = {
+    "replicags": {"split_mode": "test", "resolution": None, "baseline": TIERS[1].baseline, "rho": None,
+                  "targets": NUM_TARGETS, "min_psnr": MIN_TEACHER_PSNR, "max_frames": None},
+}
 
 
 def _effects(text: str, flag: str) -> str:
@@ -157,20 +167,40 @@ class BuildSettings:
         return json.loads(json.dumps(doc))
 
 
+class _Default:
+    """A flag's default as argparse holds it: marks a value the user did not type, which a preset replaces."""
+
+    def __init__(self, value) -> None:
+        self.value = value
+
+    def __repr__(self) -> str:
+        return repr(self.value)
+
+
 def add_arguments(p) -> None:
-    """The ``build`` flags, one per ``BuildSettings`` field with flag metadata, plus ``--seed`` (of the
-    effects) and ``--no-progress``."""
+    """The ``build`` flags, one per ``BuildSettings`` field with flag metadata, plus ``--preset``, ``--seed``
+    (of the effects) and ``--no-progress``."""
     for f in fields(BuildSettings):
         if "cli" in f.metadata:
             default = {} if f.metadata["cli"].get("required") else {
-                "default": f.default_factory() if f.default_factory is not MISSING else f.default}
+                "default": _Default(f.default_factory() if f.default_factory is not MISSING else f.default)}
             p.add_argument("--" + f.name.replace("_", "-"), dest=f.name, **default, **f.metadata["cli"])
+    p.add_argument("--preset", choices=sorted(PRESETS),
+                   help="replicags: the paper's ReplicaGS test set: --split-mode test (100 evenly spaced pairs per "
+                        "scene, 10 targets), native resolution, --baseline 0.1, rho from the PSNR tier, --min-psnr 30; "
+                        "any of these flags given beside it wins (docs/dataset.md)")
     p.add_argument("--seed", type=int, default=0, help="seed of the per-sample effect parameters (default 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def settings_from_args(args) -> BuildSettings:
-    """``BuildSettings`` from parsed ``build`` flags (ValueError naming the flag when a value is refused)."""
-    values = {f.name: getattr(args, f.name) for f in fields(BuildSettings) if "cli" in f.metadata}
-    values["effects"] = CameraEffects.parse(args.effects, args.seed)
+    """``BuildSettings`` from parsed ``build`` flags: a flag the user typed, else the ``--preset``'s value,
+    else the default (ValueError naming the flag when a value is refused)."""
+    preset = PRESETS[args.preset] if getattr(args, "preset", None) else {}
+    values = {}
+    for f in fields(BuildSettings):
+        if "cli" in f.metadata:
+            value = getattr(args, f.name)
+            values[f.name] = preset.get(f.name, value.value) if isinstance(value, _Default) else value
+    values["effects"] = CameraEffects.parse(values["effects"], args.seed)
     return BuildSettings(**values, progress=not args.no_progress)

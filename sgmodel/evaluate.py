@@ -2,7 +2,8 @@
 
 Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned prediction
 (``--method naive-gs|forward-splat``, sgmodel.baselines through sgmodel.inference: pixels without a valid
-stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Metrics (SPEC
+stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Several methods or several
+``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.table2). Metrics (SPEC
 section 7, sgmodel.metrics): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
 when the VGG16 weights are available; each over the full image and over the valid mask.
 
@@ -17,6 +18,7 @@ import argparse
 import csv
 import io
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,7 +29,7 @@ from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.text import markdown_table
 
 from . import metrics
-from .data import make_loader
+from .data import eval_batches
 from .encoders import create_encoder
 from .inference import Reconstructor
 from .lpips import create_lpips
@@ -105,8 +107,11 @@ def measure(method: Method, loader, device: str, lpips_net, progress: bool = Tru
 
 
 def summarise(rows: list[dict]) -> dict:
+    """Means over targets; a masked metric of a target without a valid pixel (NaN) is left out of its mean
+    (NaN only when no target has one)."""
     keys = [k for k in rows[0] if k not in ("key", "scene", "target")]
-    return {k: sum(r[k] for r in rows) / len(rows) for k in keys}
+    values = {k: [r[k] for r in rows if not math.isnan(r[k])] for k in keys}
+    return {k: sum(v) / len(v) if v else math.nan for k, v in values.items()}
 
 
 def scene_table(rows: list[dict]) -> str:
@@ -131,7 +136,7 @@ def _csv(rows: list[dict]) -> bytes:
 def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpips_vgg: str | None,
              batch_size: int = 4, progress: bool = True) -> dict:
     """Run the evaluation and write the report; returns metrics.json's content."""
-    loader = make_loader(data, split, batch_size, method.resolution, None, 0, 0, 0, 1, train=False)
+    loader = eval_batches(data, split, batch_size, method.resolution)
     lpips_net = create_lpips(lpips_vgg, device=device)
     rows, kept = measure(method, loader, device, lpips_net, progress)
     result = {"method": method.name, "encoder": method.encoder, "split": split, "data": str(Path(data).resolve()),
@@ -146,12 +151,22 @@ def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpi
     return result
 
 
+def benchmark_flag(text: str) -> tuple[str, Path]:
+    """``--data [NAME=]PATH``: a benchmark's name (default: its folder's name) and folder (a path that holds
+    '=' needs a NAME)."""
+    name, _, path = text.partition("=") if "=" in text else ("", "", text)
+    path = Path(path)
+    return (name or path.resolve().name), path
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, required=True, help="dataset folder written by `scenesplat-stereo build`")
+    p.add_argument("--data", type=benchmark_flag, action="append", required=True, metavar="[NAME=]PATH",
+                   help="dataset folder written by `scenesplat-stereo build` or `import`; repeat it for a table over "
+                        "several benchmarks (NAME labels its columns; default: the folder's name)")
     p.add_argument("--split", choices=("val", "test"), default="val", help="split to evaluate (default val)")
-    which = p.add_mutually_exclusive_group(required=True)
-    which.add_argument("--checkpoint", type=Path, help="a checkpoint written by `sgmodel train` (best.pt)")
-    which.add_argument("--method", choices=METHODS, help="a baseline without learned prediction")
+    p.add_argument("--checkpoint", type=Path, help="a checkpoint written by `sgmodel train` (best.pt)")
+    p.add_argument("--method", choices=METHODS, action="append",
+                   help="a baseline without learned prediction; repeat it (with or without --checkpoint) for a table")
     p.add_argument("--encoder", default="psmnet-kitti", help="encoder of a baseline (default psmnet-kitti)")
     p.add_argument("--encoder-weights", help="local weights file of the encoder (default: the fetched cache)")
     p.add_argument("--resolution", type=int, default=256, help="S for a baseline (a checkpoint uses its own)")
@@ -167,9 +182,16 @@ def run(args: argparse.Namespace, device: str) -> int:
         raise ValueError(f"--out {args.out}: exists and is not a folder")
     if args.batch_size < 1:
         raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
+    methods = (["checkpoint"] if args.checkpoint else []) + list(dict.fromkeys(args.method or []))
+    if not methods:
+        raise ValueError("--checkpoint / --method: give a checkpoint, a baseline, or both")
+    if len(args.data) > 1 or len(methods) > 1:
+        from .table2 import run_table  # the table is made of this module's evaluations
+
+        return run_table(args, methods, device)
     method = checkpoint_method(args.checkpoint, device, args.encoder_weights) if args.checkpoint else \
-        baseline_method(args.method, args.encoder, args.encoder_weights, args.resolution, device)
-    result = evaluate(method, args.data, args.split, args.out, device, args.lpips_vgg, args.batch_size,
+        baseline_method(methods[0], args.encoder, args.encoder_weights, args.resolution, device)
+    result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
                       not args.no_progress)
     print((args.out / "scenes.md").read_text())
     print(f"{result['targets']} targets; report in {args.out}")

@@ -16,6 +16,7 @@ Everything is in the left camera's frame: OpenCV axes (x right, y down, z forwar
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -52,6 +53,14 @@ class Scenes:
 
     def __len__(self) -> int:
         return self.left.shape[0]
+
+    def in_frame(self, frame: Callable[[dict], dict] | None) -> Scenes:
+        """These Scenes with their Gaussians moved by ``frame`` (None: as they are), e.g. into a raw rig's left
+        camera frame (``Rectification.to_raw_frame``) for the scene files; render the original (its cameras
+        are the rectified ones)."""
+        if frame is None or self.gaussians is None:
+            return self
+        return dataclasses.replace(self, gaussians=frame(self.gaussians))
 
     def scene(self, index: int) -> GaussianScene:
         """Scene ``index`` with only its valid Gaussians, SH cut to the degree its content has."""

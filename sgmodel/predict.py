@@ -19,6 +19,13 @@ the aspect ratio, each side rounded to a multiple of 16; K (and doffs) are scale
 outputs are at that size. Every input is checked before anything is written; outputs go to a temporary
 folder beside OUT and are moved into OUT at the end. Errors in the inputs raise ``PredictError`` (or
 ``CalibError``); ``run`` turns them into exit status 2.
+
+With ``--rig`` the pair (or every video frame) is raw: it is rectified first (``sgmodel.rectify``, the pair
+transform of ``sgmodel.pairs``), the scene files are then in the raw left camera's frame (the viewer files
+hold the rectified left camera in that frame), while ``depth.png`` and the views stay images of the rectified
+left camera (the model's input). Before the model runs, ``sgmodel.stereo_check`` measures the pair's (the
+first frame's) vertical disparity and the sign of its disparity and warns (``--strict``: exit 2); the
+summary repeats its figures.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ import os
 import shutil
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -36,11 +44,12 @@ import torch
 from scenesplat_stereo.encode import encode_png, to_uint8
 from scenesplat_stereo.scene_files import FORMATS
 
-from . import baselines, export, video
+from . import baselines, export, rig, stereo_check, video
 from .bench import synced_clock
 from .calib import CalibError
 from .inference import Reconstructor
-from .pairs import SIZE_MULTIPLE, Pair, PredictError, prepare_pairs, read_calibration, read_pair
+from .pairs import (SIZE_MULTIPLE, Pair, PredictError, prepare_pairs, read_calibration, read_pair, rectify_pair,
+                    to_tensor)
 from .viewers import write_viewer_files
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
@@ -56,8 +65,8 @@ DEFAULT_BATCH = 4
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags of ``sgmodel predict``."""
-    inputs = parser.add_argument_group("input: a rectified pair, or a stereo video")
-    inputs.add_argument("--left", help="left (reference) image of a rectified pair")
+    inputs = parser.add_argument_group("input: a rectified pair (raw with --rig), or a stereo video")
+    inputs.add_argument("--left", help="left (reference) image of a rectified pair (raw with --rig)")
     inputs.add_argument("--right", help="right image, same size as the left")
     inputs.add_argument("--video", help="side-by-side stereo video (left eye in the left half)")
     inputs.add_argument("--left-video", help="left video of a stereo pair of videos (with --right-video)")
@@ -66,6 +75,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "Middlebury 2014 calib.txt, of one eye's image")
     parser.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels of the input images (instead of --calib)")
     parser.add_argument("--baseline", help="baseline in metres (with --intrinsics)")
+    rig.add_arguments(parser)
+    stereo_check.add_arguments(parser)
     parser.add_argument("--checkpoint", help="trained model checkpoint")
     parser.add_argument("--method", choices=baselines.METHODS,
                         help="a baseline without learned prediction instead of --checkpoint")
@@ -166,7 +177,7 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def predict(args: argparse.Namespace, log=print) -> None:
-    """Do the work of ``sgmodel predict`` (raises PredictError / CalibError on bad input)."""
+    """Do the work of ``sgmodel predict`` (raises PredictError / CalibError / StereoCheckError on bad input)."""
     _check_args(args)
     trajectory = video.parse_trajectory(args.trajectory)
     device = torch.device(args.device)
@@ -174,19 +185,27 @@ def predict(args: argparse.Namespace, log=print) -> None:
     source = None
     try:
         if args.left:
-            raw = read_pair(args)
+            first = rectify_pair(read_pair(args))
         else:
             source = video.StereoSource(args.video or args.left_video, args.right_video)
-            calib = read_calibration(args, source.width, source.height, args.video or args.left_video)
+            name = f"--video {args.video}" if args.video else f"--left-video {args.left_video}"
+            calib, rectification = read_calibration(args, source.width, source.height, name)
+            first = rectify_pair(Pair(*(to_tensor(x) for x in source.first_frames()), calib, rectification))
+        if first.rectification is not None:
+            timer.lap("read and rectify")
+            first.rectification.report(log)
         reconstructor, short = make_reconstructor(args, device)
         timer.lap("load")
+        check = stereo_check.run_check(first.left, first.right, args.strict, first.calib.doffs,
+                                       first.rectification is not None, log)
+        timer.lap("stereo check")
         out = Path(args.out)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.resolve().parent))
         try:
             if source is None:
-                _predict_pair(args, raw, reconstructor, short, device, timer, tmp, log)
+                _predict_pair(args, first, reconstructor, short, device, timer, tmp, log)
             else:
-                _predict_video(args, source, calib, reconstructor, short, trajectory, device, tmp, log)
+                _predict_video(args, source, first, reconstructor, short, trajectory, device, tmp, log)
             written = _move_into(tmp, out)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -195,6 +214,7 @@ def predict(args: argparse.Namespace, log=print) -> None:
             source.close()
     if source is None:
         log(timer.table())
+    log(check.summary())
     log(f"wrote {out}/: " + ", ".join(written if len(written) <= 12 else written[:11] + ["..."]))
 
 
@@ -211,6 +231,17 @@ def _log_dropped(kept: int, produced: int, what: str, log) -> None:
         f"the encoder's range or the depth clamps); {kept:,} kept")
 
 
+def _scene_frame(pair: Pair) -> tuple[Callable | None, np.ndarray]:
+    """What the scene files are in: with ``--rig`` the raw left camera's frame (the Gaussians turned back by
+    ``Rectification.to_raw_frame``), else the left camera's. Returns that move (None: none) and the model's
+    (rectified) left camera in it, c2w [4,4], for the viewer files."""
+    c2w = np.eye(4)
+    if pair.rectification is None:
+        return None, c2w
+    c2w[:3, :3] = pair.rectification.R1.T  # p_rect = R1 p_raw: the rectified camera's axes in the raw frame
+    return pair.rectification.to_raw_frame, c2w
+
+
 def _predict_pair(args, raw: Pair, reconstructor: Reconstructor, short: int, device, timer: _Timer, tmp: Path,
                   log) -> None:
     pair = prepare_pairs(short)(raw)
@@ -219,20 +250,22 @@ def _predict_pair(args, raw: Pair, reconstructor: Reconstructor, short: int, dev
     left, right = pair.left.to(device), pair.right.to(device)
     K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None]
     baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
-    timer.lap("read pair")
+    timer.lap("model size")
     scenes = reconstructor(left, right, K, baseline, pair.calib.doffs, lap=timer.lap)
     kept, produced = scenes.counts(0)
     _log_dropped(kept, produced, "Gaussians" if scenes.gaussians is not None else "pixels", log)
     (tmp / "views").mkdir()
     focus = scenes.focus(0)
     if scenes.gaussians is not None:
-        scene = scenes.scene(0)
+        frame, c2w = _scene_frame(pair)
+        scene = scenes.in_frame(frame).scene(0)
         timer.lap("scene to host")
         fmt = args.format or DEFAULT_FORMAT
         export.write_scene(scene, tmp / f"scene{FORMATS[fmt].suffix}", fmt)
         timer.lap(f"export {fmt}")
-        log(f"scene: {len(scene):,} Gaussians, SH degree {scene.sh_degree}")
-        write_viewer_files(tmp, pair.calib.K, w, h, focus)
+        log(f"scene: {len(scene):,} Gaussians, SH degree {scene.sh_degree}"
+            + (", in the raw left camera's frame" if frame is not None else ""))
+        write_viewer_files(tmp, pair.calib.K, w, h, focus, c2w)
     z, valid = scenes.depth[0, 0].cpu().numpy(), scenes.pixel_valid[0, 0].cpu().numpy()
     (tmp / "depth.png").write_bytes(encode_png(export.depth_png(z, valid=valid)))
     timer.lap("depth and viewer files")
@@ -248,27 +281,27 @@ def _predict_pair(args, raw: Pair, reconstructor: Reconstructor, short: int, dev
     timer.lap("render views")
 
 
-def _predict_video(args, source: video.StereoSource, calib, reconstructor: Reconstructor, short: int,
+def _predict_video(args, source: video.StereoSource, first: Pair, reconstructor: Reconstructor, short: int,
                    trajectory: video.Trajectory, device, tmp: Path, log) -> None:
     fmt = args.format or DEFAULT_FRAME_FORMAT
     codec = video.CODECS[args.codec]
     prepare = prepare_pairs(short)
-    blank = torch.zeros(1, 3, source.height, source.width)
-    h, w = prepare(Pair(blank, blank, calib)).left.shape[-2:]  # the size the transform gives every frame
+    h, w = prepare(first).left.shape[-2:]  # the size the transform gives every frame
     frames = tmp / "frames" if args.frames else None
     if frames is not None:
         frames.mkdir()
     log(f"{args.video or args.left_video}: {source.width}x{source.height} per eye, {source.fps:g} fps, "
         f"{source.frame_count or 'unknown'} frames; {reconstructor.name} at {w}x{h}, batches of {args.batch_size}")
-    sink = video.VideoSink(tmp / f"novel_view{codec.suffix}", args.codec, source.fps, w, h, frames, fmt)
+    frame, c2w = _scene_frame(first)
+    sink = video.VideoSink(tmp / f"novel_view{codec.suffix}", args.codec, source.fps, w, h, frames, fmt, frame)
 
-    def first(pair: Pair, focus: float) -> None:
+    def on_first(pair: Pair, focus: float) -> None:
         _log_model_size(pair, short, log)
         if reconstructor.method != "forward-splat":
-            write_viewer_files(tmp, pair.calib.K, w, h, focus)
+            write_viewer_files(tmp, pair.calib.K, w, h, focus, c2w)
 
-    report = video.stream(source, calib, prepare, reconstructor, trajectory, sink, device, args.batch_size,
-                          args.max_frames, not args.no_progress, on_first=first)
+    report = video.stream(source, first.calib, first.rectification, prepare, reconstructor, trajectory, sink, device,
+                          args.batch_size, args.max_frames, not args.no_progress, on_first=on_first)
     if not report.frames:
         raise PredictError(f"{args.video or args.left_video}: no frame could be decoded")
     _log_dropped(report.kept, report.produced,
@@ -296,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         predict(args)
-    except (PredictError, CalibError, WeightsError) as e:
+    except (PredictError, CalibError, stereo_check.StereoCheckError, WeightsError) as e:
         print(f"sgmodel predict: error: {e}", file=sys.stderr)
         return 2
     return 0

@@ -40,6 +40,7 @@ from .calib import Calibration
 from .export import offset_camera, orbit_camera, write_scene
 from .inference import Reconstructor
 from .pairs import Pair, PairTransform, PredictError, to_tensor
+from .rectify import Rectification
 
 
 @dataclass(frozen=True)
@@ -97,21 +98,29 @@ class StereoSource:
         self.width = shapes[0][1] // 2 if right is None else shapes[0][1]
         self.fps = fps[0] if fps[0] > 0 else DEFAULT_FPS
         self.frame_count = counts[0] if counts[0] > 0 else None
-        self._first: list[np.ndarray] | None = first  # decoded to check the input; the first read returns it
+        self._first, self._first_pending = first, True  # decoded to check the input; the first read returns it
+
+    def _split(self, frames: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """One decoded frame per capture (BGR) -> (left, right) RGB [H,W,3]."""
+        rgb = [f[..., ::-1] for f in frames]
+        return (rgb[0][:, :self.width], rgb[0][:, self.width:]) if len(rgb) == 1 else (rgb[0], rgb[1])
+
+    def first_frames(self) -> tuple[np.ndarray, np.ndarray]:
+        """The first frame's (left, right) uint8 RGB [H,W,3], without consuming it (for the stereo check)."""
+        return self._split(self._first)
 
     def read(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Up to n next frames: (left, right) uint8 RGB [m,H,W,3], m < n only at the end of the video."""
         lefts, rights = [], []
         for _ in range(n):
-            if self._first is not None:
-                frames, self._first = self._first, None
+            if self._first_pending:
+                frames, self._first_pending = self._first, False
             else:
                 read = [cap.read() for cap in self.captures]
                 if not all(ok for ok, _ in read):
                     break
                 frames = [f for _, f in read]
-            rgb = [f[..., ::-1] for f in frames]
-            left, right = (rgb[0][:, :self.width], rgb[0][:, self.width:]) if len(rgb) == 1 else rgb
+            left, right = self._split(frames)
             lefts.append(left)
             rights.append(right)
         empty = np.zeros((0, self.height, self.width, 3), np.uint8)
@@ -162,14 +171,16 @@ def parse_trajectory(text: str) -> Trajectory:
 
 class VideoSink:
     """The novel-view video (``codec`` of CODECS at ``fps``, width x height) and, when ``scene_folder`` is
-    given, one scene per frame named by frame number; written in order by one writer thread."""
+    given, one scene per frame named by frame number, its Gaussians moved by ``scene_frame`` first (a raw
+    rig's left camera frame; None: the model's); written in order by one writer thread."""
 
     def __init__(self, path: Path, codec: str, fps: float, width: int, height: int,
-                 scene_folder: Path | None = None, scene_format: str = "spz") -> None:
+                 scene_folder: Path | None = None, scene_format: str = "spz",
+                 scene_frame: Callable[[dict], dict] | None = None) -> None:
         self.writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*CODECS[codec].fourcc), fps, (width, height))
         if not self.writer.isOpened():
             raise PredictError(f"--codec {codec}: OpenCV cannot write {CODECS[codec].fourcc} to {path.name}")
-        self.scene_folder, self.scene_format = scene_folder, scene_format
+        self.scene_folder, self.scene_format, self.scene_frame = scene_folder, scene_format, scene_frame
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="video-writer")
 
     def submit(self, first: int, frames: np.ndarray, scenes: list[GaussianScene]) -> Future:
@@ -245,12 +256,14 @@ class StreamReport:
         return "\n".join(["| | |", "|---|---:|"] + [f"| {k} | {v} |" for k, v in rows])
 
 
-def stream(source: StereoSource, calib: Calibration, prepare: PairTransform, reconstructor: Reconstructor,
-           trajectory: Trajectory, sink: VideoSink, device: torch.device, batch_size: int,
-           max_frames: int | None = None, progress: bool = True,
+def stream(source: StereoSource, calib: Calibration, rectification: Rectification | None, prepare: PairTransform,
+           reconstructor: Reconstructor, trajectory: Trajectory, sink: VideoSink, device: torch.device,
+           batch_size: int, max_frames: int | None = None, progress: bool = True,
            on_first: Callable[[Pair, float], None] | None = None) -> StreamReport:
-    """Decode, predict, render and encode the whole video (module docstring); ``on_first(pair, focus)`` is
-    called once with the first model-ready batch and the focus (e.g. to write the viewer files)."""
+    """Decode, predict, render and encode the whole video (module docstring): each batch of frames becomes a raw
+    ``Pair`` (``calib``, and ``rectification`` for a raw rig's frames), ``prepare`` makes it model-ready (on the
+    CPU), then it goes to ``device``. ``on_first(pair, focus)`` is called once with the first model-ready
+    batch and the focus (e.g. to write the viewer files)."""
     now = synced_clock(device)
     total = min(x for x in (source.frame_count, max_frames) if x is not None) \
         if (source.frame_count or max_frames) else None
@@ -275,10 +288,10 @@ def stream(source: StereoSource, calib: Calibration, prepare: PairTransform, rec
             rest = None if total is None else total - done - n
             ahead = reader.submit(read, batch_size if rest is None else min(batch_size, rest)) \
                 if rest is None or rest > 0 else None
-            pair = prepare(Pair(to_tensor(left).to(device), to_tensor(right).to(device), calib))
+            pair = prepare(Pair(to_tensor(left), to_tensor(right), calib, rectification))
             K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None].expand(n, 3, 3)
             baseline = torch.full((n,), pair.calib.baseline, dtype=torch.float32, device=device)
-            scenes = reconstructor(pair.left, pair.right, K, baseline, pair.calib.doffs)
+            scenes = reconstructor(pair.left.to(device), pair.right.to(device), K, baseline, pair.calib.doffs)
             t_model = now()
             if not report.batches:
                 report.focus = scenes.focus(0)
@@ -293,7 +306,11 @@ def stream(source: StereoSource, calib: Calibration, prepare: PairTransform, rec
             for i in range(n):
                 kept, produced = scenes.counts(i)
                 report.kept, report.produced = report.kept + kept, report.produced + produced
-            scene_list = [scenes.scene(i) for i in range(n)] if sink.scene_folder is not None else []
+            if sink.scene_folder is not None:
+                moved = scenes.in_frame(sink.scene_frame)
+                scene_list = [moved.scene(i) for i in range(n)]
+            else:
+                scene_list = []
             report.batches.append(BatchTimes(n, t0, t1, t_start, t_model, t_render))
             pending.append(sink.submit(done, frames, scene_list))
             done += n

@@ -202,3 +202,28 @@ def test_bad_video_inputs_exit_2_and_write_nothing(bad_inputs, capsys, change, m
     assert err.startswith("sgmodel predict: error: ") and len(err.strip().splitlines()) == 1, err
     assert re.search(message, err), err
     assert sorted(p.name for p in bad_inputs.iterdir()) == before
+
+
+def test_a_raw_rigs_video_is_rectified_frame_by_frame_like_a_pair(raw_rig, tmp_path):
+    """--rig on a video: every frame takes the pair transform of a still pair (rectification, then the resize),
+    and the frame's scene is in the raw left camera's frame: byte-identical to `predict --rig` on that pair."""
+    from scripts.rig_pair import H as RH
+    from scripts.rig_pair import W as RW
+
+    r = raw_rig("radtan")
+    for side in ("left", "right"):
+        image = cv2.imread(str(r.folder / f"{side}.png"), cv2.IMREAD_COLOR)
+        writer = cv2.VideoWriter(str(tmp_path / f"{side}.mkv"), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (RW, RH))
+        for _ in range(2):
+            writer.write(image)
+        writer.release()
+    common = ["--rig", r.folder / "opencv.yml", "--method", "naive-gs", "--encoder", "sgbm", "--resolution", RH,
+              "--device", "cpu"]
+    assert run(["--left-video", tmp_path / "left.mkv", "--right-video", tmp_path / "right.mkv", "--out", tmp_path / "v",
+                "--frames", "--format", "ply", "--no-progress", *common]) == 0
+    assert run(["--left", r.folder / "left.png", "--right", r.folder / "right.png", "--out", tmp_path / "p",
+                *common]) == 0
+    scene = (tmp_path / "p" / "scene.ply").read_bytes()
+    assert (tmp_path / "v" / "frames" / "000000.ply").read_bytes() == scene
+    assert (tmp_path / "v" / "frames" / "000001.ply").read_bytes() == scene
+    assert (tmp_path / "v" / "settings.json").read_text() == (tmp_path / "p" / "settings.json").read_text()

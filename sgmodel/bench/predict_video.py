@@ -82,8 +82,8 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
         source = StereoSource(str(video))
         w, h = pair.left.shape[-1], pair.left.shape[-2]
         sink = VideoSink(Path(tmp) / "novel_view.mp4", "mp4v", source.fps, w, h)
-        result = stream(source, calib, prepare, reconstructor, Trajectory("offset", offset=OFFSET), sink, device, b,
-                        progress=False)
+        result = stream(source, calib, None, prepare, reconstructor, Trajectory("offset", offset=OFFSET), sink,
+                        device, b, progress=False)
         source.close()
     latency = [x.latency for x in result.batches for _ in range(x.frames)]
     e2e = [_rate(result.frames / result.wall), f"{1e3 * np.median(latency):.1f}",
