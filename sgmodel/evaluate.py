@@ -1,8 +1,9 @@
 """``sgmodel eval``: render every stored target of a split and measure it as the paper does.
 
 Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned prediction
-(``--method naive-gs|forward-splat``, sgmodel.baselines) on any encoder's disparity. Several methods or
-several ``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.table2). Metrics (SPEC
+(``--method naive-gs|forward-splat``, sgmodel.baselines through sgmodel.inference: pixels without a valid
+stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Several methods or several
+``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.table2). Metrics (SPEC
 section 7, sgmodel.metrics): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
 when the VGG16 weights are available; each over the full image and over the valid mask.
 
@@ -27,12 +28,12 @@ from tqdm import tqdm
 from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.text import markdown_table
 
-from . import baselines, metrics
+from . import metrics
 from .config import EncoderParams
 from .data import eval_batches
 from .encoders import DEFAULT_ENCODER
 from .encoders.flags import add_encoder_arguments, build_encoder, encoder_params
-from .geometry import depth_from_disparity
+from .inference import Reconstructor
 from .lpips import create_lpips
 from .model import load_predictor
 from .render import render_views
@@ -60,7 +61,7 @@ def checkpoint_method(checkpoint: Path, device: str, encoder_weights: str | None
     predictor = load_predictor(checkpoint, device, encoder_weights, encoder_repo, encoder)
 
     def render(batch: dict) -> torch.Tensor:
-        gaussians, _ = predictor.predict(batch["left"], batch["right"], batch["K"], batch["baseline"])
+        gaussians = predictor.predict(batch["left"], batch["right"], batch["K"], batch["baseline"]).gaussians
         S = batch["targets"].shape[-1]
         return render_views(gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
 
@@ -68,18 +69,13 @@ def checkpoint_method(checkpoint: Path, device: str, encoder_weights: str | None
 
 
 def baseline_method(name: str, encoder_params: EncoderParams, resolution: int, device: str) -> Method:
-    encoder = build_encoder(encoder_params, device)
+    """A baseline without learned prediction on the encoder ``encoder_params`` describes."""
+    reconstructor = Reconstructor(method=name, encoder=build_encoder(encoder_params, device))
 
-    @torch.no_grad()
     def render(batch: dict) -> torch.Tensor:
-        z = depth_from_disparity(encoder(batch["left"], batch["right"]).disparity.float(), batch["K"][:, 0, 0],
-                                 batch["baseline"])
+        scenes = reconstructor(batch["left"], batch["right"], batch["K"], batch["baseline"])
         S = batch["targets"].shape[-1]
-        if name == "naive-gs":
-            g = baselines.naive_gs(batch["left"], z, batch["K"])
-            return render_views(g, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
-        return baselines.forward_splat(batch["left"], z, batch["K"], batch["target_viewmats"], batch["target_Ks"],
-                                       S, S)[0]
+        return scenes.render(batch["target_viewmats"], batch["target_Ks"], S, S)
 
     return Method(name, encoder_params.name, resolution, render)
 
