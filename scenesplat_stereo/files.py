@@ -3,8 +3,11 @@
 * ``atomic_write_bytes`` / ``atomic_write_json``: the bytes go to a hidden temp file in the target's
   folder, are flushed and fsync'd, and are moved into place with ``os.replace`` (atomic on POSIX within one
   file system); a failure at any step removes the temp file and leaves an earlier file untouched.
-  Permissions are the usual ``0666 & ~umask``. Temp files start with ``TMP_PREFIX``; ``remove_temp_files``
-  sweeps those a killed process left.
+  Permissions are the usual ``0666 & ~umask``. ``durable=False`` skips the fsync: the file still appears
+  whole or not at all to every reader, but a power loss soon after may leave it empty (for outputs that are
+  cheap to make again, where the fsync would cost more than the rest of the write: docs/benchmarks.md
+  "Scene export"). Temp files start with ``TMP_PREFIX``; ``remove_temp_files`` sweeps those a killed process
+  left.
 * ``append_line`` appends one whole line to a log (JSON lines) or none: a failed write is cut back off.
   ``read_json_lines`` reads such a log back, dropping a torn last line (a crash mid-write).
 * ``read_json``: JSON that does not parse is a ``FileFormatError`` naming the file, line and column.
@@ -28,6 +31,7 @@ import logging
 import os
 import shutil
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -45,16 +49,20 @@ class FolderBusy(ValueError):
     """Another live process holds a ``FolderLock`` on the folder."""
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` (parents created) through an fsync'd temp file and ``os.replace``."""
+def atomic_write_bytes(path: str | os.PathLike, data: bytes | Sequence[Any], durable: bool = True) -> Path:
+    """Write ``data`` (bytes, or a sequence of bytes-like objects such as contiguous numpy arrays, written in
+    order without joining them) to ``path`` (parents created) through a temp file (fsync'd when ``durable``)
+    and ``os.replace``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f"{TMP_PREFIX}{path.name}.")
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            for chunk in [data] if isinstance(data, (bytes, bytearray, memoryview)) else data:
+                f.write(chunk)
             f.flush()
-            os.fsync(f.fileno())
+            if durable:
+                os.fsync(f.fileno())
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600

@@ -44,17 +44,14 @@ if [[ $what == main ]]; then
   # 3. a training step split by stage (with the SSIM and the LPIPS term), the encoders' time and disparity
   # error, one warm prediction by stage (SKIP_BENCH=1: not now)
   [[ -n ${SKIP_BENCH:-} ]] || {
+  # the step with the SSIM and with the paper's LPIPS-VGG term (random VGG16 weights: the time does not depend on
+  # their values; the ImageNet weights cannot be had here)
   run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
-    --repeats 5 --warmup 2 --out "$out/bench_train.md"
+    --repeats 5 --warmup 2 --lpips-random-vgg --out "$out/bench_train.md"
   run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
     --repeats 5 --warmup 2 --data $data/dataset --workers $WORKERS --out "$out/bench_train_data.md"
   run python3 -m sgmodel.cli bench encoders --device $dev --data $data/dataset --resolution $S \
     --encoders $ENC --out "$out/bench_encoders.md"
-  # the step with the paper's LPIPS-VGG term: random VGG16 weights in torchvision's format (the time does not
-  # depend on their values; the ImageNet weights cannot be had here)
-  run python3 -c "import torch; from tests.test_lpips import random_vgg_state; torch.save(random_vgg_state(), '/tmp/vgg16-random.pth')"
-  run python3 -m sgmodel.cli bench train --device $dev --resolution $S --batch-size $BATCH --encoder $ENC \
-    --repeats 5 --warmup 2 --lpips-vgg /tmp/vgg16-random.pth --out "$out/bench_train_lpips.md"
   run python3 -m sgmodel.cli bench predict --device $dev --encoder $ENC --size $PAIR --repeats 20 \
     --out "$out/bench_predict.md"; }
   # 4. a short training run, evaluated with its baselines, then one prediction from a rendered guitar pair

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import ConfigurationError
-from .layers import GroupNorm, compute_dtype
+from .layers import GroupNorm, activation_format, cat_channels, compute_dtype
 
 
 class ResidualConvUnit(nn.Module):
@@ -48,6 +48,16 @@ class FusionBlock(nn.Module):
         return self.out(x)
 
 
+class Projection(nn.Sequential):
+    """1x1 conv -> GroupNorm -> GELU (the norm and the activation fused on CUDA, ``GroupNorm.gelu_after``)."""
+
+    def __init__(self, cin: int, channels: int, groups: int) -> None:
+        super().__init__(nn.Conv2d(cin, channels, 1), GroupNorm(groups, channels), nn.GELU())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self[1].gelu_after(self[0](x))
+
+
 def _scaled_size(height: int, width: int, s: int) -> tuple[int, int]:
     return -(-height // s), -(-width // s)
 
@@ -75,25 +85,24 @@ class DPTDecoder(nn.Module):
         self.order = order
         self.scales = tuple(feature_scales)
         self.rgbd = rgbd
-        self.project = nn.ModuleList(
-            nn.Sequential(nn.Conv2d(c + extra, channels, 1), GroupNorm(groups, channels), nn.GELU())
-            for c in feature_channels)
+        self.project = nn.ModuleList(Projection(c + extra, channels, groups) for c in feature_channels)
         self.fuse = nn.ModuleList(FusionBlock(channels) for _ in feature_channels)
         self.head = nn.Sequential(nn.Conv2d(channels, channels, 3, padding=1), nn.GELU(),
                                   nn.Conv2d(channels, channels, 1))
 
     def forward(self, features: list[torch.Tensor], rgb: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """features as the encoder gives them; rgb [B,3,H,W] in [0,1]; z [B,1,H,W] metres -> [B,C,H,W]."""
+        """features as the encoder gives them; rgb [B,3,H,W] in [0,1]; z [B,1,H,W] metres -> [B,C,H,W] (in
+        ``layers.activation_format``: channels-last on CUDA)."""
         H, W = rgb.shape[-2:]
-        dtype = compute_dtype(rgb.device)  # cast once, concatenate in the convolutions' dtype
-        rgb, z = rgb.to(dtype), z.to(dtype)
+        dtype, fmt = compute_dtype(rgb.device), activation_format(rgb)  # cast once, in the convolutions' dtype
+        rgb, z = rgb.to(dtype, memory_format=fmt), z.to(dtype, memory_format=fmt)
         fused = None
         for i in self.order:
             size = features[i].shape[-2:] if features else _scaled_size(H, W, self.scales[i])
-            parts = [features[i].to(dtype)] if features else []
+            parts = [features[i].to(dtype, memory_format=fmt)] if features else []
             if self.rgbd:
                 parts += [F.interpolate(rgb, size=size, mode="bilinear", align_corners=False, antialias=True),
                           F.interpolate(z, size=size, mode="nearest")]
-            fused = self.fuse[i](self.project[i](torch.cat(parts, dim=1)), fused)
+            fused = self.fuse[i](self.project[i](cat_channels(parts)), fused)
         fused = F.interpolate(fused, size=(H, W), mode="bilinear", align_corners=False)
         return self.head(fused)

@@ -1,17 +1,26 @@
 """Building blocks shared by the decoder, the canvas and the predictor, written for a fast bf16 step.
 
-- ``replicate_pad``: edge replication (each padded pixel copies the nearest border pixel) with a
-  backward that sums the padded border into the edge pixels in a few slice operations. PyTorch's own
-  ``replication_pad2d_backward`` scatters with atomics and was the largest single cost of a training step
-  on an H100 (40 ms of 400 at 256x256, batch 32); this one is a copy of the gradient plus border sums.
+On CUDA the decoder and predictor keep every activation channels-last (``activation_format``): cuDNN's
+bf16 convolutions run in NHWC, so NCHW activations cost a layout conversion before and after every
+convolution and its gradients (36 ms of a 287 ms training step on an H100). Elsewhere NCHW, as PyTorch's
+CPU kernels prefer. The blocks below work in either layout and compute the same numbers in both.
+
+- ``replicate_pad``: edge replication (each padded pixel copies the nearest border pixel) by copies that
+  keep the input's layout, with a backward that sums the padded border into the edge pixels in a few
+  slice operations. PyTorch's own ``replication_pad2d_backward`` scatters with atomics and was the
+  largest single cost of a training step on an H100 (40 ms of 400 at 256x256, batch 32).
 - ``replicate_conv3x3`` / ``ReplicateConv2d``: a 3x3 convolution of the replicate-padded input (the
   predictor's convolutions) without the padded copy: a zero-padded convolution plus the ring's
-  difference, whose gradients are added into the convolution's in place. Same parameters and state_dict
-  keys as ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
-- ``GroupNorm``: ``nn.GroupNorm`` that keeps its input's dtype. Under autocast PyTorch runs GroupNorm in
-  float32 (an up-cast copy in, a float32 tensor out and a down-cast before the next convolution); the
-  CUDA kernel accumulates its statistics in float32 for bf16 inputs anyway, so running it in bf16 gives
-  the same statistics with a third of the memory traffic. Same parameters and state_dict keys.
+  difference, whose gradients are added into the convolution's in place. With ``multiple`` > 1 the
+  output channels are computed padded to that multiple (zero filters, cut off again) and extra, zero
+  input channels of ``x`` (``cat_channels``) meet zero weights: cuDNN's NHWC kernels want channel counts
+  in multiples of 8 and otherwise pad with copies of their own. Same parameters and state_dict keys as
+  ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
+- ``group_norm_gelu`` / ``GroupNorm``: GroupNorm, optionally followed by the exact GELU, in its input's
+  dtype (statistics in float32). On CUDA with Triton, for channels-last inputs, one fused kernel pair
+  forward and one backward (``sgmodel.group_norm_kernels``): PyTorch's CUDA GroupNorm is NCHW-only and
+  converts channels-last tensors both ways. Elsewhere PyTorch's ``F.group_norm`` and ``F.gelu``, which are
+  the reference the kernels are tested against. Same parameters and state_dict keys as ``nn.GroupNorm``.
 - ``compute_dtype``: the dtype convolutions run in here (autocast's, else float32), so that inputs are
   cast once before they are concatenated instead of concatenated in float32 and cast by every consumer.
 
@@ -20,16 +29,60 @@ On the CPU (no autocast) every block computes exactly what its PyTorch counterpa
 
 from __future__ import annotations
 
+import functools
+import importlib.util
+
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+#: channel counts of concatenated inputs and convolution outputs are padded to this multiple on CUDA
+#: (cuDNN's NHWC tensor-core kernels; a 259 -> 384 channel 3x3 convolution at the canvas size took 36.6 ms
+#: forward + backward with 259 input channels and 28.9 ms with 264, H100, bf16, batch 32).
+CUDA_CHANNEL_MULTIPLE = 8
+
+
+def activation_format(x: torch.Tensor) -> torch.memory_format:
+    """The layout of the decoder's and predictor's activations on ``x``'s device: channels-last on CUDA,
+    NCHW elsewhere (module docstring)."""
+    return torch.channels_last if x.is_cuda else torch.contiguous_format
+
+
+def channel_multiple(x: torch.Tensor) -> int:
+    """Channel counts are padded to this multiple on ``x``'s device (1: none)."""
+    return CUDA_CHANNEL_MULTIPLE if x.is_cuda else 1
+
+
+def _round_up(n: int, multiple: int) -> int:
+    return -(-n // multiple) * multiple
+
+
+def cat_channels(tensors: list[torch.Tensor], multiple: int = 1) -> torch.Tensor:
+    """Concatenate [B, C_i, H, W] tensors of one dtype along channels, in the first one's layout
+    (``activation_format``), with zero channels appended up to a multiple of ``multiple``."""
+    x = tensors[0]
+    B, _, H, W = x.shape
+    total = sum(t.shape[1] for t in tensors)
+    extra = _round_up(total, multiple) - total
+    if extra:
+        tensors = [*tensors, x.new_zeros(B, extra, H, W)]
+    return torch.cat([t.contiguous(memory_format=activation_format(x)) for t in tensors], dim=1)
 
 
 class _ReplicatePad(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: torch.Tensor, p: int) -> torch.Tensor:
         ctx.p = p
-        return F.pad(x, (p, p, p, p), mode="replicate")
+        *lead, H, W = x.shape
+        fmt = torch.channels_last if x.dim() == 4 and not x.is_contiguous() and x.is_contiguous(
+            memory_format=torch.channels_last) else torch.contiguous_format
+        out = torch.empty(*lead, H + 2 * p, W + 2 * p, dtype=x.dtype, device=x.device, memory_format=fmt)
+        out[..., p:-p, p:-p] = x
+        out[..., :p, p:-p] = x[..., :1, :]  # rows first, then whole columns: the corners copy the rows
+        out[..., -p:, p:-p] = x[..., -1:, :]
+        out[..., :, :p] = out[..., :, p:p + 1]
+        out[..., :, -p:] = out[..., :, -p - 1:-p]
+        return out
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
@@ -75,12 +128,24 @@ class _ReplicateConv3x3(torch.autograd.Function):
     """Zero-padded convolution plus the ring's difference, with a backward that adds the ring's small
     gradients into the convolution's own gradients in place. Left to autograd, each of the four border
     slices of ``x`` would cost a zero-filled gradient of ``x``'s full size and its addition (about 25 ms
-    of a 330 ms training step at the predictor's sizes). Inputs share one dtype; autocast is off inside."""
+    of a 330 ms training step at the predictor's sizes). The filters are zero-padded to ``x``'s channels
+    and to a multiple of ``multiple`` outputs, and the output cut back to the weight's (the gradient of
+    the cut is written here, in the activations' layout, not left to autograd's NCHW zero fill). Inputs
+    share one dtype; autocast is off inside."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, multiple: int) -> torch.Tensor:
+        cout, cin = weight.shape[:2]
+        padded = _round_up(cout, multiple)
+        if padded != cout or x.shape[1] != cin:
+            w = weight.new_zeros(padded, x.shape[1], 3, 3)
+            w[:cout, :cin] = weight
+            weight = w
+            if bias is not None:
+                bias = torch.cat([bias, bias.new_zeros(padded - cout)])
+        x = x.contiguous(memory_format=activation_format(x))  # a channel slice: copied once, not per use
         ctx.save_for_backward(x, weight)
-        ctx.has_bias = bias is not None
+        ctx.has_bias, ctx.cout, ctx.cin = bias is not None, cout, cin
         with torch.autocast(x.device.type, enabled=False):
             out = F.conv2d(x, weight, bias, padding=1)
             top, bottom, left, right = _ring_terms(*_ring_inputs(x), weight)
@@ -88,12 +153,19 @@ class _ReplicateConv3x3(torch.autograd.Function):
             out[:, :, -1, :] += bottom
             out[:, :, :, 0] += left
             out[:, :, :, -1] += right
-        return out
+        return out[:, :cout] if padded != cout else out
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         x, weight = ctx.saved_tensors
-        need_x, need_w, need_b = ctx.needs_input_grad
+        need_x, need_w, need_b, _ = ctx.needs_input_grad
+        fmt = activation_format(x)
+        if weight.shape[0] != ctx.cout:
+            g = grad.new_zeros(grad.shape[0], weight.shape[0], *grad.shape[2:]).contiguous(memory_format=fmt)
+            g[:, :ctx.cout] = grad
+            grad = g
+        else:
+            grad = grad.contiguous(memory_format=fmt)
         with torch.autocast(grad.device.type, enabled=False):
             gx, gw, gb = torch.ops.aten.convolution_backward(
                 grad, x, weight, [weight.shape[0]] if ctx.has_bias else None, [1, 1], [1, 1], [1, 1], False,
@@ -109,27 +181,35 @@ class _ReplicateConv3x3(torch.autograd.Function):
                         view += g  # in place: the corners get their row's and their column's share
                 if need_w:
                     gw += grads[-1]
-        return gx, gw, gb
+        gw = None if gw is None else gw[:ctx.cout, :ctx.cin]
+        gb = None if gb is None else gb[:ctx.cout]
+        return gx, gw, gb, None
 
 
-def replicate_conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
-    """3x3 convolution of ``x`` [B,Cin,H,W] padded by one pixel of edge replication -> [B,Cout,H,W].
+def replicate_conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, multiple: int = 1
+                      ) -> torch.Tensor:
+    """3x3 convolution of ``x`` [B,Cin',H,W] padded by one pixel of edge replication -> [B,Cout,H,W].
 
     Computed as cuDNN's zero-padded convolution (which pads inside the kernel, without a padded copy of
     the input) plus the difference replication makes, which lives on the one-pixel ring only
-    (``_ring_terms``). Under autocast it runs in autocast's dtype, as ``F.conv2d`` would; else in ``x``'s."""
+    (``_ring_terms``). ``x`` may carry zero channels beyond the weight's Cin (``cat_channels``; they meet
+    zero filters); ``multiple``: compute Cout rounded up to it (module docstring). Under autocast it runs
+    in autocast's dtype, as ``F.conv2d`` would; else in ``x``'s."""
+    if x.shape[1] < weight.shape[1]:
+        raise ValueError(f"replicate_conv3x3: input has {x.shape[1]} channels, the weight wants {weight.shape[1]}")
     dtype = torch.get_autocast_dtype(x.device.type) if torch.is_autocast_enabled(x.device.type) else x.dtype
-    return _ReplicateConv3x3.apply(x.to(dtype), weight.to(dtype), None if bias is None else bias.to(dtype))
+    return _ReplicateConv3x3.apply(x.to(dtype), weight.to(dtype), None if bias is None else bias.to(dtype), multiple)
 
 
 class ReplicateConv2d(nn.Conv2d):
-    """3x3 convolution of the input padded by edge replication to keep its size (``replicate_conv3x3``)."""
+    """3x3 convolution of the input padded by edge replication to keep its size (``replicate_conv3x3``,
+    output channels padded to ``channel_multiple`` inside)."""
 
     def __init__(self, cin: int, cout: int) -> None:
         super().__init__(cin, cout, 3, padding=1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return replicate_conv3x3(x, self.weight, self.bias)
+        return replicate_conv3x3(x, self.weight, self.bias, channel_multiple(x))
 
 
 def compute_dtype(device: torch.device) -> torch.dtype:
@@ -145,8 +225,60 @@ def group_norm(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.T
         return F.group_norm(x, groups, weight.to(x.dtype), bias.to(x.dtype), eps)
 
 
+class _GroupNormGELU(torch.autograd.Function):
+    """The Triton kernels of ``sgmodel.group_norm_kernels`` for a channels-last CUDA tensor."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, groups: int, eps: float,
+                gelu: bool) -> torch.Tensor:
+        from . import group_norm_kernels
+
+        y, mean, rstd = group_norm_kernels.forward(x, groups, weight, bias, eps, gelu)
+        ctx.save_for_backward(x, weight, bias, mean, rstd)
+        ctx.groups, ctx.gelu = groups, gelu
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        from . import group_norm_kernels
+
+        x, weight, bias, mean, rstd = ctx.saved_tensors
+        dx, dw, db = group_norm_kernels.backward(grad, x, mean, rstd, ctx.groups, weight, bias, ctx.gelu,
+                                                 ctx.needs_input_grad[0])
+        return dx, dw, db, None, None, None
+
+
+def fused_group_norm_available(x: torch.Tensor) -> bool:
+    """Whether ``group_norm_gelu`` runs the Triton kernels for ``x``: a 4D channels-last CUDA tensor in
+    float32, float16 or bfloat16, with Triton installed."""
+    return (x.is_cuda and x.dim() == 4 and x.dtype in (torch.float32, torch.float16, torch.bfloat16)
+            and x.is_contiguous(memory_format=torch.channels_last) and _triton_installed())
+
+
+@functools.cache
+def _triton_installed() -> bool:
+    return importlib.util.find_spec("triton") is not None
+
+
+def group_norm_gelu(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.Tensor, eps: float,
+                    gelu: bool = True) -> torch.Tensor:
+    """GroupNorm of ``x`` [B,C,H,W] (``groups`` contiguous channel blocks, per-channel affine ``weight``,
+    ``bias``), then the exact GELU when ``gelu``; in ``x``'s dtype and layout, autocast or not. Fused
+    Triton kernels where ``fused_group_norm_available``, else ``F.group_norm`` and ``F.gelu``."""
+    if fused_group_norm_available(x):
+        with torch.autocast(x.device.type, enabled=False):
+            return _GroupNormGELU.apply(x, weight, bias, groups, eps, gelu)
+    y = group_norm(x, groups, weight, bias, eps)
+    return F.gelu(y) if gelu else y
+
+
 class GroupNorm(nn.GroupNorm):
-    """``nn.GroupNorm`` that runs in its input's dtype (see the module docstring)."""
+    """``nn.GroupNorm`` that runs in its input's dtype and layout (``group_norm_gelu`` without the GELU;
+    ``gelu_after`` applies it with one)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return group_norm(x, self.num_groups, self.weight, self.bias, self.eps)
+        return group_norm_gelu(x, self.num_groups, self.weight, self.bias, self.eps, gelu=False)
+
+    def gelu_after(self, x: torch.Tensor) -> torch.Tensor:
+        """GELU(GroupNorm(x)), fused on CUDA."""
+        return group_norm_gelu(x, self.num_groups, self.weight, self.bias, self.eps, gelu=True)

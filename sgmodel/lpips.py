@@ -241,6 +241,17 @@ def create_lpips(vgg_path: str | os.PathLike | None = None, lin_path: str | os.P
     return net.to(device)
 
 
+def random_lpips(device: str | torch.device = "cpu", seed: int = 0) -> LPIPS:
+    """LPIPS-VGG with randomly initialised VGG16 convolutions (PyTorch's default initialisation, seeded)
+    and the real v0.1 linear layers (``sgmodel weights fetch lpips-vgg``): for timing the LPIPS term where
+    the ImageNet file is absent (``sgmodel bench train --lpips-random-vgg``); its values mean nothing.
+    ``vgg_sha256`` is "random"."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        state = VGG16Trunk().state_dict()
+    return LPIPS(state, load_lpips_linear(resolve("lpips-vgg")), vgg_sha256="random").to(device)
+
+
 def vgg16_missing_message() -> str:
     """Why LPIPS is unavailable and how to provide it (for the first log lines and config.json)."""
     where = Path(torch.hub.get_dir()) / "checkpoints" / VGG16_FILENAME

@@ -18,12 +18,12 @@ and quaternion (ml-sharp's zero-initialised heads, with the paper's exception).
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from .composer import CHANNELS, LAYER_CHANNELS
 from .config import ConfigurationError, PredictorParams
-from .layers import GroupNorm, ReplicateConv2d, compute_dtype, group_norm, replicate_conv3x3
+from .layers import (GroupNorm, ReplicateConv2d, activation_format, cat_channels, channel_multiple, compute_dtype,
+                     group_norm_gelu, replicate_conv3x3)
 
 ZERO_INIT = ("scale", "sh")  # exactly zero at initialisation (appendix A)
 
@@ -33,10 +33,13 @@ def _conv3(cin: int, cout: int) -> ReplicateConv2d:
 
 
 class Branch(nn.Sequential):
-    """conv3x3 -> GroupNorm -> GELU -> conv3x3."""
+    """conv3x3 -> GroupNorm -> GELU -> conv3x3 (the norm and the activation fused on CUDA)."""
 
     def __init__(self, cin: int, hidden: int, cout: int, groups: int) -> None:
         super().__init__(_conv3(cin, hidden), GroupNorm(groups, hidden), nn.GELU(), _conv3(hidden, cout))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return fused_branches([self], x)[0]
 
     @property
     def first(self) -> nn.Conv2d:
@@ -52,11 +55,14 @@ class Branch(nn.Sequential):
 
 
 def fused_branches(branches: list[Branch], x: torch.Tensor) -> list[torch.Tensor]:
-    """Every branch applied to the same input ``x`` [B,Cin,H,W], first layers as one (module docstring)."""
+    """Every branch applied to the same input ``x`` [B,Cin',H,W] (Cin' >= Cin: zero channels beyond the
+    branches' inputs, ``layers.cat_channels``), first layers as one (module docstring)."""
     firsts, norms = [b.first for b in branches], [b.norm for b in branches]
-    hidden = replicate_conv3x3(x, torch.cat([c.weight for c in firsts]), torch.cat([c.bias for c in firsts]))
-    hidden = F.gelu(group_norm(hidden, sum(n.num_groups for n in norms), torch.cat([n.weight for n in norms]),
-                               torch.cat([n.bias for n in norms]), norms[0].eps))
+    multiple = channel_multiple(x)
+    hidden = replicate_conv3x3(x, torch.cat([c.weight for c in firsts]), torch.cat([c.bias for c in firsts]),
+                               multiple)
+    hidden = group_norm_gelu(hidden, sum(n.num_groups for n in norms), torch.cat([n.weight for n in norms]),
+                             torch.cat([n.bias for n in norms]), norms[0].eps)
     return [b.final(h) for b, h in zip(branches, hidden.split([c.out_channels for c in firsts], dim=1))]
 
 
@@ -94,12 +100,15 @@ class GaussianPredictor(nn.Module):
     def forward(self, rgb: torch.Tensor, z: torch.Tensor, phi: torch.Tensor | None
                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """Canvas inputs rgb [B,3,Hc,Wc] in [0,1], z [B,1,Hc,Wc] metres, phi [B,C,Hc,Wc] or None.
-        back and dz are None without a back layer."""
-        dtype = compute_dtype(rgb.device)  # cast once, concatenate in the convolutions' dtype
-        rgb, z, phi = rgb.to(dtype), z.to(dtype), None if phi is None else phi.to(dtype)
+        back and dz are None without a back layer. Activations in ``layers.activation_format``; the
+        concatenated inputs carry zero channels up to ``layers.channel_multiple``."""
+        dtype, fmt = compute_dtype(rgb.device), activation_format(rgb)  # cast once, in the convolutions' dtype
+        rgb, z = rgb.to(dtype, memory_format=fmt), z.to(dtype, memory_format=fmt)
+        phi = None if phi is None else phi.to(dtype, memory_format=fmt)
+        multiple = channel_multiple(rgb)
         inputs = ([rgb, z] if self.rgbd else []) + ([phi] if self.use_descriptor else [])
-        h = self.regressor(torch.cat(inputs, dim=1))
-        shared = torch.cat([h] + ([rgb] if self.rgbd else []) + ([phi] if self.use_descriptor else []), dim=1)
+        h = self.regressor(cat_channels(inputs, multiple))
+        shared = cat_channels([h] + ([rgb] if self.rgbd else []) + ([phi] if self.use_descriptor else []), multiple)
         if self.back is None:
             return self.front(shared), None, None
         front, back, dz = fused_branches([self.front, self.back, self.dz], shared)  # the same as each alone

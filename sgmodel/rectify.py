@@ -33,9 +33,9 @@ from scenesplat_stereo.files import atomic_write_bytes, atomic_write_json, check
 from . import rig as rig_mod
 from . import stereo_check
 from .calib import Calibration, foundation_stereo_text
-from .pair import Pair, read_image, resize_pair
 from .rig import FISHEYE, RigError, StereoRig
 from .rotate import rotate_gaussians
+from .stereo_pair import Pair, read_image, resize_pair
 
 #: OpenCV's free scaling parameter (alpha for pinhole lenses, balance for fisheye): 0 = only valid pixels.
 FREE_SCALING = 0.0
@@ -150,13 +150,15 @@ class Rectification:
 class RigPrediction:
     """``predict_from_rig``'s result: gaussians (the Gaussians dict, batch 1) in the raw left camera's frame;
     depth z [1,1,h,w] metres, an image of the rectified left camera at the model's size, whose K and baseline
-    are ``calibration``; the rectification; the stereo check."""
+    are ``calibration``; the rectification; the stereo check; valid [1,N] bool, the Gaussians that stand on
+    a stereo depth (``sgmodel.export.to_scene(gaussians, 0, valid[0])`` keeps only those)."""
 
     gaussians: dict[str, torch.Tensor]
     depth: torch.Tensor
     calibration: Calibration
     rectification: Rectification
     check: stereo_check.StereoCheck
+    valid: torch.Tensor
 
 
 def _as_tensor(image, name: str) -> torch.Tensor:
@@ -188,14 +190,14 @@ def predict_from_rig(predictor, left, right, rig: StereoRig, short_side: int | N
                        f"cameras of a rig deliver one size")
     rect = Rectification.of(rig, (left.shape[3], left.shape[2]))
     rect.report(log)
-    pair = Pair(*rect.rectify_tensors(left, right), rect.calibration, rect)
+    pair = Pair(*rect.rectify_tensors(left, right), rect.calibration, rect, rectified=True)
     check = stereo_check.run_check(pair.left, pair.right, strict, rectified_here=True, log=log)
     pair = resize_pair(pair, short_side or predictor.resolution)
     device = next(predictor.model.parameters()).device
     K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None]
     baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
-    gaussians, depth = predictor.predict(pair.left.to(device), pair.right.to(device), K, baseline)
-    return RigPrediction(rect.to_raw_frame(gaussians), depth, pair.calib, rect, check)
+    out = predictor.predict(pair.left.to(device), pair.right.to(device), K, baseline)
+    return RigPrediction(rect.to_raw_frame(out.gaussians), out.depth, pair.calib, rect, check, out.valid)
 
 
 # -------------------------------------------------------------------------------------- sgmodel rectify

@@ -15,6 +15,7 @@ from scenesplat_stereo.encode import encode_png, to_uint8
 from scripts.rig_pair import BASELINE, H, W, render
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.stereo_check import DY_MEDIAN_MAX, StereoCheckError, matches, measure, run_check
+from tests.model_helpers import predict_status as _predict
 
 K = np.array([[250.0, 0, W / 2], [0, 250.0, H / 2], [0, 0, 1]])
 
@@ -103,13 +104,6 @@ def test_middlebury_doffs_makes_image_disparities_valid(ideal_pair):
     moved = shifted(right, dx=30.0)                      # image disparity d - 30 < 0, true disparity d
     assert "swapped" in measure(left, moved).warnings[0]
     assert measure(left, moved, doffs=30.0).warnings == ()
-
-
-def _predict(argv) -> int:
-    """``sgmodel predict ARGV``'s exit status (through the command line's one error path)."""
-    from sgmodel.cli import main
-
-    return main(["predict", *[str(a) for a in argv]])
 
 
 def test_predict_warns_reports_and_strict_exits_2(ideal_pair, raw_rig, tmp_path, capsys):

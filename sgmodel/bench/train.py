@@ -1,10 +1,18 @@
-"""``sgmodel bench train``: one training step split by stage, and its peak memory.
+"""``sgmodel bench train``: one training step split by stage, with the SSIM and the LPIPS term, and its peak memory.
 
 Stages (each synchronised on CUDA, so the split is honest and the sum is a little above a free-running
 step): data (the next batch from the loader, when ``--data`` is given; else a synthetic batch and no data
 time), encoder, decoder + predictor, composer, rasterisation forward, loss, backward, optimiser. Then the
 free-running ``train_step`` (no synchronisation inside) as the step time a run sees. Medians of
-``--repeats`` steps after ``--warmup``; peak memory is ``torch.cuda.max_memory_allocated``.
+``--repeats`` steps after ``--warmup``; peak memory is ``torch.cuda.max_memory_allocated`` over each
+objective's steps. The step is timed with MSE + 0.05 (1 - SSIM) and, when VGG16 weights are given
+(``--lpips-vgg FILE``) or random ones are asked for (``--lpips-random-vgg``: the time does not depend on
+the weights' values; for machines without the ImageNet file), again with MSE + 0.05 LPIPS-VGG.
+
+The decoder + predictor's FLOPs are counted by ``torch.utils.flop_counter`` (convolutions and matrix
+products, forward and backward) and divided by their forward stage time and by the time of their forward
+and backward alone, as a fraction of the GPU's dense bf16 rate: the spec sheet's (989.4 TFLOP/s for the
+H100 SXM and the H200) and the rate of one 8192^3 bf16 matrix product measured here.
 Defaults are the paper's step: 256x256, batch 32, 4 targets, psmnet-kitti.
 """
 
@@ -15,20 +23,24 @@ import statistics
 from pathlib import Path
 
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from scenesplat_stereo.text import markdown_table
 
 from ..args import add_model_arguments, params_from_args
 from ..data import make_loader
 from ..geometry import depth_from_disparity
-from ..losses import create_objective
+from ..losses import Objective, create_objective
+from ..lpips import random_lpips, vgg16_missing_message
 from ..model import create_model
 from ..render import render_views
-from ..train import to_device, train_step
+from ..train import create_optimizer, to_device, train_step
 from . import report, synced_clock
 
 STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation forward", "loss", "backward",
           "optimiser")
+#: dense bf16 tensor-core rate on the spec sheet, TFLOP/s, by a name fragment of the GPU.
+BF16_SPEC_TFLOPS = {"H100": 989.4, "H200": 989.4}
 
 
 def synthetic_batch(batch: int, targets: int, size: int, device: torch.device, seed: int = 0) -> dict:
@@ -48,19 +60,27 @@ def synthetic_batch(batch: int, targets: int, size: int, device: torch.device, s
                       "keys": [f"synthetic_{i}" for i in range(batch)]}, device)
 
 
+def _autocast(batch: dict, amp: bool):
+    return torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp and batch["left"].is_cuda)
+
+
+def _encoded(model, batch: dict, amp: bool):
+    """(depth z, features) of the batch's pairs."""
+    with _autocast(batch, amp):
+        disparity, features = model.encode(batch["left"], batch["right"])
+    return depth_from_disparity(disparity, batch["K"][:, 0, 0], batch["baseline"]), features
+
+
 def staged_step(model, objective, optimizer, batch: dict, amp: bool, now) -> dict[str, float]:
     """One training step through the model's stage methods, timing each (seconds)."""
-    t = {}
     t0 = now()
-    left, K, b = batch["left"], batch["K"], batch["baseline"]
     optimizer.zero_grad(set_to_none=True)
-    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp and left.is_cuda):
-        disparity, features = model.encode(left, batch["right"])
-        z = depth_from_disparity(disparity, K[:, 0, 0], b)
-        t1 = now()
-        front, back, dz, c = model.layers(left, z, features, K)
-        t2 = now()
-    gaussians = model.compose(front, back, dz, c, b)
+    z, features = _encoded(model, batch, amp)
+    t1 = now()
+    with _autocast(batch, amp):
+        front, back, dz, c = model.layers(batch["left"], z, features, batch["K"])
+    t2 = now()
+    gaussians = model.compose(front, back, dz, c, batch["baseline"])
     t3 = now()
     S = batch["targets"].shape[-1]
     rgb, _ = render_views(gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)
@@ -71,33 +91,56 @@ def staged_step(model, objective, optimizer, batch: dict, amp: bool, now) -> dic
     t6 = now()
     optimizer.step()
     t7 = now()
-    t.update({"encoder": t1 - t0, "decoder + predictor": t2 - t1, "composer": t3 - t2,
-              "rasterisation forward": t4 - t3, "loss": t5 - t4, "backward": t6 - t5, "optimiser": t7 - t6})
-    return t
+    return {"encoder": t1 - t0, "decoder + predictor": t2 - t1, "composer": t3 - t2, "rasterisation forward": t4 - t3,
+            "loss": t5 - t4, "backward": t6 - t5, "optimiser": t7 - t6}
 
 
-def run(args: argparse.Namespace) -> int:
-    model_params, train_params = params_from_args(args)
-    device = torch.device(args.device)
-    torch.backends.cudnn.benchmark = device.type == "cuda"  # as `sgmodel train` does
-    model = create_model(model_params, device)
-    S, amp = model_params.resolution, not args.no_amp
-    objective = create_objective(args.lpips_vgg, device=device, amp=amp)
+def _layers_forward_backward(model, batch: dict, encoded, amp: bool) -> None:
+    """The decoder + predictor alone: forward, then backward from cotangents of ones."""
+    z, features = encoded
+    with _autocast(batch, amp):
+        outputs = [o for o in model.layers(batch["left"], z, features, batch["K"])[:3] if o is not None]
+    torch.autograd.backward(outputs, [torch.ones_like(o) for o in outputs])
+
+
+def layer_flops(model, batch: dict, amp: bool) -> tuple[float, float]:
+    """(forward, forward + backward) FLOPs of the decoder + predictor on ``batch``."""
+    encoded = _encoded(model, batch, amp)
+    with FlopCounterMode(display=False) as forward:
+        with _autocast(batch, amp):
+            outputs = [o for o in model.layers(batch["left"], encoded[0], encoded[1], batch["K"])[:3] if o is not None]
+    with FlopCounterMode(display=False) as backward:
+        torch.autograd.backward(outputs, [torch.ones_like(o) for o in outputs])
+    model.zero_grad(set_to_none=True)
+    return float(forward.get_total_flops()), float(forward.get_total_flops() + backward.get_total_flops())
+
+
+def matmul_tflops(device: torch.device, n: int = 8192, repeats: int = 10) -> float:
+    """The rate of an n^3 bf16 matrix product on ``device`` (TFLOP/s), median of ``repeats`` after 3."""
+    a, b = (torch.randn(n, n, device=device, dtype=torch.bfloat16) for _ in range(2))
+    now = synced_clock(device)
+    times = []
+    for i in range(repeats + 3):
+        t0 = now()
+        a @ b
+        if i >= 3:
+            times.append(now() - t0)
+    return 2 * n**3 / statistics.median(times) / 1e12
+
+
+def measure(model, objective: Objective, batches, args, device: torch.device, amp: bool) -> dict:
+    """Stage medians (ms), the free-running step (ms) and the peak memory (MiB) of one objective."""
     params = [p for p in model.parameters() if p.requires_grad]
-    optimizer = torch.optim.AdamW(params, lr=1e-5)
+    optimizer = create_optimizer(params, device, lr=1e-5)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
-    loader = iter(make_loader(args.data, "train", args.batch_size, S, args.targets, 0, args.workers, 0, 1,
-                              train=True)) if args.data else None
     now = synced_clock(device)
     stages: dict[str, list[float]] = {s: [] for s in STAGES}
     free: list[float] = []
     if device.type == "cuda":
+        torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
-    real = loader is not None
     for i in range(args.warmup + args.repeats):
-        t0 = now()
-        batch = to_device(next(loader), device) if real else synthetic_batch(args.batch_size, args.targets, S, device, i)
-        data_s = now() - t0 if real else float("nan")
+        batch, data_s = batches(i)
         split = staged_step(model, objective, optimizer, batch, amp, now)
         t0 = now()
         train_step(model, batch, objective, optimizer, scheduler, amp)
@@ -108,21 +151,81 @@ def run(args: argparse.Namespace) -> int:
                 stages[k].append(v)
             free.append(step_s)
     peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
+    return {"stages": {k: statistics.median(v) * 1e3 for k, v in stages.items()},
+            "step": statistics.median(free) * 1e3, "peak": peak}
+
+
+def run(args: argparse.Namespace) -> int:
+    model_params, _ = params_from_args(args)
+    device = torch.device(args.device)
+    torch.backends.cudnn.benchmark = device.type == "cuda"  # as `sgmodel train` does
+    model = create_model(model_params, device)
+    S, amp = model_params.resolution, not args.no_amp
+    objectives = [Objective(None, reason="the bench times both" if args.lpips_vgg or args.lpips_random_vgg
+                            else vgg16_missing_message(), amp=amp)]
+    if args.lpips_random_vgg:
+        objectives.append(Objective(random_lpips(device), amp=amp))
+    elif args.lpips_vgg:
+        objectives.append(create_objective(args.lpips_vgg, device=device, amp=amp))
+    loader = iter(make_loader(args.data, "train", args.batch_size, S, args.targets, 0, args.workers, 0, 1,
+                              train=True)) if args.data else None
+    now = synced_clock(device)
+
+    def batches(i: int) -> tuple[dict, float]:
+        if loader is None:
+            return synthetic_batch(args.batch_size, args.targets, S, device, i), float("nan")
+        t0 = now()
+        batch = to_device(next(loader), device)
+        return batch, now() - t0
+
+    results = [measure(model, objective, batches, args, device, amp) for objective in objectives]
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    med = {k: statistics.median(v) * 1e3 for k, v in stages.items()}
-    total = sum(v for v in med.values() if v == v)
-    rows = [[k, f"{med[k]:.1f}", f"{100 * med[k] / total:.0f}%"] if med[k] == med[k] else [k, "n/a", ""]
+    header = ["stage"] + [f"{o.name}, median ms" for o in objectives]
+    rows = [[k] + [f"{r['stages'][k]:.1f}" if r["stages"][k] == r["stages"][k] else "n/a" for r in results]
             for k in STAGES]
-    rows += [["**sum of stages (synchronised)**", f"{total:.1f}", ""],
-             ["**free-running step** (`train_step`, data excluded)", f"{statistics.median(free) * 1e3:.1f}", ""]]
+    rows += [["**sum of stages (synchronised)**"] + [f"{sum(v for v in r['stages'].values() if v == v):.1f}"
+                                                     for r in results],
+             ["**free-running step** (`train_step`, data excluded)"] + [f"**{r['step']:.1f}**" for r in results],
+             ["peak memory, MiB"] + [f"{r['peak']:.0f}" for r in results]]
     gaussians = (2 if model_params.composer.back_layer else 1) * (S + 2 * model_params.padding) ** 2
     report(f"One training step: {S}x{S}, batch {args.batch_size}, {args.targets} targets, encoder "
-           f"{model_params.encoder.name}, loss {objective.description}, {'bf16 autocast' if amp else 'float32'}, "
-           f"on {name}; medians of {args.repeats} steps after {args.warmup} warm-up "
-           f"({'real shards: ' + str(args.data) if args.data else 'synthetic batches'}).\n\n"
-           f"{markdown_table(['stage', 'median ms', 'share'], rows)}\n\n"
-           f"Peak memory: {peak:.0f} MiB; Gaussians per scene: {gaussians:,}.\n", args.out)
+           f"{model_params.encoder.name}, {'bf16 autocast' if amp else 'float32'}, on {name}; medians of "
+           f"{args.repeats} steps after {args.warmup} warm-up "
+           f"({'real shards: ' + str(args.data) if args.data else 'synthetic batches'}). Losses: "
+           + "; ".join(f"{o.name} = {o.description}" for o in objectives) + ".\n\n"
+           f"{markdown_table(header, rows)}\n\nGaussians per scene: {gaussians:,}.\n\n"
+           + layer_rate(model, batches(0)[0], amp, device, results[0]["stages"]["decoder + predictor"], args.repeats),
+           args.out)
     return 0
+
+
+def layer_rate(model, batch: dict, amp: bool, device: torch.device, forward_ms: float, repeats: int) -> str:
+    """The decoder + predictor's FLOPs and their rate, forward (its stage) and forward + backward alone."""
+    forward, total = layer_flops(model, batch, amp)
+    encoded = _encoded(model, batch, amp)
+    now = synced_clock(device)
+    times = []
+    for i in range(repeats + 2):
+        t0 = now()
+        _layers_forward_backward(model, batch, encoded, amp)
+        if i >= 2:
+            times.append(now() - t0)
+        model.zero_grad(set_to_none=True)
+    both_ms = statistics.median(times) * 1e3
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else ""
+    spec = next((v for k, v in BF16_SPEC_TFLOPS.items() if k in name), None)
+    measured = matmul_tflops(device) if device.type == "cuda" else None
+    rows = []
+    for what, flops, ms in (("forward (the stage above)", forward, forward_ms),
+                            ("forward + backward, alone", total, both_ms)):
+        rate = flops / ms / 1e9
+        rows.append([what, f"{flops / 1e12:.2f}", f"{ms:.1f}", f"{rate:.0f}",
+                     f"{100 * rate / spec:.0f}%" if spec else "n/a",
+                     f"{100 * rate / measured:.0f}%" if measured else "n/a"])
+    table = markdown_table(["decoder + predictor", "TFLOP", "ms", "TFLOP/s", "of the bf16 spec",
+                            "of a measured 8192^3 bf16 matmul"], rows)
+    return (f"{table}\n\nbf16 rates: spec sheet {spec or 'n/a'} TFLOP/s (dense); an 8192^3 bf16 matrix product "
+            f"measured {measured:.0f} TFLOP/s here.\n" if measured else f"{table}\n")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -134,6 +237,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=8, help="DataLoader workers with --data (default 8)")
     p.add_argument("--warmup", type=int, default=3, help="untimed steps first (default 3)")
     p.add_argument("--repeats", type=int, default=10, help="timed steps (default 10)")
-    p.add_argument("--lpips-vgg", help="VGG16 weights for the LPIPS term (default: hub cache, else 1 - SSIM)")
+    lpips = p.add_mutually_exclusive_group()
+    lpips.add_argument("--lpips-vgg", help="VGG16 weights (torchvision's file): also time the step with LPIPS-VGG")
+    lpips.add_argument("--lpips-random-vgg", action="store_true",
+                       help="also time the step with LPIPS-VGG on randomly initialised VGG16 weights (timing only: "
+                            "the time does not depend on the weights)")
     p.add_argument("--no-amp", action="store_true", help="float32 convolutions")
     p.add_argument("--out", type=Path, help="also write the markdown table here")

@@ -1,0 +1,94 @@
+#!/usr/bin/env bash
+# The training step's speed on the lent GPU (issue 22; docs/benchmarks.md "The training step"), from the
+# repository root there. Here, once (git-ignored folders; see scripts/gpu_model.sh for the same kit):
+#   bash ../shared/tools/warp-gpu-kit .gpukit
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 \
+#     -d .whl OpenImageIO
+#   mkdir -p .devdata && cp ~/.cache/sgmodel/* .devdata/
+#   cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
+# Device call 1 (carry .gpukit/a):                 bash .gpukit/a/stash.sh
+# Device call 2 (carry .gpukit/b, .whl, .devdata):
+#   bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve]
+#   tests:   the CUDA tests of the model's layers (Triton GroupNorm kernels), LPIPS and the soft-argmin
+#   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
+#            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
+#   profile: scripts/gpu_train_profile.py with each term
+#   big:     512x512 (padding 32): `bench train` at batch 32, then smaller batches until one fits
+#   curve:   a small dataset (demo rooms + the guitar), then short training runs: SEEDS of this code and, with
+#            BASE, of the code before; the validation PSNR of every run side by side ($OUT/curves.md)
+# WHEELS (default .whl), KIT (.gpukit/b), SGMODEL_CACHE (.devdata), GUITAR ($SGMODEL_CACHE/guitar.ply), STEPS (200),
+# VAL (50), SEEDS ("0 1").
+set -uo pipefail
+OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
+source "${KIT:-.gpukit/b}/install.sh" >/dev/null || exit 1
+python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "${WHEELS:-.whl}"/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PYTHONPATH PYTHONUNBUFFERED=1 SGMODEL_CACHE=${SGMODEL_CACHE:-$PWD/.devdata}
+here=$PWD base=${BASE:-}; [[ -n $base ]] && base=$(cd "$base" && pwd)
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+rc=0
+run() { echo "+ $*"; "$@" || { echo "FAILED ($?): $*"; rc=1; }; }
+in_base() { (cd "$base" && "$@"); }
+bench=(python3 -m sgmodel.cli bench train --device cuda --warmup 3 --repeats 8)
+
+for what in "$@"; do case $what in
+tests)
+  run python3 -m pytest -q -p no:cacheprovider tests/test_layers.py tests/test_lpips.py tests/test_soft_argmin.py \
+    -k "cuda" 2>&1 | tee "$OUT/tests.txt" | tail -5 ;;
+bench)
+  run "${bench[@]}" --lpips-random-vgg --out /tmp/bench_new.md && cat /tmp/bench_new.md >> "$OUT/bench.md"
+  if [[ -n $base ]]; then  # the code before: its bench times one loss per call; random VGG16 in torchvision's format
+    run python3 -c "import torch; from sgmodel.lpips import VGG16Trunk
+torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.pth')"
+    run in_base "${bench[@]}" --out /tmp/bench_base.md \
+      && { echo "## before"; cat /tmp/bench_base.md; } >> "$OUT/bench.md"
+    run in_base "${bench[@]}" --lpips-vgg /tmp/vgg16-random.pth --out /tmp/bench_base.md \
+      && { echo "## before, LPIPS"; cat /tmp/bench_base.md; } >> "$OUT/bench.md"
+    run "${bench[@]}" --lpips-random-vgg --out /tmp/bench_new.md \
+      && { echo "## again"; cat /tmp/bench_new.md; } >> "$OUT/bench.md"
+  fi ;;
+profile)
+  run python3 scripts/gpu_train_profile.py --out /tmp/profile.md && cat /tmp/profile.md >> "$OUT/profile.md"
+  run python3 scripts/gpu_train_profile.py --lpips-random-vgg --top 25 --out /tmp/profile.md \
+    && cat /tmp/profile.md >> "$OUT/profile.md" ;;
+big)
+  for b in 32 24 16 12; do
+    if "${bench[@]}" --resolution 512 --padding 32 --batch-size $b --warmup 1 --repeats 3 --lpips-random-vgg \
+        --out /tmp/big.md > /tmp/big.log 2>&1; then cat /tmp/big.md >> "$OUT/big.md"; break; fi
+    { echo "batch $b at 512x512:"; grep -m1 -i "out of memory" /tmp/big.log || tail -3 /tmp/big.log; echo; } \
+      >> "$OUT/big.md"
+  done ;;
+curve)
+  data=/tmp/sgdata
+  if [[ ! -f $data/dataset/val/index.json ]]; then
+    mkdir -p $data/teachers/guitar && cp "${GUITAR:-$SGMODEL_CACHE/guitar.ply}" $data/teachers/guitar/point_cloud.ply
+    run python3 -m scenesplat_stereo.cli demo-teachers $data/teachers --frames 60 --no-progress
+    run python3 -m scenesplat_stereo.cli build --teachers $data/teachers --out $data/dataset --device cuda \
+      --val-scenes 1 --min-psnr none --orbit "radius=6,frames=60" --resolution 340x256 --no-progress
+  fi
+  train=(python3 -m sgmodel.cli train --data $data/dataset --device cuda --steps ${STEPS:-200} --val-every ${VAL:-50}
+         --workers 8 --no-progress)
+  runs=()
+  for s in ${SEEDS:-0 1}; do
+    run "${train[@]}" --seed $s --out /tmp/runs/new-seed$s > /tmp/runs-new-$s.log 2>&1; runs+=(/tmp/runs/new-seed$s)
+    if [[ -n $base ]]; then
+      run in_base "${train[@]}" --seed $s --out /tmp/runs/before-seed$s > /tmp/runs-before-$s.log 2>&1
+      runs+=(/tmp/runs/before-seed$s)
+    fi
+  done
+  run python3 - "${runs[@]}" > "$OUT/curves.md" <<'EOF'
+import json, sys
+from pathlib import Path
+runs = {Path(r).name: [json.loads(line) for line in (Path(r) / "metrics.jsonl").read_text().splitlines()]
+        for r in sys.argv[1:]}
+steps = sorted({m["step"] for ms in runs.values() for m in ms if "val_psnr" in m})
+val = {k: {m["step"]: m["val_psnr"] for m in ms if "val_psnr" in m} for k, ms in runs.items()}
+ms = {k: sorted(m["step_ms"] for m in v if "step_ms" in m) for k, v in runs.items()}
+print("| step | " + " | ".join(runs) + " |\n|---|" + "---:|" * len(runs))
+for s in steps:
+    print(f"| {s} | " + " | ".join(f"{val[k].get(s, float('nan')):.3f}" for k in runs) + " |")
+print("| median step ms (logged) | " + " | ".join(f"{v[len(v) // 2]:.0f}" if v else "n/a" for v in ms.values()) + " |")
+EOF
+  cat "$OUT/curves.md" ;;
+*) echo "unknown phase $what"; rc=2 ;;
+esac; done
+exit $rc
