@@ -128,5 +128,9 @@ def test_each_entry_module_imports_alone(name):
 
 
 def test_every_module_imports():
+    """Every module imports, but for one that needs an optional package absent here (triton on a CPU machine)."""
     for name in modules():
-        importlib.import_module(name)
+        try:
+            importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            assert e.name.split(".")[0] not in PACKAGES, f"{name}: {e}"
