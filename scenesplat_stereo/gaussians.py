@@ -4,19 +4,13 @@ Conventions (SPEC section 1): world units as in the file (metres for SceneSplat 
 wxyz, unit norm; scales linear; opacities in [0, 1]; SH coefficients ``[N, K, 3]`` with K = (d+1)^2,
 ``sh[:, 0]`` the DC term.
 
-Two on-disk layouts are read, detected from the header (an element named ``chunk`` means compressed):
-
-* INRIA (3DGS trainer, gsplat, nerfstudio, SuperSplat export): element ``vertex`` with properties read by
-  name, in any order and of any numeric type; ``x y z``, ``f_dc_0..2``, optional ``f_rest_*`` (0, 9, 24 or
-  45 of them, channel-major), ``opacity`` (a logit), ``scale_0..2`` (natural logs), ``rot_0..3`` (wxyz, any
-  norm); ``nx ny nz`` and any other property are ignored. ascii, binary_little_endian, binary_big_endian.
-* PlayCanvas / SuperSplat compressed: element ``chunk`` (one row per 256 splats: ``min_/max_`` x, y, z,
-  ``min_/max_scale_`` x, y, z as log scales, optional ``min_/max_`` r, g, b colour ranges), element
-  ``vertex`` of uint32 ``packed_position`` (11-10-11 bit unorm within the chunk box), ``packed_rotation``
-  (2-bit index of the largest |component| + three 10-bit others in [-1/sqrt2, 1/sqrt2]), ``packed_scale``
-  (11-10-11 within the chunk log-scale box), ``packed_color`` (8-8-8-8: colour in the chunk colour range, or
-  in [0, 1] without one, as ``0.5 + C0 f_dc``; alpha = opacity, decoded as byte/255 so 0 and 1 occur),
-  optional element ``sh`` of uint8 ``f_rest_*`` (channel-major, bucket centres of [-4, 4]).
+This module owns the PLY container (header, elements) and the INRIA layout (3DGS trainer, gsplat,
+nerfstudio, SuperSplat export): element ``vertex`` with properties read by name, in any order and of any
+numeric type; ``x y z``, ``f_dc_0..2``, optional ``f_rest_*`` (0, 9, 24 or 45 of them, channel-major),
+``opacity`` (a logit), ``scale_0..2`` (natural logs), ``rot_0..3`` (wxyz, any norm); ``nx ny nz`` and any
+other property are ignored. ascii, binary_little_endian, binary_big_endian. ``load_ply`` also reads the
+PlayCanvas / SuperSplat compressed layout (an element named ``chunk``), whose reader and writer live in
+``scenesplat_stereo.compressed_ply``.
 
 Rows with non-finite values, zero-norm quaternions or scales that are zero (below the smallest normal
 float32) or infinite in float32 are dropped and counted in one warning (``PlyRepairWarning``), or raise
@@ -25,6 +19,7 @@ with ``strict=True``.
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from dataclasses import dataclass
@@ -35,10 +30,8 @@ import numpy as np
 
 from scenesplat_stereo.files import atomic_write_bytes
 
-#: Real SH constant of band 0 (SPEC section 1); the compressed layout stores colour = 0.5 + SH_C0 * f_dc.
+#: Real SH constant of band 0 (SPEC section 1): colour = 0.5 + SH_C0 * f_dc.
 SH_C0 = 0.28209479177387814
-#: Splats per ``chunk`` row in the compressed layout.
-COMPRESSED_CHUNK_SIZE = 256
 #: Number of ``f_rest_*`` properties -> SH degree (3 channels x ((d+1)^2 - 1) coefficients).
 SH_DEGREE_OF_REST_COUNT = {0: 0, 9: 1, 24: 2, 45: 3}
 #: Opacities are clipped to [eps, 1 - eps] before the logit in ``save_ply`` so that 0 and 1 stay finite.
@@ -56,10 +49,6 @@ _PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
 _FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
-_CHUNK_BOX = [f"{m}_{a}" for m in ("min", "max") for a in "xyz"] + [
-    f"{m}_scale_{a}" for m in ("min", "max") for a in "xyz"]
-_CHUNK_COLOUR = [f"{m}_{c}" for m in ("min", "max") for c in "rgb"]
-_PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
 
 
 class PlyError(ValueError):
@@ -102,18 +91,20 @@ class GaussianScene:
                 want = "[N, 3]" if n is None else str(list(shape))
                 raise ValueError(f"GaussianScene.{name} must have shape {want} (sh_degree "
                                  f"{self.sh_degree}), got {list(a.shape)}")
-            bad = int((~np.isfinite(a)).reshape(n, int(np.prod(shape[1:]))).any(1).sum())
-            if bad:
+            if not np.isfinite(a).all():  # rows counted only when the cheap whole-array test fails
+                bad = int((~np.isfinite(a)).reshape(n, int(np.prod(shape[1:]))).any(1).sum())
                 raise ValueError(f"GaussianScene.{name} has {bad} rows with non-finite values")
-        qnorm = np.linalg.norm(self.quats.astype(np.float64), axis=1)
-        checks = (
-            ("quats", np.abs(qnorm - 1.0) > QUAT_VALIDATE_ATOL, f"not unit norm (±{QUAT_VALIDATE_ATOL})"),
-            ("scales", (self.scales <= 0).any(1), "not > 0"),
-            ("opacities", (self.opacities < 0) | (self.opacities > 1), "outside [0, 1]"),
+        q = self.quats.astype(np.float64)
+        checks = (  # each a function: rows are counted only when a check fails
+            ("quats", lambda: np.abs(np.sqrt(np.einsum("ij,ij->i", q, q)) - 1.0) > QUAT_VALIDATE_ATOL,
+             f"not unit norm (±{QUAT_VALIDATE_ATOL})"),
+            ("scales", lambda: (self.scales <= 0).any(1), "not > 0"),
+            ("opacities", lambda: (self.opacities < 0) | (self.opacities > 1), "outside [0, 1]"),
         )
         for name, bad_rows, what in checks:
-            if bad_rows.any():
-                raise ValueError(f"GaussianScene.{name}: {int(bad_rows.sum())} rows {what}")
+            bad = bad_rows()
+            if bad.any():
+                raise ValueError(f"GaussianScene.{name}: {int(bad.sum())} rows {what}")
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -202,6 +193,14 @@ class PlyHeader:
     def num_gaussians(self) -> int:
         """Rows of element ``vertex`` (before any row is dropped by ``load_ply``)."""
         return self.element("vertex").count  # type: ignore[union-attr]
+
+
+def content_sh_degree(sh: np.ndarray) -> int:
+    """The smallest SH degree that holds every non-zero coefficient of sh [N, K, 3] (0 when the bands above
+    the DC term are all zero, e.g. plain-colour Gaussians). Takes a numpy array or a torch tensor (which
+    is reduced where it lives: on a GPU only K booleans come back)."""
+    used = (sh != 0).any(-1).any(0).tolist()  # [K]: is coefficient k non-zero anywhere
+    return math.isqrt(max((k for k, u in enumerate(used) if u), default=0))
 
 
 def read_ply_header(path: str | os.PathLike) -> PlyHeader:
@@ -367,68 +366,6 @@ def _decode_inria(header: PlyHeader) -> tuple[np.ndarray, ...]:
     return cols[:, 0:3], cols[:, 3:7], cols[:, 7:10], opacities, sh, finite
 
 
-def _unorm(bits: np.ndarray, shift: int, width: int) -> np.ndarray:
-    return ((bits >> np.uint32(shift)) & np.uint32((1 << width) - 1)).astype(np.float64) / ((1 << width) - 1)
-
-
-def _unorm_111011(bits: np.ndarray) -> np.ndarray:
-    """[N, 3] in [0, 1] from 11 (bits 21-31), 10 (bits 11-20) and 11 (bits 0-10) bit unsigned fields."""
-    return np.stack([_unorm(bits, 21, 11), _unorm(bits, 11, 10), _unorm(bits, 0, 11)], 1)
-
-
-def _decode_compressed(header: PlyHeader) -> tuple[np.ndarray, ...]:
-    path = header.path
-    el = _read_elements(header, {e.name for e in header.elements if e.name in ("chunk", "vertex", "sh")})
-    chunk, vertex = el["chunk"], el["vertex"]
-    n = len(vertex)
-    if len(chunk) != -(-n // COMPRESSED_CHUNK_SIZE):
-        raise PlyError(f"{path}: element 'chunk' has {len(chunk)} rows; {n} vertices need "
-                       f"{-(-n // COMPRESSED_CHUNK_SIZE)} (one per {COMPRESSED_CHUNK_SIZE})")
-    typed = [("vertex", p, 4) for p in _PACKED]
-    if "sh" in el:
-        typed += [("sh", p, 1) for p in el["sh"].dtype.names or ()]
-    for e, name, size in typed:
-        t = (el[e].dtype.fields or {}).get(name, (None,))[0]
-        if t is not None and (t.kind != "u" or t.itemsize != size):
-            raise PlyError(f"{path}: element '{e}' property '{name}' must be {8 * size}-bit unsigned, "
-                           f"got {t}")
-    packed = _columns(path, vertex, "vertex", _PACKED).astype(np.uint32)
-    colour_names = [c for c in _CHUNK_COLOUR if c in (chunk.dtype.names or ())]
-    if colour_names and len(colour_names) != len(_CHUNK_COLOUR):
-        raise PlyError(f"{path}: element 'chunk' has colour ranges {colour_names} but lacks "
-                       f"{sorted(set(_CHUNK_COLOUR) - set(colour_names))}")
-    ranges = _columns(path, chunk, "chunk", _CHUNK_BOX + colour_names)[np.arange(n) // COMPRESSED_CHUNK_SIZE]
-    pos, rot, scl, col = packed.T
-
-    def lerp(t: np.ndarray, lo: int) -> np.ndarray:  # ranges[:, lo:lo+3] are the mins, +3 the maxes
-        return ranges[:, lo:lo + 3] * (1.0 - t) + ranges[:, lo + 3:lo + 6] * t
-
-    means, log_scales = lerp(_unorm_111011(pos), 0), lerp(_unorm_111011(scl), 6)
-    rgba = np.stack([_unorm(col, s, 8) for s in (24, 16, 8, 0)], 1)
-    colour = lerp(rgba[:, :3], 12) if colour_names else rgba[:, :3]
-    # packed_rotation: bits 30-31 = index of the largest |component| of wxyz, then the three others in order,
-    # 10 bits each, as unorm(c / sqrt(2) + 0.5); the largest is recovered as sqrt(1 - sum of the others^2).
-    others = np.stack([_unorm(rot, s, 10) for s in (20, 10, 0)], 1) - 0.5
-    others *= np.sqrt(2.0)
-    largest = (rot >> np.uint32(30)).astype(np.int64)
-    quats = np.empty((n, 4), dtype=np.float64)
-    slots = np.array([[j for j in range(4) if j != i] for i in range(4)])
-    quats[np.arange(n)[:, None], slots[largest]] = others
-    quats[np.arange(n), largest] = np.sqrt(np.maximum(0.0, 1.0 - (others**2).sum(1)))
-    k = (header.sh_degree + 1) ** 2
-    sh = np.empty((n, k, 3), dtype=np.float32)
-    sh[:, 0, :] = (colour - 0.5) / SH_C0
-    if k > 1:
-        if len(el["sh"]) != n:
-            raise PlyError(f"{path}: element 'sh' has {len(el['sh'])} rows, element 'vertex' {n}")
-        rest = _columns(path, el["sh"], "sh", [f"f_rest_{i}" for i in range(3 * (k - 1))])
-        # uint8 q encodes trunc(256 (f/8 + 0.5)); decoded at the bucket centre, 0 and 255 at the ends.
-        t = np.where(rest == 0, 0.0, np.where(rest == 255, 1.0, (rest + 0.5) / 256.0))
-        sh[:, 1:, :] = ((t - 0.5) * 8.0).reshape(n, 3, k - 1).transpose(0, 2, 1)
-    finite = np.isfinite(means).all(1) & np.isfinite(log_scales).all(1) & np.isfinite(sh).all((1, 2))
-    return means, quats, log_scales, rgba[:, 3], sh, finite
-
-
 def _assemble(header: PlyHeader, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray,
               opacities: np.ndarray, sh: np.ndarray, finite: np.ndarray, strict: bool) -> GaussianScene:
     """Drop (or, strict, refuse) bad rows, normalise quaternions, and build the float32 scene."""
@@ -463,8 +400,11 @@ def load_ply(path: str | os.PathLike, strict: bool = False) -> GaussianScene:
     already unit within ``QUAT_UNIT_ATOL`` are kept bit-exact; others are divided by their norm (float64).
     """
     header = read_ply_header(path)
-    decode = _decode_compressed if header.layout == "compressed" else _decode_inria
-    return _assemble(header, *decode(header), strict=strict)
+    if header.layout == "compressed":
+        from scenesplat_stereo.compressed_ply import decode_compressed  # it builds on this module
+
+        return _assemble(header, *decode_compressed(header), strict=strict)
+    return _assemble(header, *_decode_inria(header), strict=strict)
 
 
 def inria_property_names(sh_degree: int) -> list[str]:
@@ -475,24 +415,31 @@ def inria_property_names(sh_degree: int) -> list[str]:
             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
 
 
-def save_ply(scene: GaussianScene, path: str | os.PathLike) -> Path:
+def save_ply(scene: GaussianScene, path: str | os.PathLike, durable: bool = True) -> Path:
     """Write ``scene`` in the INRIA layout (binary little-endian float32, standard property order).
 
     ``opacity`` = logit(clip(o, OPACITY_EPS, 1 - OPACITY_EPS)), ``scale_*`` = ln(s), both computed in
-    float64 and stored as float32; ``nx ny nz`` = 0; ``f_rest`` channel-major. Written to a temporary file
-    (``files.atomic_write_bytes``: fsync'd temp file, ``os.replace``). Returns the path.
+    float64 and stored as float32; ``nx ny nz`` = 0; ``f_rest`` channel-major. The vertex table is built
+    in one float32 [N, P] array (row i = vertex i, the file's bytes) and written with the header through
+    ``files.atomic_write_bytes`` (temp file, fsync'd unless ``durable`` is False, ``os.replace``). Returns
+    the path.
     """
     path = Path(path)
     n, k = len(scene), (scene.sh_degree + 1) ** 2
-    o = np.clip(scene.opacities.astype(np.float64), OPACITY_EPS, 1.0 - OPACITY_EPS)
-    body = np.concatenate([
-        scene.means, np.zeros((n, 3), np.float32), scene.sh[:, 0, :],
-        scene.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)),
-        np.log(o / (1.0 - o)).astype(np.float32)[:, None],
-        np.log(scene.scales.astype(np.float64)).astype(np.float32), scene.quats,
-    ], axis=1).astype("<f4")
     names = inria_property_names(scene.sh_degree)
+    table = np.empty((n, len(names)), dtype="<f4")
+    rest = 9 + 3 * (k - 1)  # columns: xyz 0-2, normals 3-5, f_dc 6-8, f_rest 9.., opacity, scales, rot
+    table[:, 0:3] = scene.means
+    table[:, 3:6] = 0.0
+    table[:, 6:9] = scene.sh[:, 0, :]
+    channel_major = table[:, 9:rest]
+    channel_major.shape = (n, 3, k - 1)  # a view (setting .shape never copies): one strided pass below
+    channel_major[:] = scene.sh[:, 1:, :].transpose(0, 2, 1)
+    o = np.clip(scene.opacities.astype(np.float64), OPACITY_EPS, 1.0 - OPACITY_EPS)
+    table[:, rest] = np.log(o / (1.0 - o))
+    table[:, rest + 1:rest + 4] = np.log(scene.scales.astype(np.float64))
+    table[:, rest + 4:rest + 8] = scene.quats
     head = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
                      + [f"property float {p}" for p in names] + ["end_header\n"])
-    atomic_write_bytes(path, head.encode("ascii") + np.ascontiguousarray(body).tobytes())
+    atomic_write_bytes(path, [head.encode("ascii"), table], durable=durable)
     return path

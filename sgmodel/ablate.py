@@ -81,13 +81,12 @@ def ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, devi
             rows.append((block, name, {"not_applicable": str(e)}))
             continue
         result = _evaluated(folder / "eval", lambda: evaluate.checkpoint_method(
-            folder / "run" / "checkpoints" / "best.pt", device, params.encoder.weights), data, device, lpips_vgg,
-            progress)
+            folder / "run" / "checkpoints" / "best.pt", device, params.encoder.weights, params.encoder.repo), data,
+            device, lpips_vgg, progress)
         rows.append((block, name, result))
     for method in evaluate.METHODS:
         result = _evaluated(out / f"baseline-{method}", lambda: evaluate.baseline_method(
-            method, base.encoder.name, base.encoder.weights, base.resolution, device), data, device, lpips_vgg,
-            progress)
+            method, base.encoder, base.resolution, device), data, device, lpips_vgg, progress)
         rows.append(("Baselines without learned prediction", method, result))
     text = table(rows, schedule, base, device, time.perf_counter() - t0)
     out.mkdir(parents=True, exist_ok=True)

@@ -15,6 +15,7 @@ import torch
 from scenesplat_stereo.text import positive_number, whole_number
 
 from .config import PRESETS, ModelParams, TrainParams
+from .encoders.flags import add_encoder_arguments, encoder_params
 
 
 def add_model_arguments(p: argparse.ArgumentParser) -> None:
@@ -24,9 +25,7 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
                    help="'paper' (default): the paper's sizes and schedule; 'cpu-small': 64x64, padding 4, "
                         "32-channel decoder/predictor, sgbm encoder, batch 4, 2 targets, 200 steps (minutes on 2 "
                         "CPU cores)")
-    g.add_argument("--encoder", help="frozen stereo encoder (default psmnet-kitti; see `sgmodel weights`)")
-    g.add_argument("--encoder-weights", help="local weights file of the encoder (default: the fetched cache)")
-    g.add_argument("--encoder-repo", help="the encoder's code checkout (foundation-stereo variants)")
+    add_encoder_arguments(g, "the preset's: psmnet-kitti, or sgbm with cpu-small")
     g.add_argument("--resolution", type=whole_number("--resolution"),
                    help="S: square input and target size, pixels (default 256)")
     g.add_argument("--padding", type=whole_number("--padding", 0),
@@ -73,10 +72,7 @@ def params_from_args(args: argparse.Namespace) -> tuple[ModelParams, TrainParams
     preset = PRESETS[args.preset]
     model = ModelParams.from_dict(_merge(ModelParams().to_dict(), preset["model"]))
     train = TrainParams(**_merge(TrainParams().to_dict(), preset["train"]))
-    if args.encoder:
-        model.encoder.name = args.encoder
-    model.encoder.weights = args.encoder_weights or model.encoder.weights
-    model.encoder.repo = args.encoder_repo or model.encoder.repo
+    model.encoder = encoder_params(args, model.encoder)
     for name in ("resolution", "padding"):
         if getattr(args, name) is not None:
             setattr(model, name, getattr(args, name))

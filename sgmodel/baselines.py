@@ -6,6 +6,9 @@ encoder's depth; selected with ``--method naive-gs|forward-splat``.
 * forward-splat: the left image warped into each target by its depth with a z-buffer (the nearest surface
   wins, holes stay empty).
 
+Pixels without a valid stereo depth (``geometry.disparity_validity``) make no Gaussian and splat nothing:
+``sgmodel.inference`` passes their mask (naive-GS keeps N = H W and the caller drops or hides them).
+
 Everything in the left camera frame (OpenCV axes, metres, pixel centres at +0.5), z = z-depth in metres
 (``sgmodel.geometry.depth_from_disparity``).
 """
@@ -45,11 +48,12 @@ def naive_gs(left: torch.Tensor, z: torch.Tensor, K: torch.Tensor) -> dict:
 
 
 def forward_splat(left: torch.Tensor, z: torch.Tensor, K: torch.Tensor, viewmats: torch.Tensor,
-                  Ks: torch.Tensor, width: int, height: int,
-                  near: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
+                  Ks: torch.Tensor, width: int, height: int, near: float = 0.01,
+                  valid: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Warp each left pixel to the target pixel that contains its projection; z-buffered.
 
-    left [B,3,H,W]; z [B,1,H,W] metres; K [B,3,3]; viewmats [B,T,4,4] left-to-target; Ks [B,T,3,3].
+    left [B,3,H,W]; z [B,1,H,W] metres; K [B,3,3]; viewmats [B,T,4,4] left-to-target; Ks [B,T,3,3];
+    valid [B,1,H,W] bool or None: only these left pixels are warped (None: all).
     A left pixel centre X = z K^-1 [u+0.5, v+0.5, 1] lands in target pixel floor(K_t p / p_z) with p the
     point in the target camera (p_z > near). Where several land, the smallest target depth p_z wins (ties:
     the lowest source index). Returns images [B,T,3,height,width] (0 in holes) and coverage
@@ -63,6 +67,8 @@ def forward_splat(left: torch.Tensor, z: torch.Tensor, K: torch.Tensor, viewmats
     proj = Ks @ (p / torch.where(pz > near, pz, torch.ones_like(pz))[:, :, None])     # [B,T,3,HW]
     u, v = torch.floor(proj[:, :, 0]), torch.floor(proj[:, :, 1])
     ok = (pz > near) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    if valid is not None:
+        ok &= valid.flatten(2)                                                        # [B,1,HW] over T
     # Flat target-pixel index over the whole batch, then a two-pass z-buffer with scatter_reduce.
     bt = torch.arange(b * t, device=left.device).reshape(b, t, 1) * (height * width)
     dst = (bt + v.clamp(0, height - 1).long() * width + u.clamp(0, width - 1).long())[ok]

@@ -78,8 +78,8 @@ def _add_eval(sub) -> None:
 def _add_predict(sub) -> None:
     from . import predict
 
-    p = sub.add_parser("predict", help="a stereo pair (rectified, or raw with --rig) -> a 3DGS scene (.ply), depth "
-                                       "and novel views",
+    p = sub.add_parser("predict", help="a stereo pair or video (rectified, or raw with --rig) -> 3DGS scenes, viewer "
+                                       "files, novel views",
                        description=predict.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     predict.add_arguments(p)
     p.set_defaults(func=predict.run)
@@ -118,7 +118,7 @@ def _add_bench(sub) -> None:
     from .bench import train as bench_train
 
     p = sub.add_parser("bench", help="benchmarks: a training step by stage; encoders' time and accuracy; one "
-                                     "prediction by stage")
+                                     "prediction by stage, or a stereo video's pairs/s and latency")
     bsub = p.add_subparsers(dest="bench_command", required=True)
     for name, module in (("train", bench_train), ("encoders", bench_encoders), ("predict", bench_predict)):
         b = bsub.add_parser(name, help=module.__doc__.splitlines()[0], description=module.__doc__,

@@ -80,6 +80,23 @@ def back_depth(z: torch.Tensor, dz: torch.Tensor) -> torch.Tensor:
     return F.max_pool2d(padded, BACK_POOL, stride=1) + F.softplus(dz)
 
 
+def gaussian_validity(valid: torch.Tensor, back_layer: bool = True) -> torch.Tensor:
+    """Which Gaussians of ``compose`` stand on a stereo depth: [B,N] bool in ``compose``'s order (front layer,
+    then back layer, each row-major over the canvas).
+
+    valid [B,1,Hc,Wc] bool on the canvas (``geometry.disparity_validity``, edge-replicated like z~). A
+    front-layer Gaussian is valid where its pixel is; a back-layer one where every canvas pixel of its
+    BACK_POOL x BACK_POOL window is (its anchor is that window's largest z~, which an unmatched pixel sets
+    to the far clamp). Not part of training (SPEC section 7 keeps N fixed): ``sgmodel predict`` drops the
+    others."""
+    front = valid.flatten(1)
+    if not back_layer:
+        return front
+    r = BACK_POOL // 2
+    invalid = F.pad((~valid).to(torch.float32), (r, r, r, r), mode="constant", value=0.0)
+    return torch.cat([front, (F.max_pool2d(invalid, BACK_POOL, stride=1) == 0).flatten(1)], dim=1)
+
+
 def edge_band(z: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> torch.Tensor:
     """Dilated disparity-edge band [B,1,Hc,Wc] bool (appendix A "Scale-residual clamps"; not differentiable).
 

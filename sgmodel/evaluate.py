@@ -1,8 +1,9 @@
 """``sgmodel eval``: render every stored target of a split and measure it as the paper does.
 
 Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned prediction
-(``--method naive-gs|forward-splat``, sgmodel.baselines) on any encoder's disparity. Several methods or
-several ``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.table2). Metrics (SPEC
+(``--method naive-gs|forward-splat``, sgmodel.baselines through sgmodel.inference: pixels without a valid
+stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Several methods or several
+``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.table2). Metrics (SPEC
 section 7, sgmodel.metrics): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
 when the VGG16 weights are available; each over the full image and over the valid mask.
 
@@ -27,10 +28,12 @@ from tqdm import tqdm
 from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.text import markdown_table
 
-from . import baselines, metrics
+from . import metrics
+from .config import EncoderParams
 from .data import eval_batches
-from .encoders import create_encoder
-from .geometry import depth_from_disparity
+from .encoders import DEFAULT_ENCODER
+from .encoders.flags import add_encoder_arguments, build_encoder, encoder_params
+from .inference import Reconstructor
 from .lpips import create_lpips
 from .model import load_predictor
 from .render import render_views
@@ -52,32 +55,29 @@ class Method:
     render: object
 
 
-def checkpoint_method(checkpoint: Path, device: str, encoder_weights: str | None) -> Method:
-    predictor = load_predictor(checkpoint, device, encoder_weights=encoder_weights)
+def checkpoint_method(checkpoint: Path, device: str, encoder_weights: str | None = None,
+                      encoder_repo: str | None = None, encoder: str | None = None) -> Method:
+    """The trained model, its encoder rebuilt as ``load_predictor`` does (the flags over the checkpoint's)."""
+    predictor = load_predictor(checkpoint, device, encoder_weights, encoder_repo, encoder)
 
     def render(batch: dict) -> torch.Tensor:
-        gaussians, _ = predictor.predict(batch["left"], batch["right"], batch["K"], batch["baseline"])
+        gaussians = predictor.predict(batch["left"], batch["right"], batch["K"], batch["baseline"]).gaussians
         S = batch["targets"].shape[-1]
         return render_views(gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
 
     return Method(f"checkpoint {checkpoint}", predictor.model.encoder.name, predictor.resolution, render)
 
 
-def baseline_method(name: str, encoder_name: str, weights: str | None, resolution: int, device: str) -> Method:
-    encoder = create_encoder(encoder_name, weights=weights, device=device)
+def baseline_method(name: str, encoder_params: EncoderParams, resolution: int, device: str) -> Method:
+    """A baseline without learned prediction on the encoder ``encoder_params`` describes."""
+    reconstructor = Reconstructor(method=name, encoder=build_encoder(encoder_params, device))
 
-    @torch.no_grad()
     def render(batch: dict) -> torch.Tensor:
-        z = depth_from_disparity(encoder(batch["left"], batch["right"]).disparity.float(), batch["K"][:, 0, 0],
-                                 batch["baseline"])
+        scenes = reconstructor(batch["left"], batch["right"], batch["K"], batch["baseline"])
         S = batch["targets"].shape[-1]
-        if name == "naive-gs":
-            g = baselines.naive_gs(batch["left"], z, batch["K"])
-            return render_views(g, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
-        return baselines.forward_splat(batch["left"], z, batch["K"], batch["target_viewmats"], batch["target_Ks"],
-                                       S, S)[0]
+        return scenes.render(batch["target_viewmats"], batch["target_Ks"], S, S)
 
-    return Method(name, encoder_name, resolution, render)
+    return Method(name, encoder_params.name, resolution, render)
 
 
 def measure(method: Method, loader, device: str, lpips_net, progress: bool = True) -> tuple[list[dict], list[dict]]:
@@ -172,8 +172,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", type=Path, help="a checkpoint written by `sgmodel train` (best.pt)")
     p.add_argument("--method", choices=METHODS, action="append",
                    help="a baseline without learned prediction; repeat it (with or without --checkpoint) for a table")
-    p.add_argument("--encoder", default="psmnet-kitti", help="encoder of a baseline (default psmnet-kitti)")
-    p.add_argument("--encoder-weights", help="local weights file of the encoder (default: the fetched cache)")
+    add_encoder_arguments(p, f"the checkpoint's; {DEFAULT_ENCODER} for --method")
     p.add_argument("--resolution", type=int, default=256, help="S for a baseline (a checkpoint uses its own)")
     p.add_argument("--out", type=Path, required=True, help="report folder")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
@@ -194,8 +193,8 @@ def run(args: argparse.Namespace, device: str) -> int:
         from .table2 import run_table  # the table is made of this module's evaluations
 
         return run_table(args, methods, device)
-    method = checkpoint_method(args.checkpoint, device, args.encoder_weights) if args.checkpoint else \
-        baseline_method(methods[0], args.encoder, args.encoder_weights, args.resolution, device)
+    method = checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder) \
+        if args.checkpoint else baseline_method(methods[0], encoder_params(args), args.resolution, device)
     result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
                       not args.no_progress)
     print((args.out / "scenes.md").read_text())

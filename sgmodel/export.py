@@ -1,5 +1,5 @@
-"""What ``sgmodel predict`` writes: the scene ``.ply``, a colour-mapped depth image, novel-view cameras
-around the left camera and the orbit animation.
+"""What ``sgmodel predict`` writes: the scene (``scenesplat_stereo.scene_files`` formats), a colour-mapped
+depth image, novel-view cameras around the left camera and the orbit animation.
 
 All in the left camera frame: OpenCV axes (x right, y down, z forward), metres.
 """
@@ -15,45 +15,64 @@ import numpy as np
 import OpenImageIO as oiio
 import torch
 
-from scenesplat_stereo.gaussians import GaussianScene, save_ply
+from scenesplat_stereo.gaussians import GaussianScene, content_sh_degree
+from scenesplat_stereo.scene_files import save_scene
 
-from .render import SH_DEGREE, check_gaussians
+from .render import check_gaussians
 
 #: Frames per second of the orbit animation.
 ORBIT_FPS = 12
 
 
-def to_scene(gaussians: dict, index: int = 0) -> GaussianScene:
-    """Scene ``index`` of a Gaussians dict -> ``GaussianScene`` (numpy float32, SH degree 2).
+def to_scene(gaussians: dict, index: int = 0, keep: torch.Tensor | None = None) -> GaussianScene:
+    """Scene ``index`` of a Gaussians dict -> ``GaussianScene`` (numpy float32) with the rows where ``keep``
+    [N] (bool) is False dropped, and its SH cut to the degree the content has (0 when the higher bands are
+    all zero, as for naive-GS; ``gaussians.content_sh_degree``).
 
-    Quaternions are normalised (the contract allows any non-zero norm); scales are linear metres and
-    opacities in [0, 1] as in the dict (``save_ply`` stores their log and logit).
+    Quaternions are normalised (in float64; the contract allows any non-zero norm); scales are linear metres
+    and opacities in [0, 1] as in the dict (the writers store what their format needs).
     """
     check_gaussians(gaussians)
-    g = {k: v[index].detach().to("cpu", torch.float64) for k, v in gaussians.items()}
-    quats = g["quats"] / g["quats"].norm(dim=-1, keepdim=True)
-    arrays = [g["means"], quats, g["scales"], g["opacities"].clamp(0, 1), g["sh"]]
-    return GaussianScene(*(a.numpy().astype(np.float32) for a in arrays), sh_degree=SH_DEGREE)
+    g = {k: v[index].detach() for k, v in gaussians.items()}
+    if keep is not None:
+        rows = torch.nonzero(keep.to(g["means"].device)).squeeze(1)
+        g = {k: v.index_select(0, rows) for k, v in g.items()}
+    degree = content_sh_degree(g["sh"])  # where the Gaussians live, before anything is copied
+    quats = g["quats"].double()
+    quats = quats / quats.norm(dim=-1, keepdim=True)
+    fields = [g["means"], quats, g["scales"], g["opacities"].clamp(0, 1)[:, None],
+              g["sh"][:, :(degree + 1) ** 2].flatten(1)]
+    table = torch.cat([f.float() for f in fields], 1).cpu().numpy()  # one copy to the host
+    edges = np.cumsum([0] + [f.shape[1] for f in fields])
+    means, quats, scales, opacities, sh = (np.ascontiguousarray(table[:, a:b]) for a, b in zip(edges, edges[1:]))
+    return GaussianScene(means, quats, scales, opacities[:, 0], sh.reshape(len(sh), -1, 3), sh_degree=degree)
 
 
-def write_ply(gaussians: dict, path: str | Path, index: int = 0) -> Path:
-    """Write scene ``index`` as an INRIA-layout ``.ply`` (SH degree 2; ``save_ply`` writes atomically)."""
-    return save_ply(to_scene(gaussians, index), path)
+def write_scene(scene: GaussianScene, path: str | Path, format: str = "ply") -> Path:
+    """Write ``scene`` in a ``scene_files.FORMATS`` format (atomically, without fsync: a prediction is cheap to
+    make again and the fsync would cost more than the rest of the write, docs/benchmarks.md)."""
+    return save_scene(scene, path, format, durable=False)
 
 
-def depth_png(z: np.ndarray, near: float | None = None, far: float | None = None) -> np.ndarray:
+def depth_png(z: np.ndarray, near: float | None = None, far: float | None = None,
+              valid: np.ndarray | None = None) -> np.ndarray:
     """z-depth [H,W] metres -> uint8 RGB [H,W,3], turbo colour map on inverse depth.
 
-    Legend: red = near, through yellow and green, to dark blue = far; near/far default to the 2nd and 98th
-    percentiles of z (values outside are clipped). Inverse depth spreads the colours like disparity does.
+    Legend: red = near, through yellow and green, to dark blue = far; black = no stereo depth (where
+    ``valid`` [H,W] bool is False). near/far default to the 2nd and 98th percentiles of the valid z (values
+    outside are clipped). Inverse depth spreads the colours like disparity does.
     """
     z = np.asarray(z, dtype=np.float64)
-    near = float(np.percentile(z, 2)) if near is None else near
-    far = float(np.percentile(z, 98)) if far is None else far
+    known = z[valid] if valid is not None and valid.any() else z.ravel()
+    near = float(np.percentile(known, 2)) if near is None else near
+    far = float(np.percentile(known, 98)) if far is None else far
     far = max(far, near * (1 + 1e-6))
     t = (1.0 / np.clip(z, near, far) - 1.0 / far) / (1.0 / near - 1.0 / far)
     bgr = cv2.applyColorMap(np.rint(t * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-    return np.ascontiguousarray(bgr[..., ::-1])
+    rgb = np.ascontiguousarray(bgr[..., ::-1])
+    if valid is not None:
+        rgb[~valid] = 0
+    return rgb
 
 
 def _look_at(centre: np.ndarray, focus: np.ndarray) -> np.ndarray:
@@ -78,13 +97,23 @@ def novel_view_cameras(radius: float, focus: float) -> dict[str, np.ndarray]:
     return {name: _look_at(np.array(o, dtype=np.float64), target) for name, o in offsets.items()}
 
 
+def orbit_camera(angle: float, radius: float, focus: float) -> np.ndarray:
+    """The viewmat [4,4] of a camera ``radius`` metres from the left camera centre in its image plane at
+    ``angle`` radians (0: to the right, pi/2: below, so increasing angles turn clockwise on screen), looking
+    at (0, 0, focus)."""
+    return _look_at(np.array([radius * math.cos(angle), radius * math.sin(angle), 0.0]), np.array([0.0, 0.0, focus]))
+
+
 def orbit_cameras(n: int, radius: float, focus: float) -> np.ndarray:
-    """n viewmats [n,4,4] on a circle of ``radius`` metres around the left camera centre in its image
-    plane (z = 0), starting to the right and turning clockwise on screen, each looking at (0, 0, focus)."""
-    target = np.array([0.0, 0.0, focus])
-    angles = 2 * math.pi * np.arange(n) / n
-    return np.stack([_look_at(np.array([radius * math.cos(a), radius * math.sin(a), 0.0]), target)
-                     for a in angles])
+    """n viewmats [n,4,4] evenly spaced on the circle of ``orbit_camera``, starting to the right."""
+    return np.stack([orbit_camera(2 * math.pi * i / n, radius, focus) for i in range(n)])
+
+
+def offset_camera(offset: np.ndarray) -> np.ndarray:
+    """The viewmat [4,4] of the left camera moved by ``offset`` [3] metres (its own axes), not turned."""
+    viewmat = np.eye(4)
+    viewmat[:3, 3] = -np.asarray(offset, dtype=np.float64)
+    return viewmat
 
 
 def write_orbit_gif(frames: np.ndarray, path: str | Path, fps: int = ORBIT_FPS) -> Path:

@@ -7,6 +7,8 @@ Conventions (SPEC section 1 and 7): OpenCV axes (x right, y down, z forward), me
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 #: Depth clip of the model, metres (SPEC section 7 "Depth"; paper section 4).
@@ -29,6 +31,25 @@ def depth_from_disparity(disparity: torch.Tensor, fx: torch.Tensor | float, base
     valid = d > 0
     z = per_batch(fx) * per_batch(baseline) / torch.where(valid, d, torch.ones_like(d))
     return torch.where(valid, z.clamp(z_min, z_max), torch.full_like(d, z_max))
+
+
+def disparity_validity(disparity: torch.Tensor, fx: torch.Tensor | float, baseline: torch.Tensor | float,
+                       doffs: torch.Tensor | float = 0.0, max_disparity: float = math.inf, z_min: float = Z_MIN,
+                       z_max: float = Z_MAX) -> torch.Tensor:
+    """Which pixels have a stereo depth the model keeps: [B,1,H,W] bool, True where the disparity d is finite,
+    d > 0 (an encoder marks "no match" and occlusions with d <= 0), d < ``max_disparity`` (the encoder's
+    range: a match at its end may lie further), and the unclipped depth fx B / (d + doffs) lies in
+    [z_min, z_max] (so d + doffs > 0). Elsewhere ``depth_from_disparity`` gives a clamp (z_max or z_min),
+    not a depth. Arguments as in ``depth_from_disparity``."""
+    def per_batch(x):
+        x = torch.as_tensor(x, dtype=disparity.dtype, device=disparity.device)
+        return x.reshape(-1, 1, 1, 1) if x.ndim else x
+
+    d = disparity + per_batch(doffs)
+    fb = per_batch(fx) * per_batch(baseline)
+    # z_min <= fx B / d <= z_max with d > 0, written without a division: fx B / z_max <= d <= fx B / z_min
+    return (torch.isfinite(disparity) & (disparity > 0) & (disparity < max_disparity) & (d > 0)
+            & (d * z_max >= fb) & (d * z_min <= fb))
 
 
 def pixel_rays(K: torch.Tensor, height: int, width: int) -> torch.Tensor:

@@ -17,11 +17,12 @@ import torch
 from torch import nn
 
 from . import canvas
-from .composer import compose
+from .composer import compose, gaussian_validity
 from .config import ModelParams
 from .decoder import DPTDecoder
-from .encoders import StereoEncoder, create_encoder
-from .geometry import depth_from_disparity
+from .encoders import StereoEncoder
+from .encoders.flags import build_encoder, merge_encoder
+from .geometry import depth_from_disparity, disparity_validity
 from .predictor import GaussianPredictor
 
 
@@ -30,7 +31,9 @@ class Prediction:
     """One forward pass. gaussians: the composer's dict (means [B,N,3], quats [B,N,4] wxyz, scales [B,N,3],
     opacities [B,N], sh [B,N,9,3]); depth z [B,1,H,W] metres and disparity [B,1,H,W] pixels at the input
     size; canvas_K [B,3,3]; front/back [B,37,Hc,Wc] and dz [B,1,Hc,Wc] are the predictor's raw outputs (back
-    and dz are None without a back layer)."""
+    and dz are None without a back layer); valid [B,N] bool: the Gaussians that stand on a stereo depth
+    (``composer.gaussian_validity``; training renders all N, ``sgmodel predict`` drops the others) and
+    pixel_valid [B,1,H,W] bool, the pixels with one (``geometry.disparity_validity``)."""
 
     gaussians: dict[str, torch.Tensor]
     depth: torch.Tensor
@@ -39,6 +42,8 @@ class Prediction:
     front: torch.Tensor
     back: torch.Tensor | None
     dz: torch.Tensor | None
+    valid: torch.Tensor
+    pixel_valid: torch.Tensor
 
 
 def check_inputs(left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> None:
@@ -109,7 +114,19 @@ class StereoGaussians(nn.Module):
         disparity, features = self.encode(left, right)
         z = depth_from_disparity(disparity, K[:, 0, 0], baseline, doffs=doffs)
         front, back, dz, c = self.layers(left, z, features, K)
-        return Prediction(self.compose(front, back, dz, c, baseline), z, disparity, c.K, front, back, dz)
+        pixel_valid, valid = self.validity(disparity, K, baseline, doffs)
+        return Prediction(self.compose(front, back, dz, c, baseline), z, disparity, c.K, front, back, dz, valid,
+                          pixel_valid)
+
+    def validity(self, disparity: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor, doffs: float = 0.0
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(pixels with a stereo depth [B,1,H,W], Gaussians standing on one [B,N]) of the encoder's disparity:
+        ``geometry.disparity_validity`` in the encoder's range, edge-replicated onto the canvas like z~, then
+        ``composer.gaussian_validity``."""
+        pixel_valid = disparity_validity(disparity, K[:, 0, 0], baseline, doffs,
+                                         self.encoder.max_disparity(disparity.shape[-1]))
+        canvas_valid = canvas.extend(pixel_valid.float(), self.params.padding) > 0.5
+        return pixel_valid, gaussian_validity(canvas_valid, self.params.composer.back_layer)
 
 
 def create_model(params: ModelParams, device: str | torch.device = "cpu", encoder: StereoEncoder | None = None
@@ -117,16 +134,17 @@ def create_model(params: ModelParams, device: str | torch.device = "cpu", encode
     """Build the model; the encoder comes from the registry (``params.encoder``) unless one is given."""
     params.validate()
     if encoder is None:
-        e = params.encoder
-        encoder = create_encoder(e.name, weights=e.weights, repo=e.repo, device=str(device))
+        encoder = build_encoder(params.encoder, device)
     return StereoGaussians(params, encoder).to(device)
 
 
 class Predictor:
-    """A trained model ready for inference: ``predict(left, right, K, baseline) -> (gaussians, depth)``."""
+    """A trained model ready for inference: ``predict(left, right, K, baseline) -> Prediction``. With ``amp``
+    (the training run's setting) the model runs under bf16 autocast on CUDA, as ``train.render_targets``."""
 
-    def __init__(self, model: StereoGaussians) -> None:
+    def __init__(self, model: StereoGaussians, amp: bool = True) -> None:
         self.model = model.eval()
+        self.amp = amp
 
     @property
     def resolution(self) -> int:
@@ -134,24 +152,23 @@ class Predictor:
 
     @torch.no_grad()
     def predict(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor,
-                doffs: float = 0.0) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-        """(Gaussians, depth z [B,1,H,W] metres) of a batch of pairs; see ``StereoGaussians.forward``."""
-        out = self.model(left, right, K, baseline, doffs)
-        return out.gaussians, out.depth
+                doffs: float = 0.0) -> Prediction:
+        """The Prediction of a batch of pairs (Gaussians, depth, validity); see ``StereoGaussians.forward``."""
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp and left.is_cuda):
+            return self.model(left, right, K, baseline, doffs)
 
 
 def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", encoder_weights: str | None = None,
-                   encoder_repo: str | None = None) -> Predictor:
+                   encoder_repo: str | None = None, encoder: str | None = None) -> Predictor:
     """Rebuild a model from a checkpoint written by ``sgmodel train`` (its ModelParams travel inside it);
-    the frozen encoder is rebuilt from the registry (weights from the cache or ``encoder_weights``)."""
+    the frozen encoder is rebuilt from the registry with the checkpoint's settings, ``encoder_weights`` and
+    ``encoder_repo`` over them (``--encoder-weights``, ``--encoder-repo``; ``encoder``, the ``--encoder`` flag,
+    may only repeat the checkpoint's)."""
     from .checkpoint import load_checkpoint
 
     ckpt = load_checkpoint(checkpoint)
     params = ModelParams.from_dict(ckpt["model_params"])
-    if encoder_weights is not None:
-        params.encoder.weights = encoder_weights
-    if encoder_repo is not None:
-        params.encoder.repo = encoder_repo
+    params.encoder = merge_encoder(params.encoder, encoder, encoder_weights, encoder_repo, checkpoint)
     model = create_model(params, device)
     model.load_state_dict(ckpt["model"])
-    return Predictor(model)
+    return Predictor(model, amp=bool(ckpt.get("train_params", {}).get("amp", True)))

@@ -1,20 +1,31 @@
-"""``sgmodel predict``: from a user's rectified stereo pair to a 3DGS scene in the left camera's frame.
+"""``sgmodel predict``: from a user's rectified stereo pair, or a stereo video, to 3DGS scenes in the left
+camera's frame (OpenCV axes: x right, y down, z forward; metres).
 
-Writes ``OUT/scene.ply`` (INRIA layout, SH degree 2, left camera frame, OpenCV axes, metres),
-``OUT/depth.png`` (turbo colour map of the z-depth, red near, blue far), ``OUT/views/*.png`` (novel views
-around the left camera) and ``OUT/orbit.gif``. ``--method forward-splat`` writes no ``scene.ply`` (it has
-no Gaussians): its views are the z-buffered warp of the left image.
+A pair (``--left L --right R``) writes ``OUT/scene.<format>`` (``--format ply`` (default, INRIA),
+``compressed-ply`` or ``spz``; SH degree as the content has it: 0 for naive-GS), ``OUT/settings.json``
+(SuperSplat viewer camera at the left camera) and ``OUT/cameras.json`` (the same camera, INRIA layout),
+``OUT/depth.png`` (turbo colour map of the z-depth, red near, blue far, black without a stereo depth),
+``OUT/views/*.png`` (novel views around the left camera) and ``OUT/orbit.gif``. ``--method forward-splat``
+has no Gaussians: no scene or viewer files, its views are the z-buffered warp of the left image.
 
-The pair is resized so its short side is the model's resolution (the checkpoint's, or ``--resolution``,
-or 256 for the baselines), keeping the aspect ratio, each side rounded to a multiple of 16; K (and doffs)
-are scaled by the same factors per axis, and the outputs are at that size. Every input is checked before
-anything is written; outputs go to a temporary folder beside OUT and are moved into OUT at the end.
-Errors in the inputs raise ``PredictError`` (or ``CalibError``); ``run`` turns them into exit status 2.
+A stereo video (``--video SBS`` side by side, or ``--left-video L --right-video R``; ``sgmodel.video``)
+writes ``OUT/novel_view.<mp4|avi|mkv>`` (``--codec``), the novel view of every frame along ``--trajectory``,
+the viewer files, and with ``--frames`` ``OUT/frames/NNNNNN.<format>`` (default spz), one scene per frame.
 
-With ``--rig`` the pair is raw: it is rectified first (``sgmodel.rectify``), ``scene.ply`` is then in the raw
-left camera's frame, while ``depth.png`` and the views stay images of the rectified left camera (the model's
-input). Before the model runs, ``sgmodel.stereo_check`` measures the pair's vertical disparity and the sign
-of its disparity and warns (``--strict``: exit 2); the summary repeats its figures.
+Pixels without a valid stereo depth (no match, occluded, outside the encoder's range, beyond the depth
+clamps) produce no Gaussian; the log says how many were dropped. Images (frames) are resized so the short
+side is the model's resolution (the checkpoint's, or ``--resolution``, or 256 for the baselines), keeping
+the aspect ratio, each side rounded to a multiple of 16; K (and doffs) are scaled to match, and the
+outputs are at that size. Every input is checked before anything is written; outputs go to a temporary
+folder beside OUT and are moved into OUT at the end. Errors in the inputs raise ``PredictError`` (or
+``CalibError``); ``run`` turns them into exit status 2.
+
+With ``--rig`` the pair (or every video frame) is raw: it is rectified first (``sgmodel.rectify``, the pair
+transform of ``sgmodel.pairs``), the scene files are then in the raw left camera's frame (the viewer files
+hold the rectified left camera in that frame), while ``depth.png`` and the views stay images of the rectified
+left camera (the model's input). Before the model runs, ``sgmodel.stereo_check`` measures the pair's (the
+first frame's) vertical disparity and the sign of its disparity and warns (``--strict``: exit 2); the
+summary repeats its figures.
 """
 
 from __future__ import annotations
@@ -24,43 +35,47 @@ import os
 import shutil
 import sys
 import tempfile
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
-from scenesplat_stereo.encode import decode_image, encode_png, to_uint8
+from scenesplat_stereo.encode import encode_png, to_uint8
+from scenesplat_stereo.scene_files import FORMATS
 
-from . import baselines, export, rig, stereo_check
+from . import baselines, export, rig, stereo_check, video
 from .bench import synced_clock
-from .calib import CalibError, Calibration, calib_from_flags, read_calib
-from .geometry import Z_MAX, depth_from_disparity
-from .rectify import Rectification
-from .render import render_views
+from .calib import CalibError
+from .encoders import DEFAULT_ENCODER, EncoderFlagError
+from .encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
+from .inference import Reconstructor
+from .pairs import (SIZE_MULTIPLE, Pair, PredictError, prepare_pairs, read_calibration, read_pair, rectify_pair,
+                    to_tensor)
+from .viewers import write_viewer_files
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
 DEFAULT_RESOLUTION = 256
-#: Model input sides are multiples of this (the decoder's coarsest feature stride).
-SIZE_MULTIPLE = 16
-#: Novel views sit this fraction of the median matched depth (z < z_max) away from the left camera.
+#: Novel views sit this fraction of the median valid depth away from the left camera.
 VIEW_RADIUS = 0.15
 #: Frames in the orbit animation.
 ORBIT_FRAMES = 24
-_IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp", ".ppm", ".pgm", ".pfm", ".webp"}
-
-
-class PredictError(ValueError):
-    """Bad input to ``sgmodel predict``; the message names the file or flag."""
+#: Scene format of a still pair and of video frames when --format is not given.
+DEFAULT_FORMAT, DEFAULT_FRAME_FORMAT = "ply", "spz"
+#: Pairs per model call in a video.
+DEFAULT_BATCH = 4
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags of ``sgmodel predict``."""
-    parser.add_argument("--left", required=True, help="left (reference) image of a rectified pair (raw with --rig)")
-    parser.add_argument("--right", required=True, help="right image, same size as the left")
+    inputs = parser.add_argument_group("input: a rectified pair (raw with --rig), or a stereo video")
+    inputs.add_argument("--left", help="left (reference) image of a rectified pair (raw with --rig)")
+    inputs.add_argument("--right", help="right image, same size as the left")
+    inputs.add_argument("--video", help="side-by-side stereo video (left eye in the left half)")
+    inputs.add_argument("--left-video", help="left video of a stereo pair of videos (with --right-video)")
+    inputs.add_argument("--right-video", help="right video: same size, frame rate and length as --left-video")
     parser.add_argument("--calib", help="FoundationStereo K.txt (K row-major; baseline in metres) or "
-                        "Middlebury 2014 calib.txt")
+                        "Middlebury 2014 calib.txt, of one eye's image")
     parser.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels of the input images (instead of --calib)")
     parser.add_argument("--baseline", help="baseline in metres (with --intrinsics)")
     rig.add_arguments(parser)
@@ -69,92 +84,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=baselines.METHODS,
                         help="a baseline without learned prediction instead of --checkpoint")
     parser.add_argument("--out", required=True, help="output folder (created; existing files replaced)")
-    parser.add_argument("--encoder", help="encoder of the baselines (default: sgmodel.encoders' default)")
-    parser.add_argument("--encoder-weights", help="weights file of the encoder")
-    parser.add_argument("--encoder-repo", help="source checkout the encoder imports (FoundationStereo)")
+    parser.add_argument("--format", choices=sorted(FORMATS),
+                        help=f"scene file format (default {DEFAULT_FORMAT} for a pair, {DEFAULT_FRAME_FORMAT} for "
+                        "--frames): ply = INRIA float32, compressed-ply = PlayCanvas (SuperSplat), spz = Niantic v3")
+    add_encoder_arguments(parser, f"the checkpoint's; {DEFAULT_ENCODER} for --method")
     parser.add_argument("--resolution", type=int, help="short side the model runs at (default: the "
                         f"checkpoint's; {DEFAULT_RESOLUTION} for --method)")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-
-
-@dataclass
-class Pair:
-    """The decoded pair [1,3,H,W] float32 in [0,1] and its calibration (of these H x W pixels); with
-    ``--rig``, the pair as rectified and the rectification."""
-
-    left: torch.Tensor
-    right: torch.Tensor
-    calib: Calibration
-    rectification: Rectification | None = None
-
-
-def read_image(path: str, flag: str) -> torch.Tensor:
-    """Decode an image file with OpenImageIO -> [1,3,H,W] float32 in [0,1] (grey repeated, alpha dropped)."""
-    p = Path(path)
-    if not p.is_file():
-        raise PredictError(f"{flag} {path}: file not found")
-    if p.suffix.lower() not in _IMAGE_EXTS:
-        raise PredictError(f"{flag} {path}: unsupported image type {p.suffix!r} ({', '.join(sorted(_IMAGE_EXTS))})")
-    try:
-        arr = decode_image(p.read_bytes(), p.suffix)
-    except (ValueError, OSError) as e:
-        raise PredictError(f"{flag} {path}: not a readable image ({e})") from None
-    if arr.shape[2] not in (1, 2, 3, 4):
-        raise PredictError(f"{flag} {path}: expected 1 to 4 channels, got {arr.shape[2]}")
-    arr = arr[:, :, :1].repeat(3, 2) if arr.shape[2] < 3 else arr[:, :, :3]
-    img = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1)[None]
-    return img.float() / 255.0 if arr.dtype == np.uint8 else img.float().clamp(0, 1)
-
-
-def read_pair(args: argparse.Namespace) -> Pair:
-    """Validate and read the images and the calibration (all checks that need no model)."""
-    left, right = read_image(args.left, "--left"), read_image(args.right, "--right")
-    if left.shape != right.shape:
-        raise PredictError(f"--left {args.left} is {left.shape[3]}x{left.shape[2]} but --right {args.right} "
-                           f"is {right.shape[3]}x{right.shape[2]}: a rectified pair has one size")
-    if args.calib and (args.intrinsics or args.baseline):
-        raise PredictError("give either --calib or --intrinsics with --baseline, not both")
-    if args.rig and (args.calib or args.intrinsics or args.baseline):
-        raise PredictError("--rig rectifies a raw pair with its own calibration: give no --calib, --intrinsics or "
-                           "--baseline with it")
-    if args.rig:
-        stereo_rig = rig.read_rig(args.rig, args.rig_units)
-        stereo_rig.check_size(left.shape[3], left.shape[2], f"--left {args.left}")
-        rectification = Rectification.of(stereo_rig, (left.shape[3], left.shape[2]))
-        return Pair(*rectification.rectify_tensors(left, right), rectification.calibration, rectification)
-    if args.calib:
-        calib = read_calib(args.calib)
-    elif args.intrinsics and args.baseline is not None:
-        calib = calib_from_flags(args.intrinsics, args.baseline)
-    else:
-        raise PredictError("missing calibration: give --calib FILE, --intrinsics fx,fy,cx,cy and --baseline B, or the "
-                           "raw rig's --rig FILE")
-    calib.check_size(left.shape[3], left.shape[2], args.left)
-    return Pair(left, right, calib)
-
-
-def model_size(width: int, height: int, short_side: int) -> tuple[int, int]:
-    """(W', H'): short side scaled to ``short_side``, aspect kept, each side rounded to a multiple of 16."""
-    s = short_side / min(width, height)
-    return tuple(max(SIZE_MULTIPLE, SIZE_MULTIPLE * round(x * s / SIZE_MULTIPLE)) for x in (width, height))
-
-
-def resize_pair(pair: Pair, short_side: int) -> Pair:
-    """The pair resized to ``model_size`` (bilinear, antialiased) with K and doffs scaled per axis."""
-    h, w = pair.left.shape[2:]
-    w2, h2 = model_size(w, h, short_side)
-    if (w2, h2) == (w, h):
-        return pair
-    resize = lambda x: F.interpolate(x, size=(h2, w2), mode="bilinear", antialias=True,  # noqa: E731
-                                     align_corners=False).clamp(0, 1)
-    return Pair(resize(pair.left), resize(pair.right), pair.calib.scaled(w2 / w, h2 / h), pair.rectification)
+    vid = parser.add_argument_group("video")
+    vid.add_argument("--trajectory", default="orbit", help="novel view of each frame: offset:dx,dy,dz (metres "
+                     "from the left camera, its axes, not turned) or orbit[:radius[,seconds]] (default: radius "
+                     f"{video.ORBIT_RADIUS} x the first frame's median depth, {video.ORBIT_PERIOD:g} s a turn)")
+    vid.add_argument("--frames", action="store_true", help="also write one scene per frame (OUT/frames/)")
+    vid.add_argument("--codec", choices=sorted(video.CODECS), default="mp4v",
+                     help="novel-view video: mp4v (.mp4, default), mjpg (.avi) or ffv1 (.mkv, lossless)")
+    vid.add_argument("--batch-size", type=int, default=DEFAULT_BATCH,
+                     help=f"pairs per model call (default {DEFAULT_BATCH})")
+    vid.add_argument("--max-frames", type=int, help="stop after this many frames")
+    vid.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def make_encoder(name: str | None, weights: str | None, repo: str | None, device: str):
     """The frozen stereo encoder of the baselines (``sgmodel.encoders``; its default when name is None)."""
-    from .encoders import DEFAULT_ENCODER, create_encoder
+    return build_encoder(merge_encoder(None, name, weights, repo), device)
 
-    return create_encoder(name or DEFAULT_ENCODER, weights, repo, device)
+
+def make_reconstructor(args: argparse.Namespace, device: torch.device) -> tuple[Reconstructor, int]:
+    """The model of ``--checkpoint`` or the baseline of ``--method`` on its encoder, and the short side."""
+    if args.checkpoint:
+        from .model import load_predictor
+
+        predictor = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
+        return Reconstructor(predictor=predictor), args.resolution or predictor.resolution
+    encoder = make_encoder(args.encoder, args.encoder_weights, args.encoder_repo, device)
+    return Reconstructor(method=args.method, encoder=encoder), args.resolution or DEFAULT_RESOLUTION
 
 
 class _Timer:
@@ -175,12 +138,29 @@ class _Timer:
 
 
 def _check_args(args: argparse.Namespace) -> None:
+    modes = [m for m, given in (("--left/--right", args.left or args.right), ("--video", args.video),
+                                ("--left-video/--right-video", args.left_video or args.right_video)) if given]
+    if len(modes) != 1:
+        raise PredictError("give one input: --left L --right R, --video SBS, or --left-video L --right-video R"
+                           + (f" (got {' and '.join(modes)})" if modes else ""))
+    for a, b in (("left", "right"), ("left_video", "right_video")):
+        if bool(getattr(args, a)) != bool(getattr(args, b)):
+            missing = b if getattr(args, a) else a
+            raise PredictError(f"--{missing.replace('_', '-')} is missing (--{a.replace('_', '-')} and "
+                               f"--{b.replace('_', '-')} go together)")
     if bool(args.checkpoint) == bool(args.method):
         raise PredictError("give exactly one of --checkpoint CKPT or --method {naive-gs,forward-splat}")
     if args.checkpoint and not Path(args.checkpoint).is_file():
         raise PredictError(f"--checkpoint {args.checkpoint}: file not found")
     if args.resolution is not None and args.resolution < SIZE_MULTIPLE:
         raise PredictError(f"--resolution must be at least {SIZE_MULTIPLE}, got {args.resolution}")
+    if args.method == "forward-splat" and (args.format or args.frames):
+        raise PredictError("--format/--frames write Gaussians; --method forward-splat has none")
+    if args.left and (args.frames or args.max_frames is not None):
+        raise PredictError("--frames and --max-frames are for a video (--video or --left-video/--right-video)")
+    if args.batch_size < 1 or (args.max_frames is not None and args.max_frames < 1):
+        raise PredictError(f"--batch-size and --max-frames must be at least 1, got {args.batch_size} and "
+                           f"{args.max_frames}")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise PredictError(f"--out {args.out}: exists and is not a folder")
@@ -193,86 +173,136 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def predict(args: argparse.Namespace, log=print) -> None:
-    """Do the work of ``sgmodel predict`` (raises PredictError / CalibError on bad input)."""
+    """Do the work of ``sgmodel predict`` (raises PredictError / CalibError / StereoCheckError on bad input)."""
     _check_args(args)
+    trajectory = video.parse_trajectory(args.trajectory)
     device = torch.device(args.device)
     timer = _Timer(device)
-    pair = read_pair(args)
-    if pair.rectification is not None:
-        timer.lap("read and rectify")
-        pair.rectification.report(log)
-    if args.checkpoint:
-        from .model import load_predictor
-
-        predictor = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo)
-        short = args.resolution or predictor.resolution
-    else:
-        try:
-            encoder = make_encoder(args.encoder, args.encoder_weights, args.encoder_repo, device)
-        except ValueError as e:  # an unknown encoder name
-            raise PredictError(f"--encoder: {e}") from None
-        short = args.resolution or DEFAULT_RESOLUTION
-    timer.lap("load")
-    check = stereo_check.run_check(pair.left, pair.right, args.strict, pair.calib.doffs, pair.rectification is not None,
-                                   log)
-    timer.lap("stereo check")
-    pair = resize_pair(pair, short)
-    _, _, h, w = pair.left.shape
-    log(f"model size {w}x{h} (short side {short}, sides multiples of {SIZE_MULTIPLE}); K scaled to "
-        f"fx={pair.calib.K[0, 0]:.2f} fy={pair.calib.K[1, 1]:.2f} cx={pair.calib.K[0, 2]:.2f} "
-        f"cy={pair.calib.K[1, 2]:.2f}, baseline {pair.calib.baseline:g} m, doffs {pair.calib.doffs:g} px")
-    left, right = pair.left.to(device), pair.right.to(device)
-    K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None]
-    baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
-
-    with torch.no_grad():
-        gaussians = None
-        if args.checkpoint:
-            extra = {"doffs": pair.calib.doffs} if pair.calib.doffs else {}
-            gaussians, z = predictor.predict(left, right, K, baseline, **extra)
-            timer.lap("predict")
+    source = None
+    try:
+        if args.left:
+            first = rectify_pair(read_pair(args))
         else:
-            disparity = encoder(left, right).disparity
-            z = depth_from_disparity(disparity, K[:, 0, 0], baseline, doffs=pair.calib.doffs)
-            timer.lap("encoder")
-            if args.method == "naive-gs":
-                gaussians = baselines.naive_gs(left, z, K)
-                timer.lap("compose")
-
+            source = video.StereoSource(args.video or args.left_video, args.right_video)
+            name = f"--video {args.video}" if args.video else f"--left-video {args.left_video}"
+            calib, rectification = read_calibration(args, source.width, source.height, name)
+            first = rectify_pair(Pair(*(to_tensor(x) for x in source.first_frames()), calib, rectification))
+        if first.rectification is not None:
+            timer.lap("read and rectify")
+            first.rectification.report(log)
+        reconstructor, short = make_reconstructor(args, device)
+        timer.lap("load")
+        check = stereo_check.run_check(first.left, first.right, args.strict, first.calib.doffs,
+                                       first.rectification is not None, log)
+        timer.lap("stereo check")
         out = Path(args.out)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.resolve().parent))
         try:
-            (tmp / "views").mkdir()
-            if gaussians is not None:
-                raw = gaussians if pair.rectification is None else pair.rectification.to_raw_frame(gaussians)
-                export.write_ply(raw, tmp / "scene.ply")
-            zc = z[0, 0].cpu().numpy()
-            matched = zc[zc < Z_MAX] if (zc < Z_MAX).any() else zc.ravel()   # z_max marks "no match"
-            near, far = np.percentile(matched, 2), np.percentile(matched, 98)
-            (tmp / "depth.png").write_bytes(encode_png(export.depth_png(zc, near, far)))
-            timer.lap("export")
-
-            focus = float(np.median(matched))
-            named = export.novel_view_cameras(VIEW_RADIUS * focus, focus)
-            orbit = export.orbit_cameras(ORBIT_FRAMES, VIEW_RADIUS * focus, focus)
-            viewmats = torch.as_tensor(np.concatenate([np.stack(list(named.values())), orbit]),
-                                       dtype=torch.float32, device=device)[None]
-            Ks = K[:, None].expand(1, viewmats.shape[1], 3, 3).contiguous()
-            if gaussians is not None:
-                rgb, _ = render_views(gaussians, viewmats, Ks, w, h)
+            if source is None:
+                _predict_pair(args, first, reconstructor, short, device, timer, tmp, log)
             else:
-                rgb, _ = baselines.forward_splat(left, z, K, viewmats, Ks, w, h)
-            frames = to_uint8(rgb[0].permute(0, 2, 3, 1).cpu().numpy())
-            for i, name in enumerate(named):
-                (tmp / "views" / f"{name}.png").write_bytes(encode_png(frames[i]))
-            export.write_orbit_gif(frames[len(named):], tmp / "orbit.gif")
-            timer.lap("render views")
+                _predict_video(args, source, first, reconstructor, short, trajectory, device, tmp, log)
             written = _move_into(tmp, out)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-    log(timer.table())
+    finally:
+        if source is not None:
+            source.close()
+    if source is None:
+        log(timer.table())
     log(check.summary())
-    log(f"wrote {out}/: " + ", ".join(written))
+    log(f"wrote {out}/: " + ", ".join(written if len(written) <= 12 else written[:11] + ["..."]))
+
+
+def _log_model_size(pair: Pair, short: int, log) -> None:
+    h, w = pair.left.shape[-2:]
+    K = pair.calib.K
+    log(f"model size {w}x{h} (short side {short}, sides multiples of {SIZE_MULTIPLE}); K scaled to "
+        f"fx={K[0, 0]:.2f} fy={K[1, 1]:.2f} cx={K[0, 2]:.2f} cy={K[1, 2]:.2f}, baseline {pair.calib.baseline:g} m, "
+        f"doffs {pair.calib.doffs:g} px")
+
+
+def _log_dropped(kept: int, produced: int, what: str, log) -> None:
+    log(f"{produced - kept:,} of {produced:,} {what} dropped: no valid stereo depth (no match, occluded, outside "
+        f"the encoder's range or the depth clamps); {kept:,} kept")
+
+
+def _scene_frame(pair: Pair) -> tuple[Callable | None, np.ndarray]:
+    """What the scene files are in: with ``--rig`` the raw left camera's frame (the Gaussians turned back by
+    ``Rectification.to_raw_frame``), else the left camera's. Returns that move (None: none) and the model's
+    (rectified) left camera in it, c2w [4,4], for the viewer files."""
+    c2w = np.eye(4)
+    if pair.rectification is None:
+        return None, c2w
+    c2w[:3, :3] = pair.rectification.R1.T  # p_rect = R1 p_raw: the rectified camera's axes in the raw frame
+    return pair.rectification.to_raw_frame, c2w
+
+
+def _predict_pair(args, raw: Pair, reconstructor: Reconstructor, short: int, device, timer: _Timer, tmp: Path,
+                  log) -> None:
+    pair = prepare_pairs(short)(raw)
+    _log_model_size(pair, short, log)
+    _, _, h, w = pair.left.shape
+    left, right = pair.left.to(device), pair.right.to(device)
+    K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None]
+    baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
+    timer.lap("model size")
+    scenes = reconstructor(left, right, K, baseline, pair.calib.doffs, lap=timer.lap)
+    kept, produced = scenes.counts(0)
+    _log_dropped(kept, produced, "Gaussians" if scenes.gaussians is not None else "pixels", log)
+    (tmp / "views").mkdir()
+    focus = scenes.focus(0)
+    if scenes.gaussians is not None:
+        frame, c2w = _scene_frame(pair)
+        scene = scenes.in_frame(frame).scene(0)
+        timer.lap("scene to host")
+        fmt = args.format or DEFAULT_FORMAT
+        export.write_scene(scene, tmp / f"scene{FORMATS[fmt].suffix}", fmt)
+        timer.lap(f"export {fmt}")
+        log(f"scene: {len(scene):,} Gaussians, SH degree {scene.sh_degree}"
+            + (", in the raw left camera's frame" if frame is not None else ""))
+        write_viewer_files(tmp, pair.calib.K, w, h, focus, c2w)
+    z, valid = scenes.depth[0, 0].cpu().numpy(), scenes.pixel_valid[0, 0].cpu().numpy()
+    (tmp / "depth.png").write_bytes(encode_png(export.depth_png(z, valid=valid)))
+    timer.lap("depth and viewer files")
+    named = export.novel_view_cameras(VIEW_RADIUS * focus, focus)
+    orbit = export.orbit_cameras(ORBIT_FRAMES, VIEW_RADIUS * focus, focus)
+    viewmats = torch.as_tensor(np.concatenate([np.stack(list(named.values())), orbit]),
+                               dtype=torch.float32, device=device)[None]
+    rgb = scenes.render(viewmats, K[:, None].expand(1, viewmats.shape[1], 3, 3).contiguous(), w, h)
+    frames = to_uint8(rgb[0].permute(0, 2, 3, 1).cpu().numpy())
+    for i, name in enumerate(named):
+        (tmp / "views" / f"{name}.png").write_bytes(encode_png(frames[i]))
+    export.write_orbit_gif(frames[len(named):], tmp / "orbit.gif")
+    timer.lap("render views")
+
+
+def _predict_video(args, source: video.StereoSource, first: Pair, reconstructor: Reconstructor, short: int,
+                   trajectory: video.Trajectory, device, tmp: Path, log) -> None:
+    fmt = args.format or DEFAULT_FRAME_FORMAT
+    codec = video.CODECS[args.codec]
+    prepare = prepare_pairs(short)
+    h, w = prepare(first).left.shape[-2:]  # the size the transform gives every frame
+    frames = tmp / "frames" if args.frames else None
+    if frames is not None:
+        frames.mkdir()
+    log(f"{args.video or args.left_video}: {source.width}x{source.height} per eye, {source.fps:g} fps, "
+        f"{source.frame_count or 'unknown'} frames; {reconstructor.name} at {w}x{h}, batches of {args.batch_size}")
+    frame, c2w = _scene_frame(first)
+    sink = video.VideoSink(tmp / f"novel_view{codec.suffix}", args.codec, source.fps, w, h, frames, fmt, frame)
+
+    def on_first(pair: Pair, focus: float) -> None:
+        _log_model_size(pair, short, log)
+        if reconstructor.method != "forward-splat":
+            write_viewer_files(tmp, pair.calib.K, w, h, focus, c2w)
+
+    report = video.stream(source, first.calib, first.rectification, prepare, reconstructor, trajectory, sink, device,
+                          args.batch_size, args.max_frames, not args.no_progress, on_first=on_first)
+    if not report.frames:
+        raise PredictError(f"{args.video or args.left_video}: no frame could be decoded")
+    _log_dropped(report.kept, report.produced,
+                 "pixels" if reconstructor.method == "forward-splat" else "Gaussians (all frames)", log)
+    log(report.table((w, h)))
 
 
 def _move_into(tmp: Path, out: Path) -> list[str]:
@@ -295,7 +325,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         predict(args)
-    except (PredictError, CalibError, stereo_check.StereoCheckError, WeightsError) as e:
+    except (PredictError, CalibError, stereo_check.StereoCheckError, WeightsError, EncoderFlagError) as e:
         print(f"sgmodel predict: error: {e}", file=sys.stderr)
         return 2
     return 0

@@ -150,13 +150,15 @@ class Rectification:
 class RigPrediction:
     """``predict_from_rig``'s result: gaussians (the Gaussians dict, batch 1) in the raw left camera's frame;
     depth z [1,1,h,w] metres, an image of the rectified left camera at the model's size, whose K and baseline
-    are ``calibration``; the rectification; the stereo check."""
+    are ``calibration``; the rectification; the stereo check; valid [1,N] bool, the Gaussians that stand on
+    a stereo depth (``sgmodel.export.to_scene(gaussians, 0, valid[0])`` keeps only those)."""
 
     gaussians: dict[str, torch.Tensor]
     depth: torch.Tensor
     calibration: Calibration
     rectification: Rectification
     check: stereo_check.StereoCheck
+    valid: torch.Tensor
 
 
 def _as_tensor(image, name: str) -> torch.Tensor:
@@ -182,7 +184,7 @@ def predict_from_rig(predictor, left, right, rig: StereoRig, short_side: int | N
     when it warns and ``strict``), resized to the model's size (short side ``short_side`` or the checkpoint's,
     sides multiples of 16) and predicted; the Gaussians are turned back into the raw left camera's frame.
     """
-    from .predict import Pair, resize_pair
+    from .pairs import Pair, resize_pair
 
     left, right = _as_tensor(left, "left"), _as_tensor(right, "right")
     if left.shape != right.shape:
@@ -190,14 +192,14 @@ def predict_from_rig(predictor, left, right, rig: StereoRig, short_side: int | N
                        f"cameras of a rig deliver one size")
     rect = Rectification.of(rig, (left.shape[3], left.shape[2]))
     rect.report(log)
-    pair = Pair(*rect.rectify_tensors(left, right), rect.calibration, rect)
+    pair = Pair(*rect.rectify_tensors(left, right), rect.calibration, rect, rectified=True)
     check = stereo_check.run_check(pair.left, pair.right, strict, rectified_here=True, log=log)
     pair = resize_pair(pair, short_side or predictor.resolution)
     device = next(predictor.model.parameters()).device
     K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None]
     baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
-    gaussians, depth = predictor.predict(pair.left.to(device), pair.right.to(device), K, baseline)
-    return RigPrediction(rect.to_raw_frame(gaussians), depth, pair.calib, rect, check)
+    out = predictor.predict(pair.left.to(device), pair.right.to(device), K, baseline)
+    return RigPrediction(rect.to_raw_frame(out.gaussians), out.depth, pair.calib, rect, check, out.valid)
 
 
 # -------------------------------------------------------------------------------------- sgmodel rectify
@@ -212,7 +214,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def rectify_command(args: argparse.Namespace, log=print) -> None:
     """Do the work of ``sgmodel rectify`` (raises a CalibError / ValueError naming the flag on bad input)."""
-    from .predict import read_image
+    from .pairs import read_image
 
     rig = rig_mod.read_rig(args.rig, args.rig_units)
     left, right = read_image(args.left, "--left"), read_image(args.right, "--right")

@@ -29,6 +29,7 @@ from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.text import key_safe_name, markdown_table
 
 from .data import read_split
+from .encoders.flags import encoder_params
 from .evaluate import Method, baseline_method, checkpoint_method, evaluate
 
 TABLE_MD, TABLE_JSON = "table2.md", "table2.json"
@@ -124,8 +125,8 @@ def notes(cols: list[Column], rows: list[Row], split: str, targets: dict[str, in
 
 def _method(name: str, args: argparse.Namespace, device: str) -> Method:
     if name == "checkpoint":
-        return checkpoint_method(args.checkpoint, device, args.encoder_weights)
-    return baseline_method(name, args.encoder, args.encoder_weights, args.resolution, device)
+        return checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
+    return baseline_method(name, encoder_params(args), args.resolution, device)
 
 
 def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:

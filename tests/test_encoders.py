@@ -62,7 +62,7 @@ def sgbm():
 
 def test_registry():
     assert {"psmnet-kitti", "sgbm", "foundation-stereo", "fast-foundation-stereo"} <= set(available_encoders())
-    with pytest.raises(ValueError, match="unknown encoder 'nope'.*psmnet-kitti"):
+    with pytest.raises(ValueError, match="--encoder nope: unknown encoder.*psmnet-kitti"):
         create_encoder("nope")
     with pytest.raises(ValueError, match="no weights"):
         create_encoder("sgbm", weights="x.pth")

@@ -4,6 +4,7 @@ trip, and every bad input (exit 2, nothing written)."""
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import re
 
@@ -15,12 +16,11 @@ import torch
 from scenesplat_stereo.encode import decode_image, encode_png
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
+from scripts.guitar_pair import H, W, render_pair
 from sgmodel import predict as predict_mod
 from sgmodel.baselines import naive_gs
 from sgmodel.cli import main as sgmodel_main
-from sgmodel.export import depth_png, orbit_cameras, write_ply
-from scripts.guitar_pair import H, W, render_pair
-
+from sgmodel.export import depth_png, orbit_cameras, to_scene, write_scene
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -43,6 +43,9 @@ class OracleEncoder:
         assert left.shape[-2:] == self.disparity.shape[-2:]
         return argparse.Namespace(disparity=self.disparity, features=[])
 
+    def max_disparity(self, width: int) -> float:
+        return math.inf
+
 
 @pytest.fixture(scope="module")
 def guitar_pair(guitar_ply, tmp_path_factory):
@@ -63,13 +66,16 @@ def test_predict_naive_gs_on_the_guitar_reproduces_the_left_image(guitar_pair, t
     assert rc == 0, log
     assert "| encoder |" in log and "| render views |" in log and f"model size {W}x{H}" in log
     names = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
-    assert names == ["depth.png", "orbit.gif", "scene.ply"] + [
+    assert names == ["cameras.json", "depth.png", "orbit.gif", "scene.ply", "settings.json"] + [
         f"views/{v}.png" for v in ("center", "down", "forward", "left", "right", "up")]
     scene = load_ply(out / "scene.ply", strict=True)
-    assert len(scene) == W * H and scene.sh_degree == 2
+    dropped, produced, kept = (int(x.replace(",", "")) for x in re.search(
+        r"([\d,]+) of ([\d,]+) Gaussians dropped: no valid stereo depth .*; ([\d,]+) kept", log).groups())
+    assert produced == W * H and kept == produced - dropped == len(scene)
+    assert scene.sh_degree == 0 and "SH degree 0" in log  # naive-GS has plain colours
     g = scene.to_torch()
     rgb, a, _ = rasterization(g["means"], g["quats"], g["scales"], g["opacities"], g["colors"],
-                              torch.eye(4)[None], torch.tensor(K, dtype=torch.float32)[None], W, H, sh_degree=2)
+                              torch.eye(4)[None], torch.tensor(K, dtype=torch.float32)[None], W, H, sh_degree=0)
     left = torch.from_numpy(decode_image((folder / "left.png").read_bytes(), "png")).float() / 255
     valid = alpha > 0.99
 
@@ -100,7 +106,7 @@ def test_export_round_trip_through_load_ply(tmp_path):
     gaussians.update(quats=q / q.norm(dim=-1, keepdim=True), sh=torch.randn(1, n, 9, 3, generator=g),
                      opacities=torch.rand(1, n, generator=g) * 0.98 + 0.01,
                      scales=torch.rand(1, n, 3, generator=g) * 0.1 + 1e-3)
-    scene = load_ply(write_ply(gaussians, tmp_path / "s.ply"), strict=True)
+    scene = load_ply(write_scene(to_scene(gaussians), tmp_path / "s.ply"), strict=True)
     for name, key in (("means", "means"), ("quats", "quats"), ("scales", "scales"),
                       ("opacities", "opacities"), ("sh", "sh")):
         np.testing.assert_allclose(getattr(scene, name), gaussians[key][0].numpy(), rtol=2e-6, atol=2e-7,
@@ -199,3 +205,39 @@ def test_bench_predict_times_every_stage_on_the_cpu(tmp_path, capsys):
         assert re.search(rf"\| {re.escape(stage)} \| \d+\.\d \|", text), stage
     n = (48 + 2 * 4) * (32 + 2 * 4) * 2  # two layers on the padded canvas (cpu-small: padding 4)
     assert f"to {n:,} Gaussians" in text
+    for scene in ("as predicted (SH degree 0)", "SH degree 2 (a trained model's)"):  # a fresh model: SH 0
+        for fmt in ("ply", "compressed-ply", "spz", "ply, fsync'd"):
+            assert re.search(rf"\| {re.escape(scene)} \| {re.escape(fmt)} \| \d+\.\d \| \d+\.\d\d \| \d+\.\d \|",
+                             text), (scene, fmt)
+
+
+def test_bench_predict_video_on_the_cpu(tmp_path):
+    out = tmp_path / "bench.md"
+    assert sgmodel_main(["bench", "predict", "--video", "--preset", "cpu-small", "--device", "cpu", "--size", "48x32",
+                         "--frames", "5", "--batch-size", "2", "--warmup", "0", "--repeats", "2",
+                         "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "Stereo video of 48x32 per eye" in text and "5 frames in batches of 2" in text
+    for row in ("model alone (encoder to Gaussians)", "end to end (decode, model, one novel view, encode)"):
+        assert re.search(rf"\| {re.escape(row)} \| 2 \| [\d.]+ \| [\d.]+ \| [\d.]+ \|", text), row
+
+
+@pytest.mark.parametrize("fmt,suffix", [("spz", ".spz"), ("compressed-ply", ".compressed.ply")])
+def test_predict_writes_the_chosen_format_and_viewer_files(small_pair, capsys, monkeypatch, fmt, suffix):
+    d = torch.full((1, 1, 32, 48), 2.0)
+    d[..., :4, :] = 0.0  # four rows without a match
+    monkeypatch.setattr(predict_mod, "make_encoder", lambda *a: OracleEncoder(d))
+    out = small_pair / fmt
+    assert run(["--left", small_pair / "l.png", "--right", small_pair / "r.png", "--calib", small_pair / "K.txt",
+                "--method", "naive-gs", "--resolution", "32", "--format", fmt, "--out", out, "--device", "cpu"]) == 0
+    log = capsys.readouterr().out
+    assert f"{4 * 48:,} of {32 * 48:,} Gaussians dropped" in log and "SH degree 0" in log
+    from scenesplat_stereo.scene_files import load_scene
+
+    scene = load_scene(out / f"scene{suffix}")
+    assert len(scene) == 28 * 48 and scene.sh_degree == 0
+    assert scene.means[:, 2].max() < 2.6  # z = fx B / d = 50 * 0.1 / 2 = 2.5 m: nothing at the far clamp
+    settings = json.loads((out / "settings.json").read_text())
+    assert settings["cameras"][0]["initial"]["target"] == [0.0, 0.0, 2.5]  # the median valid depth
+    depth = decode_image((out / "depth.png").read_bytes(), "png")
+    assert not depth[:4].any() and depth[4:].any()  # black where there is no stereo depth

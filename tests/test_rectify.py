@@ -19,6 +19,7 @@ import torch
 from scenesplat_stereo.encode import decode_image, encode_png
 from scenesplat_stereo.gaussians import load_ply
 from scripts.rig_pair import BASELINE, H, W, distort, render
+from sgmodel import pairs as pairs_mod
 from sgmodel import predict as predict_mod
 from sgmodel import rectify as rectify_mod
 from sgmodel.calib import read_calib
@@ -246,11 +247,11 @@ def test_predict_from_rig_python_api(raw_rig, capsys):
     assert out.check.warnings == () and "stereo check" in capsys.readouterr().out
     # The same pair through the rectified route by hand: the API's scene is that one turned by R1^T.
     rect = out.rectification
-    pair = predict_mod.resize_pair(predict_mod.Pair(*rect.rectify_tensors(
+    pair = pairs_mod.resize_pair(pairs_mod.Pair(*rect.rectify_tensors(
         torch.from_numpy(left / np.float32(255)).permute(2, 0, 1)[None],
         torch.from_numpy(right / np.float32(255)).permute(2, 0, 1)[None]), rect.calibration), 64)
-    g, _ = predictor.predict(pair.left, pair.right, torch.tensor(pair.calib.K, dtype=torch.float32)[None],
-                             torch.tensor([pair.calib.baseline], dtype=torch.float32))
+    g = predictor.predict(pair.left, pair.right, torch.tensor(pair.calib.K, dtype=torch.float32)[None],
+                          torch.tensor([pair.calib.baseline], dtype=torch.float32)).gaussians
     means = g["means"][0].double() @ torch.from_numpy(rect.R1)      # rows (R1^T m)^T
     torch.testing.assert_close(out.gaussians["means"][0].double(), means, atol=1e-5, rtol=1e-5)
     with pytest.raises(ValueError, match=r"left: expected an RGB image \[H, W, 3\]"):

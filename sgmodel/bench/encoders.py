@@ -19,7 +19,8 @@ import torch
 from scenesplat_stereo.text import markdown_table
 
 from ..data import make_loader
-from ..encoders import create_encoder
+from ..encoders import StereoEncoder
+from ..encoders.flags import build_encoder, encoder_label, parse_encoder_spec
 from ..geometry import depth_from_disparity
 from ..train import to_device
 from . import report, synced_clock
@@ -38,8 +39,8 @@ def disparity_errors(disparity: torch.Tensor, depth: torch.Tensor, fx: torch.Ten
     return err[valid].sum().item(), d1[valid].sum().item(), rel[valid].sum().item(), int(valid.sum().item())
 
 
-def bench_encoder(name: str, loader, device: torch.device, weights: str | None) -> dict:
-    encoder = create_encoder(name, weights=weights, device=str(device))
+def bench_encoder(label: str, encoder: StereoEncoder, loader, device: torch.device) -> dict:
+    """Time and disparity errors of one built encoder over the loader's pairs."""
     now = synced_clock(device)
     times, epe, d1, rel, n, pairs = [], 0.0, 0.0, 0.0, 0, 0
     for i, batch in enumerate(loader):
@@ -55,16 +56,18 @@ def bench_encoder(name: str, loader, device: torch.device, weights: str | None) 
     if n == 0:
         raise ValueError("no pixel with a rendered depth in the split")
     times = times[1:] or times  # the first batch warms the encoder up
-    return {"encoder": name, "ms_per_pair": statistics.median(times) * 1e3, "epe": epe / n, "d1": 100 * d1 / n,
+    return {"encoder": label, "ms_per_pair": statistics.median(times) * 1e3, "epe": epe / n, "d1": 100 * d1 / n,
             "depth_rel": 100 * rel / n, "pairs": pairs}
 
 
 def run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
+    specs = [parse_encoder_spec(text) for text in args.encoders]
+    encoders = [build_encoder(spec, device) for spec in specs]  # all of them before any is measured
     rows = []
-    for name in args.encoders:
+    for spec, encoder in zip(specs, encoders):
         loader = make_loader(args.data, args.split, args.batch_size, args.resolution, None, 0, 0, 0, 1, train=False)
-        rows.append(bench_encoder(name, loader, device, args.encoder_weights if name == args.encoders[0] else None))
+        rows.append(bench_encoder(encoder_label(spec, specs), encoder, loader, device))
     dev = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     table = markdown_table(["encoder", "ms / pair", "EPE (px)", "D1 (%)", "depth rel. error (%)"],
                            [[r["encoder"], f"{r['ms_per_pair']:.1f}", f"{r['epe']:.2f}", f"{r['d1']:.1f}",
@@ -77,8 +80,10 @@ def run(args: argparse.Namespace) -> int:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, required=True, help="a dataset built with --with-depth")
     p.add_argument("--split", choices=("train", "val", "test"), default="val", help="split (default val)")
-    p.add_argument("--encoders", nargs="+", default=["psmnet-kitti", "sgbm"], help="encoders to compare")
-    p.add_argument("--encoder-weights", help="local weights of the first encoder (default: the fetched cache)")
+    p.add_argument("--encoders", nargs="+", default=["psmnet-kitti", "sgbm"],
+                   metavar="NAME[,weights=PATH][,repo=PATH]",
+                   help="encoders to compare, each with its own weights file and code checkout where it needs them, "
+                        "e.g. foundation-stereo,weights=FS/model_best_bp2.pth,repo=FS (default: psmnet-kitti sgbm)")
     p.add_argument("--resolution", type=int, default=256, help="S (default 256)")
     p.add_argument("--batch-size", type=int, default=4, help="pairs per batch (default 4)")
     p.add_argument("--device", default="cuda", help="cuda (default) or cpu")

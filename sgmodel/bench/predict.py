@@ -1,12 +1,17 @@
-"""``sgmodel bench predict``: one stereo pair to a 3DGS scene in a warm process, split by stage.
+"""``sgmodel bench predict``: one pair to a scene by stage, or (``--video``) a stereo video's pairs/s and latency.
+
+``--video`` is described in ``sgmodel.bench.predict_video``.
 
 What ``sgmodel predict`` does for one pair once the process is warm (CUDA context, cuDNN plans and the
-rasteriser's kernels loaded, the model on the device): encoder, decoder + predictor, composer, the
-``.ply`` export and the rendering of one novel view, each synchronised; medians of ``--repeats`` pairs
-after ``--warmup``. A cold ``sgmodel predict`` adds the process start, the model load and the first
+rasteriser's kernels loaded, the model on the device): encoder, decoder + predictor, composer, the scene
+to the host (Gaussians without a stereo depth dropped, SH cut to the content's degree), the ``.ply`` write
+(as predict writes it: atomic, no fsync) and the rendering of one novel view, each synchronised; medians
+of ``--repeats`` pairs after ``--warmup``. A second table times every scene format's write (and the ``.ply``
+with fsync) with its size. A cold ``sgmodel predict`` adds the process start, the model load and the first
 launches (its own table says how long each took). The pair is synthetic (smooth random texture shifted by
 a few pixels) at ``--size``; with ``--checkpoint`` the trained model runs, else a fresh one of the given
-flags (the time does not depend on the weights).
+flags (the time does not depend on the weights). On CUDA the model runs under bf16 autocast (``--no-amp``:
+float32), as trained.
 """
 
 from __future__ import annotations
@@ -14,38 +19,58 @@ from __future__ import annotations
 import argparse
 import statistics
 import tempfile
+import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
+from scenesplat_stereo.gaussians import GaussianScene, save_ply
+from scenesplat_stereo.scene_files import FORMATS, save_scene
 from scenesplat_stereo.text import argtype, markdown_table, parse_size
 
 from .. import export
 from ..args import add_model_arguments, params_from_args
 from ..geometry import depth_from_disparity
-from ..model import create_model, load_predictor
-from ..render import render_views
+from ..model import Predictor, create_model, load_predictor
+from ..render import SH_DEGREE, render_views
 from . import report, synced_clock
 
-STAGES = ("encoder", "decoder + predictor", "composer", "export .ply", "render one view")
+STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
 
 
-def synthetic_pair(width: int, height: int, device: torch.device) -> tuple[torch.Tensor, ...]:
-    """(left, right [1,3,H,W] in [0,1], K [1,3,3], baseline [1] metres): smooth texture, 4 px disparity."""
+def synthetic_pair(width: int, height: int, device: torch.device, shift: int = 0) -> tuple[torch.Tensor, ...]:
+    """(left, right [1,3,H,W] in [0,1], K [1,3,3], baseline [1] metres): smooth texture, 4 px disparity;
+    ``shift`` moves the texture that many pixels to the left (a camera panning, for video frames)."""
     g = torch.Generator().manual_seed(0)
-    low = torch.rand(1, 3, max(2, height // 16), max(2, width // 16), generator=g)
-    left = torch.nn.functional.interpolate(low, size=(height, width), mode="bicubic", align_corners=False).clamp(0, 1)
+    low = torch.rand(1, 3, max(2, height // 16), max(2, (width + shift) // 16 + 1), generator=g)
+    wide = torch.nn.functional.interpolate(low, size=(height, width + shift + 4), mode="bicubic",
+                                           align_corners=False).clamp(0, 1)
+    left = wide[..., shift:shift + width]
+    right = wide[..., shift + 4:shift + 4 + width]
     f = 0.9 * max(width, height)
     K = torch.tensor([[[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]]])
-    return (left.to(device), torch.roll(left, -4, -1).to(device), K.to(device), torch.tensor([0.1], device=device))
+    return left.to(device), right.to(device), K.to(device), torch.tensor([0.1], device=device)
+
+
+def bench_model(args: argparse.Namespace, device: torch.device) -> Predictor:
+    """The trained model of ``--checkpoint`` or a fresh one of the model flags, ready for inference."""
+    if args.checkpoint:
+        predictor = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
+    else:
+        predictor = Predictor(create_model(params_from_args(args)[0], device))
+    predictor.amp = not args.no_amp
+    return predictor
 
 
 def run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
-    if args.checkpoint:
-        model = load_predictor(args.checkpoint, device).model
-    else:
-        model = create_model(params_from_args(args)[0], device).eval()
+    predictor = bench_model(args, device)
+    if args.video:
+        from .predict_video import bench_video
+
+        return bench_video(args, predictor, device)
+    model = predictor.model
     width, height = args.size
     left, right, K, baseline = synthetic_pair(width, height, device)
     viewmat = torch.eye(4, device=device)[None, None].clone()
@@ -56,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     with torch.no_grad(), tempfile.TemporaryDirectory() as tmp:
         for i in range(args.warmup + args.repeats):
             t = [now()]
-            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=device.type == "cuda"):
+            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=predictor.amp and device.type == "cuda"):
                 disparity, features = model.encode(left, right)
                 z = depth_from_disparity(disparity, K[:, 0, 0], baseline)
                 t.append(now())
@@ -64,24 +89,66 @@ def run(args: argparse.Namespace) -> int:
                 t.append(now())
             gaussians = model.compose(front, back, dz, c, baseline)
             t.append(now())
-            export.write_ply(gaussians, Path(tmp) / "scene.ply")
+            scene = export.to_scene(gaussians, 0, model.validity(disparity, K, baseline)[1][0])
+            t.append(now())
+            export.write_scene(scene, Path(tmp) / "scene.ply")
             t.append(now())
             render_views(gaussians, viewmat, K[:, None], width, height)
             t.append(now())
             if i >= args.warmup:
                 for stage, a, b in zip(STAGES, t, t[1:]):
                     times[stage].append(b - a)
+        formats = export_times(scene, Path(tmp), args.warmup, args.repeats)
     med = {s: statistics.median(v) * 1e3 for s, v in times.items()}
     rows = [[s, f"{med[s]:.1f}"] for s in STAGES]
     rows += [["**prediction** (encoder to Gaussians)", f"{sum(med[s] for s in STAGES[:3]):.1f}"],
              ["**total**", f"{sum(med.values()):.1f}"]]
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     n = next(iter(gaussians.values())).shape[1]
-    report(f"One pair of {width}x{height} to {n:,} Gaussians in a warm process on {name} "
-           f"({'checkpoint ' + str(args.checkpoint) if args.checkpoint else 'fresh model'}, encoder "
-           f"{model.params.encoder.name}); medians of {args.repeats} pairs after {args.warmup} warm-up.\n\n"
-           f"{markdown_table(['stage', 'median ms'], rows)}\n", args.out)
+    report(f"One pair of {width}x{height} to {n:,} Gaussians ({len(scene):,} with a stereo depth, SH degree "
+           f"{scene.sh_degree}) in a warm process on {describe(args, predictor, device)}; medians of {args.repeats} "
+           f"pairs after {args.warmup} warm-up.\n\n"
+           f"{markdown_table(['stage', 'median ms'], rows)}\n\n"
+           f"Writing that scene ({len(scene):,} Gaussians) in each format, median of {args.repeats}:\n\n"
+           f"{markdown_table(['scene', 'format', 'median ms', 'MB', 'x smaller than .ply'], formats)}\n", args.out)
     return 0
+
+
+def describe(args: argparse.Namespace, predictor: Predictor, device: torch.device) -> str:
+    """'<device> (<checkpoint or fresh model>, encoder <name>, <bf16 autocast or float32>)' for a report."""
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
+    model = f"checkpoint {args.checkpoint}" if args.checkpoint else "fresh model"
+    dtype = "bf16 autocast" if predictor.amp and device.type == "cuda" else "float32"
+    return f"{name} ({model}, encoder {predictor.model.params.encoder.name}, {dtype})"
+
+
+def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) -> list[list[str]]:
+    """Rows (scene, format, median ms, MB, ratio to its .ply) of writing ``scene`` in every format as predict
+    does (atomic, no fsync), and the ``.ply`` with fsync (what the fsync costs). When the prediction has no
+    higher SH (a fresh model's SH heads start at zero), the same Gaussians with degree-2 SH as a trained
+    model predicts are timed too (coefficients drawn from N(0, 0.02^2): sizes of incompressible values)."""
+    scenes = [(f"as predicted (SH degree {scene.sh_degree})", scene)]
+    if scene.sh_degree < SH_DEGREE:
+        rng = np.random.default_rng(0)
+        rest = rng.normal(0, 0.02, (len(scene), (SH_DEGREE + 1) ** 2 - scene.sh.shape[1], 3)).astype(np.float32)
+        scenes.append((f"SH degree {SH_DEGREE} (a trained model's)", GaussianScene(
+            scene.means, scene.quats, scene.scales, scene.opacities, np.concatenate([scene.sh, rest], 1), SH_DEGREE)))
+    rows = []
+    for label, s in scenes:
+        writers = [(name, lambda p, f=name, s=s: save_scene(s, p, f, durable=False), FORMATS[name].suffix)
+                   for name in FORMATS]
+        writers.append(("ply, fsync'd", lambda p, s=s: save_ply(s, p, durable=True), ".ply"))
+        sizes = {}
+        for name, write, suffix in writers:
+            path, times = folder / f"export{suffix}", []
+            for i in range(warmup + repeats):
+                t = time.perf_counter()
+                write(path)
+                if i >= warmup:
+                    times.append(time.perf_counter() - t)
+            sizes[name] = path.stat().st_size
+            rows.append([label, name, f"{1e3 * statistics.median(times):.1f}", f"{sizes[name] / 1e6:.2f}",
+                         f"{sizes['ply'] / sizes[name]:.1f}"])
+    return rows
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -89,7 +156,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", help="a trained model (default: a fresh one of the model flags)")
     p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
     p.add_argument("--size", type=argtype(parse_size, "--size"), default=(320, 256),
-                   help="input pair size WxH, multiples of 16 (default 320x256)")
-    p.add_argument("--warmup", type=int, default=3, help="untimed pairs first (default 3)")
-    p.add_argument("--repeats", type=int, default=10, help="timed pairs (default 10)")
+                   help="input pair (video: one eye's frame) size WxH, multiples of 16 (default 320x256)")
+    p.add_argument("--warmup", type=int, default=3, help="untimed pairs (video: batches) first (default 3)")
+    p.add_argument("--repeats", type=int, default=10, help="timed pairs (video: model-alone batches) (default 10)")
+    p.add_argument("--no-amp", action="store_true", help="float32 on CUDA instead of bf16 autocast")
+    p.add_argument("--video", action="store_true", help="a synthetic side-by-side video instead: pairs/s and "
+                   "latency of the model alone and end to end (decode, model, one novel view, encode)")
+    p.add_argument("--batch-size", type=int, default=1, help="video: pairs per model call (default 1)")
+    p.add_argument("--frames", type=int, default=120, help="video: frames of the synthetic video (default 120)")
     p.add_argument("--out", type=Path, help="also write the markdown table here")

@@ -5,6 +5,7 @@ registered name to its factory ``(weights, repo) -> StereoEncoder``; ``register_
 Registered: ``psmnet-kitti`` (the default; PSMNet with the KITTI-2015 weights), ``sgbm`` (OpenCV
 semi-global matching + WLS, no learned features), ``foundation-stereo`` and ``fast-foundation-stereo``
 (adapters to the user's own checkouts of NVlabs' code, ``repo`` = its path, ``weights`` = checkpoint).
+``sgmodel.encoders.flags`` turns the command-line flags into one (every command uses it).
 """
 
 from __future__ import annotations
@@ -18,6 +19,10 @@ from sgmodel.encoders.base import EncoderOutput, StereoEncoder
 EncoderFactory = Callable[[str | None, str | None], StereoEncoder]
 ENCODERS: dict[str, EncoderFactory] = {}
 DEFAULT_ENCODER = "psmnet-kitti"
+
+
+class EncoderFlagError(ValueError):
+    """An encoder flag that cannot be used (unknown name, an option the encoder does not take); names the flag."""
 
 
 def register_encoder(name: str) -> Callable[[EncoderFactory], EncoderFactory]:
@@ -38,10 +43,10 @@ def available_encoders() -> list[str]:
 
 def create_encoder(name: str, weights: str | None = None, repo: str | None = None,
                    device: str | torch.device = "cpu") -> StereoEncoder:
-    """The frozen encoder ``name`` on ``device``; unknown names give a ValueError listing the known ones,
+    """The frozen encoder ``name`` on ``device``; unknown names give an EncoderFlagError listing the known ones,
     missing weights or repositories a ``sgmodel.weights.WeightsError`` saying how to provide them."""
     if name not in ENCODERS:
-        raise ValueError(f"unknown encoder {name!r}; available: {', '.join(available_encoders())}")
+        raise EncoderFlagError(f"--encoder {name}: unknown encoder; available: {', '.join(available_encoders())}")
     return ENCODERS[name](weights, repo).to(device)
 
 
@@ -59,7 +64,7 @@ def _sgbm(weights: str | None, repo: str | None) -> StereoEncoder:
 
     _no_repo("sgbm", repo)
     if weights is not None:
-        raise ValueError("encoder 'sgbm' is classical and takes no weights (--encoder-weights)")
+        raise EncoderFlagError("--encoder-weights: encoder 'sgbm' is classical and takes no weights")
     return SGBMEncoder()
 
 
@@ -79,8 +84,8 @@ def _fast_foundation(weights: str | None, repo: str | None) -> StereoEncoder:
 
 def _no_repo(name: str, repo: str | None) -> None:
     if repo is not None:
-        raise ValueError(f"encoder {name!r} is built in and takes no --encoder-repo")
+        raise EncoderFlagError(f"--encoder-repo: encoder {name!r} is built in and takes no code checkout")
 
 
-__all__ = ["ENCODERS", "DEFAULT_ENCODER", "EncoderOutput", "StereoEncoder", "available_encoders",
+__all__ = ["ENCODERS", "DEFAULT_ENCODER", "EncoderFlagError", "EncoderOutput", "StereoEncoder", "available_encoders",
            "create_encoder", "register_encoder"]

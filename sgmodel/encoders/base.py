@@ -46,6 +46,12 @@ class StereoEncoder(nn.Module):
     feature_scales: tuple[int, ...] = ()
     weights_sha256: str | None = None
 
+    def max_disparity(self, width: int) -> float:
+        """The largest disparity (pixels) the encoder can report on images ``width`` pixels wide: the end of
+        its search range, where a match may lie further (``geometry.disparity_validity`` keeps only
+        disparities below it). Unbounded (inf) unless the subclass says."""
+        return math.inf
+
     def freeze(self) -> StereoEncoder:
         """Eval mode and requires_grad False on every parameter; call at the end of ``__init__``."""
         for p in self.parameters():

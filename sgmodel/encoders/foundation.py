@@ -2,41 +2,42 @@
 adapters around the user's own checkouts of NVlabs/FoundationStereo and NVlabs/Fast-FoundationStereo.
 
 Their licence forbids copying their code here, so nothing of theirs is in this package: ``repo`` is the
-path of the user's checkout (the folder holding ``core/foundation_stereo.py``; ``--encoder-repo``), put
-first on ``sys.path`` and imported as its demo scripts do; ``weights`` is the checkpoint
-(``--encoder-weights``). Both repositories name their package ``core``; a ``core`` imported from another
-place is dropped from ``sys.modules`` first, so one process can hold one of them at a time.
+path of the user's checkout (the folder holding ``core/foundation_stereo.py``; ``--encoder-repo``), imported
+as its demo scripts do but pinned to that checkout (``sgmodel.encoders.checkout``: both encoders can live in
+one process, in either order) and built offline (no socket, torch.hub served from the checkout, timm without
+downloads); ``weights`` is the checkpoint (``--encoder-weights``). Every failure while importing, building,
+loading or test-running them is one ``WeightsError`` line naming the flag and file.
 
 - ``foundation-stereo``: ``core.foundation_stereo.FoundationStereo(args)`` with ``args`` read from the
-  ``cfg.yaml`` beside the checkpoint (``model_best_bp2.pth``; ``vit_size`` defaults to ``vitl`` as in
-  their demo), the weights loaded from the checkpoint's ``"model"`` entry (``weights_only=True``).
-  Construction is kept offline: ``HF_HUB_OFFLINE=1`` and, when ``timm`` is installed, ``timm.create_model``
-  with ``pretrained=False`` (every weight comes from the checkpoint). Forward: ``model(image1, image2,
-  iters=32, test_mode=True)`` (their demo's 32 updates). Features (appendix A: image features at four
-  scales, context features and the final recurrent states), captured by forward hooks, one map per
-  scale s in (4, 8, 16, 32), the concatenation in this order of what exists at that scale:
-  the left view's image features (``model.feature``'s first output, d_out[i] channels at 4 * 2^i),
-  the context features relu(inp) of each GRU level (``model.cnet``, hidden_dims[i] channels at 4 * 2^i,
-  i < n_gru_layers) and the hidden states of each GRU level after the last update
-  (``model.update_block``'s first output, hidden_dims[i] channels).
+  ``cfg.yaml`` beside the checkpoint (``model_best_bp2.pth``; ``vit_size`` defaults to ``vitl`` as in their
+  demo), its DINOv2 built from the checkout's vendored ``dinov2/`` (their ``depth_anything/dpt.py`` asks
+  torch.hub for ``facebookresearch/dinov2``), the weights loaded from the checkpoint's ``"model"`` entry
+  (``weights_only=True``). Forward: ``model(image1, image2, iters=32, test_mode=True)`` (their demo's 32
+  updates). Features (appendix A: image, context and recurrent features), captured by forward hooks: the
+  left view's image features (``model.feature``'s ``[x4, x8, x16, x32]``), then for each GRU level
+  (``args.n_gru_layers``; ``model.cnet`` returns all three whatever ``num_layers`` says) the context features
+  relu(inp) and the hidden state after the last update (``model.update_block`` rewrites its ``net`` list in
+  place; the hook copies it per call), concatenated per scale in this order.
 - ``fast-foundation-stereo``: the serialised model file of their release (``model_best_bp2_serialize.pth``,
-  a pickled ``core.foundation_stereo.FastFoundationStereo``, loaded with ``weights_only=False``: only
-  give a file you trust), forward ``model(image1, image2, iters=8, test_mode=True,
-  optimize_build_volume="pytorch1")`` (the paper's 8 updates, PyTorch cost volume). Features (appendix A:
-  left image features; the decoder adds RGB-D itself): ``model.feature``'s output for the left view at
-  s in (4, 8, 16, 32), d_out[i] channels.
+  a pickled ``core.foundation_stereo.FastFoundationStereo``, loaded with ``weights_only=False``: only give a
+  file you trust), with ``args.valid_iters = 8`` and ``args.max_disp = 192`` as their demo sets them (its
+  ``--valid_iters`` and ``--max_disp`` defaults, which it applies over ``cfg.yaml``), forward
+  ``model(image1, image2, iters=8, test_mode=True, optimize_build_volume="pytorch1")`` (the paper's 8
+  updates, PyTorch cost volume). Features (appendix A: left image features; the decoder adds RGB-D itself):
+  ``model.feature``'s output for the left view.
 
-Both take RGB in [0, 255] (they apply the ImageNet normalisation themselves), so inputs in [0, 1] are
-scaled by 255; images are padded at the bottom and right to a multiple of 32 (edge replication) and
-outputs cropped back. Disparity: pixels of the input, left reference.
+Their releases are pruned: layer widths differ from the constants in their code (``feature.d_out`` and the
+like). So the feature scales and channel counts are measured, not read from attributes: at construction the
+loaded model runs once (one update) on a 32 x 32 pair, and each captured map's scale is the input size over its
+own. Both networks take RGB in [0, 255] (they apply the ImageNet normalisation themselves), so inputs in
+[0, 1] are scaled by 255; images are padded at the bottom and right to a multiple of 32 (edge replication)
+and outputs cropped back. Disparity: pixels of the input, left reference.
 """
 
 from __future__ import annotations
 
-import contextlib
-import importlib
 import os
-import sys
+from collections.abc import MutableMapping
 from pathlib import Path
 from typing import Any
 
@@ -44,12 +45,16 @@ import torch
 from torch import Tensor, nn
 
 from sgmodel.encoders.base import EncoderOutput, StereoEncoder, crop_to, pad_to_multiple
+from sgmodel.encoders.checkout import Checkout, one_line
 from sgmodel.weights import WeightsError, sha256_file
 
 PAD_MULTIPLE = 32  # their demos pad to a multiple of 32
 FOUNDATION_ITERS = 32  # FoundationStereo demo's valid_iters
-FAST_FOUNDATION_ITERS = 8  # paper appendix A: eight recurrent updates
-SCALES = (4, 8, 16, 32)
+FAST_FOUNDATION_ITERS = 8  # paper appendix A: eight recurrent updates (their demo's default too)
+FAST_FOUNDATION_MAX_DISP = 192  # Fast-FoundationStereo demo's --max_disp default, set on the loaded model
+PROBE_SIZE = PAD_MULTIPLE  # pixels: the pair the loaded model runs once to measure its feature maps
+REPO_FLAG, WEIGHTS_FLAG = "--encoder-repo", "--encoder-weights"
+_CHECKOUTS: dict[tuple[Path, str], Checkout] = {}
 
 
 class _Config(dict):
@@ -65,75 +70,69 @@ class _Config(dict):
         self[key] = value
 
 
-def _import_repo(repo: str | os.PathLike | None, name: str, project: str, weights_hint: str):
-    """``core.foundation_stereo`` of the checkout at ``repo``, or a WeightsError saying what to pass."""
+def checkout(repo: str | os.PathLike | None, name: str, project: str, weights_hint: str) -> Checkout:
+    """The pinned checkout at ``repo`` (one per folder, project and process), or a WeightsError saying what to pass."""
     if repo is None:
-        raise WeightsError(f"encoder {name!r} needs your checkout of NVlabs/{project}: pass --encoder-repo PATH "
-                           f"(the folder with core/foundation_stereo.py) and --encoder-weights PATH ({weights_hint})")
+        raise WeightsError(f"encoder {name!r} needs your checkout of NVlabs/{project}: pass {REPO_FLAG} PATH "
+                           f"(the folder with core/foundation_stereo.py) and {WEIGHTS_FLAG} PATH ({weights_hint})")
     root = Path(repo).resolve()
     if not (root / "core" / "foundation_stereo.py").is_file():
-        raise WeightsError(f"--encoder-repo {repo}: no core/foundation_stereo.py there (expected a checkout of "
+        raise WeightsError(f"{REPO_FLAG} {repo}: no core/foundation_stereo.py there (expected a checkout of "
                            f"NVlabs/{project})")
-    for mod in [m for m in sys.modules if m == "core" or m.startswith("core.") or m == "Utils"]:
-        file = getattr(sys.modules[mod], "__file__", None) or ""
-        if not Path(file).resolve().is_relative_to(root):
-            del sys.modules[mod]
-    if str(root) in sys.path:
-        sys.path.remove(str(root))
-    sys.path.insert(0, str(root))
-    try:
-        return importlib.import_module("core.foundation_stereo")
-    except ImportError as e:
-        raise WeightsError(f"--encoder-repo {repo}: importing core/foundation_stereo.py failed ({e}); install "
-                           f"the requirements of NVlabs/{project} in this environment") from e
+    if (root, project) not in _CHECKOUTS:
+        _CHECKOUTS[root, project] = Checkout(root, project)
+    return _CHECKOUTS[root, project]
 
 
 def _weights_path(weights: str | os.PathLike | None, name: str, hint: str) -> Path:
     if weights is None:
-        raise WeightsError(f"encoder {name!r} needs its checkpoint: pass --encoder-weights PATH ({hint})")
+        raise WeightsError(f"encoder {name!r} needs its checkpoint: pass {WEIGHTS_FLAG} PATH ({hint})")
     path = Path(weights)
     if not path.is_file():
-        raise WeightsError(f"--encoder-weights {path}: no such file")
+        raise WeightsError(f"{WEIGHTS_FLAG} {path}: no such file")
     return path
 
 
-@contextlib.contextmanager
-def _offline():
-    """No model-hub downloads while their modules are built: every weight comes from the checkpoint."""
-    old = os.environ.get("HF_HUB_OFFLINE")
-    os.environ["HF_HUB_OFFLINE"] = "1"
-    timm = sys.modules.get("timm") or _try_import("timm")
-    create = getattr(timm, "create_model", None)
-    if create is not None:
-        timm.create_model = lambda *a, **k: create(*a, **{**k, "pretrained": False})
-    try:
-        yield
-    finally:
-        if create is not None:
-            timm.create_model = create
-        if old is None:
-            os.environ.pop("HF_HUB_OFFLINE", None)
-        else:
-            os.environ["HF_HUB_OFFLINE"] = old
-
-
-def _try_import(module: str):
-    try:
-        return importlib.import_module(module)
-    except ImportError:
-        return None
-
-
-def _load_config(path: Path) -> Any:
+def load_config(path: Path) -> Any:
+    """FoundationStereo's ``cfg.yaml`` (``vit_size`` defaulting to ``vitl``) as their demo reads it: an OmegaConf
+    DictConfig, or a dict with attribute access when omegaconf is absent; a WeightsError naming the file."""
     import yaml
 
     if not path.is_file():
-        raise WeightsError(f"--encoder-weights {path.parent}: no cfg.yaml beside the checkpoint (FoundationStereo "
+        raise WeightsError(f"{WEIGHTS_FLAG} {path.parent}: no cfg.yaml beside the checkpoint (FoundationStereo "
                            f"releases ship one in each model folder)")
-    cfg = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    try:
+        cfg = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise WeightsError(f"{WEIGHTS_FLAG} {path}: not a readable cfg.yaml ({one_line(e)})") from e
+    if not isinstance(cfg, dict):
+        raise WeightsError(f"{WEIGHTS_FLAG} {path}: cfg.yaml holds a {type(cfg).__name__}, expected a mapping")
     cfg.setdefault("vit_size", "vitl")
-    omegaconf = _try_import("omegaconf")
-    return omegaconf.OmegaConf.create(cfg) if omegaconf is not None else _Config(cfg)
+    try:
+        from omegaconf import OmegaConf
+    except ImportError:
+        return _Config(cfg)
+    return OmegaConf.create(cfg)
+
+
+def _set(args: Any, key: str, value: Any) -> None:
+    """``args.key = value`` on their OmegaConf config (or a plain mapping / namespace)."""
+    if isinstance(args, MutableMapping):
+        args[key] = value
+    else:
+        setattr(args, key, value)
+
+
+def by_stride(maps: list[Tensor], size: tuple[int, int], name: str) -> dict[int, list[Tensor]]:
+    """Maps [B,C,h,w] of an input of ``size`` (H, W) grouped by their stride s = H / h = W / w, in order."""
+    grouped: dict[int, list[Tensor]] = {}
+    for m in maps:
+        s = size[0] // m.shape[-2]
+        if (m.shape[-2] * s, m.shape[-1] * s) != tuple(size):
+            raise RuntimeError(f"{name}: a feature map of {tuple(m.shape)} is not a whole stride of the "
+                               f"{size[1]}x{size[0]} input")
+        grouped.setdefault(s, []).append(m)
+    return grouped
 
 
 class _HookedStereo(StereoEncoder):
@@ -141,69 +140,91 @@ class _HookedStereo(StereoEncoder):
 
     iters: int
 
-    def _run(self, left: Tensor, right: Tensor) -> Tensor:
+    def _run(self, left: Tensor, right: Tensor, iters: int) -> Tensor:
         raise NotImplementedError
 
-    def _maps(self, batch: int) -> dict[int, list[Tensor]]:
+    def _maps(self, batch: int) -> list[Tensor]:
+        """The left view's maps recorded by the hooks during the last ``_run``, in feature order."""
         raise NotImplementedError
 
     def encode(self, left: Tensor, right: Tensor) -> EncoderOutput:
         h, w = left.shape[-2:]
-        self._record: dict[str, Any] = {}
-        disparity = self._run(pad_to_multiple(left.float() * 255, PAD_MULTIPLE),
-                              pad_to_multiple(right.float() * 255, PAD_MULTIPLE))
-        maps = self._maps(left.shape[0])
-        features = [crop_to(torch.cat(maps[s], 1).float(), h, w, s) for s in self.feature_scales]
-        self._record = {}
+        disparity, grouped = self._forward(left, right, self.iters)
+        features = [crop_to(torch.cat(grouped[s], 1).float(), h, w, s) for s in self.feature_scales]
         return EncoderOutput(disparity=crop_to(disparity.float(), h, w), features=features)
 
-    def _hook(self, module: nn.Module, key: str) -> None:
-        module.register_forward_hook(lambda _m, _i, out: self._record.__setitem__(key, out))
+    def _forward(self, left: Tensor, right: Tensor, iters: int) -> tuple[Tensor, dict[int, list[Tensor]]]:
+        left = pad_to_multiple(left.float() * 255, PAD_MULTIPLE)
+        right = pad_to_multiple(right.float() * 255, PAD_MULTIPLE)
+        self._record: dict[str, Any] = {}
+        try:
+            disparity = self._run(left, right, iters)
+            maps = self._maps(left.shape[0])
+        finally:
+            self._record = {}
+        return disparity, by_stride(maps, tuple(left.shape[-2:]), self.name)
+
+    def _hook(self, module: nn.Module, key: str, keep=lambda out: out) -> None:
+        module.register_forward_hook(lambda _m, _i, out: self._record.__setitem__(key, keep(out)))
+
+    def _measure(self, weights: Path) -> None:
+        """``feature_scales`` and ``feature_channels`` as the loaded (frozen) model computes them: one run with
+        one update on a PROBE_SIZE x PROBE_SIZE pair."""
+        pair = torch.rand(2, 1, 3, PROBE_SIZE, PROBE_SIZE, generator=torch.Generator().manual_seed(0))
+        try:
+            with torch.no_grad():
+                _, grouped = self._forward(pair[0], pair[1], 1)
+        except Exception as e:  # noqa: BLE001 - a model that cannot run is one user error
+            raise WeightsError(f"{WEIGHTS_FLAG} {weights}: the loaded {self.name} model fails on a {PROBE_SIZE}x"
+                               f"{PROBE_SIZE} test pair ({one_line(e)})") from e
+        self.feature_scales = tuple(sorted(grouped))
+        self.feature_channels = tuple(sum(m.shape[1] for m in grouped[s]) for s in self.feature_scales)
 
 
 class FoundationStereoEncoder(_HookedStereo):
     """Frozen FoundationStereo from the user's checkout; see the module docstring."""
 
     name = "foundation-stereo"
-    feature_scales = SCALES
 
     def __init__(self, repo: str | os.PathLike | None, weights: str | os.PathLike | None,
                  iters: int = FOUNDATION_ITERS):
         super().__init__()
         hint = "model_best_bp2.pth with its cfg.yaml beside it"
-        module = _import_repo(repo, self.name, "FoundationStereo", hint)
+        code = checkout(repo, self.name, "FoundationStereo", hint)
         path = _weights_path(weights, self.name, hint)
-        args = _load_config(path.parent / "cfg.yaml")
-        with _offline():
-            self.model = module.FoundationStereo(args)
+        args = load_config(path.parent / "cfg.yaml")
         try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=True)
-            self.model.load_state_dict(ckpt["model"])
+            with code.building(REPO_FLAG):
+                model = code.import_module("core.foundation_stereo", REPO_FLAG).FoundationStereo(args)
+        except WeightsError:
+            raise
+        except Exception as e:  # noqa: BLE001 - whatever their constructor raises is one user error
+            raise WeightsError(f"{REPO_FLAG} {repo}: building FoundationStereo with {path.parent / 'cfg.yaml'} "
+                               f"failed ({one_line(e)})") from e
+        try:
+            model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True)["model"])
         except Exception as e:  # noqa: BLE001 - any unreadable or mismatched checkpoint is one user error
-            raise WeightsError(f"--encoder-weights {path}: not a FoundationStereo checkpoint for {path.parent}/cfg.yaml "
-                               f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from e
+            raise WeightsError(f"{WEIGHTS_FLAG} {path}: not a FoundationStereo checkpoint for {path.parent}/cfg.yaml "
+                               f"({one_line(e)})") from e
+        self.model = model
         self.weights_sha256 = sha256_file(path)
         self.iters = iters
         self.levels = int(args.n_gru_layers)
-        self.first_scale = 2 ** int(args.get("n_downsample", 2))
-        d_out, hidden = list(self.model.feature.d_out), list(args.hidden_dims)
-        self.feature_channels = tuple(
-            d_out[i] + sum(2 * hidden[j] for j in range(self.levels) if self.first_scale * 2 ** j == s)
-            for i, s in enumerate(SCALES))
         self._hook(self.model.feature, "feature")
         self._hook(self.model.cnet, "cnet")
-        self._hook(self.model.update_block, "update")
+        self._hook(self.model.update_block, "update", keep=lambda out: list(out[0]))
         self.freeze()
+        self._measure(path)
 
-    def _run(self, left: Tensor, right: Tensor) -> Tensor:
-        return self.model(left, right, iters=self.iters, test_mode=True)
+    def _run(self, left: Tensor, right: Tensor, iters: int) -> Tensor:
+        return self.model(left, right, iters=iters, test_mode=True)
 
-    def _maps(self, batch: int) -> dict[int, list[Tensor]]:
-        maps: dict[int, list[Tensor]] = {s: [f[:batch]] for s, f in zip(SCALES, self._record["feature"][0])}
-        hidden = self._record["update"][0]
-        for j, (ctx, state) in enumerate(zip(list(self._record["cnet"])[: self.levels], hidden)):
-            s = self.first_scale * 2 ** j
-            maps[s] += [torch.relu(ctx[1]), state]
+    def _maps(self, batch: int) -> list[Tensor]:
+        image, _vit = self._record["feature"]
+        cnet, hidden = self._record["cnet"], self._record["update"]
+        maps = [f[:batch] for f in image]
+        for j in range(self.levels):
+            maps += [torch.relu(cnet[j][1]), hidden[j]]
         return maps
 
 
@@ -211,33 +232,36 @@ class FastFoundationStereoEncoder(_HookedStereo):
     """Frozen Fast-FoundationStereo from the user's checkout; see the module docstring."""
 
     name = "fast-foundation-stereo"
-    feature_scales = SCALES
 
     def __init__(self, repo: str | os.PathLike | None, weights: str | os.PathLike | None,
-                 iters: int = FAST_FOUNDATION_ITERS):
+                 iters: int = FAST_FOUNDATION_ITERS, max_disp: int = FAST_FOUNDATION_MAX_DISP):
         super().__init__()
         hint = "the serialised model file, e.g. weights/23-36-37/model_best_bp2_serialize.pth"
-        module = _import_repo(repo, self.name, "Fast-FoundationStereo", hint)
+        code = checkout(repo, self.name, "Fast-FoundationStereo", hint)
         path = _weights_path(weights, self.name, hint)
         try:
-            with _offline():
+            with code.building(REPO_FLAG):
+                module = code.import_module("core.foundation_stereo", REPO_FLAG)
                 model = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as e:  # noqa: BLE001
-            raise WeightsError(f"--encoder-weights {path}: not a serialised Fast-FoundationStereo model "
-                               f"({type(e).__name__}: {e})") from e
+        except WeightsError:
+            raise
+        except Exception as e:  # noqa: BLE001 - any unreadable file is one user error
+            raise WeightsError(f"{WEIGHTS_FLAG} {path}: not a serialised Fast-FoundationStereo model of {repo} "
+                               f"({one_line(e)})") from e
         if not isinstance(model, module.FastFoundationStereo):
-            raise WeightsError(f"--encoder-weights {path}: holds a {type(model).__name__}, expected the serialised "
+            raise WeightsError(f"{WEIGHTS_FLAG} {path}: holds a {type(model).__name__}, expected the serialised "
                                f"FastFoundationStereo of their release")
         self.model = model
         self.weights_sha256 = sha256_file(path)
         self.iters = iters
-        self.model.args.valid_iters = iters
-        self.feature_channels = tuple(self.model.feature.d_out)
+        _set(self.model.args, "valid_iters", iters)
+        _set(self.model.args, "max_disp", max_disp)
         self._hook(self.model.feature, "feature")
         self.freeze()
+        self._measure(path)
 
-    def _run(self, left: Tensor, right: Tensor) -> Tensor:
-        return self.model(left, right, iters=self.iters, test_mode=True, optimize_build_volume="pytorch1")
+    def _run(self, left: Tensor, right: Tensor, iters: int) -> Tensor:
+        return self.model(left, right, iters=iters, test_mode=True, optimize_build_volume="pytorch1")
 
-    def _maps(self, batch: int) -> dict[int, list[Tensor]]:
-        return {s: [f[:batch]] for s, f in zip(SCALES, self._record["feature"])}
+    def _maps(self, batch: int) -> list[Tensor]:
+        return [f[:batch] for f in self._record["feature"]]

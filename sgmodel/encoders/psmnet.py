@@ -244,6 +244,10 @@ class PSMNetEncoder(StereoEncoder):
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.freeze()
 
+    def max_disparity(self, width: int) -> float:
+        """The soft-argmin's largest level, MAX_DISPARITY - 1 pixels (whatever the width)."""
+        return float(MAX_DISPARITY - 1)
+
     def _apply(self, fn, recurse=True):
         """On CUDA the weights are kept channels-last (NHWC for 2D, NDHWC for 3D convolutions): cuDNN's
         channels-last kernels then run the whole network, 22% faster at 256x256, batch 32, bf16 on an

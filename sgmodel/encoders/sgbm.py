@@ -76,6 +76,10 @@ class SGBMEncoder(StereoEncoder):
         super().__init__()
         self.freeze()
 
+    def max_disparity(self, width: int) -> float:
+        """The end of SGBM's search, numDisparities - 1 pixels (``sgbm_parameters``)."""
+        return float(sgbm_parameters(width)["numDisparities"] - 1)
+
     def encode(self, left: Tensor, right: Tensor) -> EncoderOutput:
         def to_u8(x: Tensor) -> np.ndarray:
             img = (x.detach().float().clamp(0, 1) * 255 + 0.5).to(torch.uint8)

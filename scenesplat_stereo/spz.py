@@ -1,0 +1,214 @@
+"""Niantic's ``.spz`` (versions 2 and 3): reader and writer, pure numpy and the standard library's gzip.
+
+Written from the format description of the public nianticlabs/spz repository (README "File Format",
+``load-spz.cc``). A v2/v3 file is one gzip stream holding a 16-byte little-endian header
+
+    uint32 magic 0x5053474e ("NGSP"), uint32 version, uint32 numPoints,
+    uint8 shDegree (0..3), uint8 fractionalBits, uint8 flags (0x1: antialiased), uint8 reserved (0)
+
+followed by attribute blocks, each point after point:
+
+* positions: 3 x 24-bit signed fixed point, little-endian, value = integer / 2^fractionalBits;
+* alphas: uint8 round(255 opacity);
+* colours: uint8 round(255 (0.15 f_dc + 0.5)) per channel (the SH DC coefficient, not SH_C0-scaled);
+* scales: uint8 round(16 (ln s + 10)) per axis;
+* rotations: v3 "smallest three": a little-endian uint32 whose bits 30-31 hold the index i of the largest
+  |component| of the unit xyzw quaternion (made positive), then for each other component in xyzw order a
+  sign bit and 9 bits of round(511 |c| / sqrt(1/2)); v2: uint8 round(127.5 c + 127.5) for x, y, z with w >= 0;
+* SH (degree > 0): for each coefficient 1..K-1, the three colours (colour fastest), int8-like uint8
+  round(128 f) + 128, quantised to buckets of 8 (degree 1, 5 bits) or 16 (degree 2 and 3, 4 bits) as the
+  reference writer does; read back as (q - 128) / 128.
+
+The reference writer rounds half away from zero (``std::round``) and clamps every byte to 0..255; so does
+this one, so an encoded value inside a field's range is off by at most half a step: 2^-(fractionalBits+1)
+metres in position (12 fractional bits, or fewer when the scene is too large for 24 bits), 1/32 in ln s
+(range [-10, 5.94]), 1/(2 0.15 255) in f_dc (|f_dc| <= 3.33), 1/510 in opacity, and in SH (range [-1, 1))
+half a step of 1/128 plus half a bucket: 4.5/128 (degree 1) or 8.5/128 (degrees 2 and 3).
+
+Coordinates are stored as they are, without an axis change: that is what Niantic's own ``ply_to_spz``
+(``CoordinateSystem::UNSPECIFIED``) and PlayCanvas' splat-transform write and read, so a scene keeps the
+frame of its ``.ply`` (the README's default RUB applies to callers that declare a coordinate system).
+Version 4 (per-attribute zstd streams) is recognised and refused with a message naming the converter:
+Python 3.11's standard library has no zstd. This writer writes version 3, which every client reads.
+"""
+
+from __future__ import annotations
+
+import gzip
+import math
+import os
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.gaussians import GaussianScene
+
+#: "NGSP" read as a little-endian uint32.
+MAGIC = 0x5053474E
+#: The version this module writes, and the versions it reads.
+WRITE_VERSION, READ_VERSIONS = 3, (2, 3)
+#: Fractional bits of the fixed-point positions (the reference writer's 12: 1/4096 m steps).
+FRACTIONAL_BITS = 12
+#: Colours store f_dc scaled by this around 0.5 (the format's colorScale).
+COLOR_SCALE = 0.15
+#: SH quantisation: bits kept for degree 1 and for degrees 2 and 3 (the reference writer's defaults).
+SH1_BITS, SH_REST_BITS = 5, 4
+#: Header flag: the scene was trained with antialiasing (mip-splatting).
+FLAG_ANTIALIASED = 0x1
+#: gzip level of the writer (zlib's default, as the reference writer's Z_DEFAULT_COMPRESSION).
+GZIP_LEVEL = 6
+_HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("num_points", "<u4"), ("sh_degree", "u1"),
+                    ("fractional_bits", "u1"), ("flags", "u1"), ("reserved", "u1")])
+_SQRT1_2 = math.sqrt(0.5)
+
+
+class SpzError(ValueError):
+    """A ``.spz`` file that cannot be read (or a scene that cannot be written); names the file and field."""
+
+
+def _round_away(x: np.ndarray) -> np.ndarray:
+    """std::round: half away from zero."""
+    return np.sign(x) * np.floor(np.abs(x) + 0.5)
+
+
+def _to_u8(x: np.ndarray) -> np.ndarray:
+    return np.clip(_round_away(x), 0, 255).astype(np.uint8)
+
+
+def _pack_positions(means: np.ndarray, path: Path) -> tuple[np.ndarray, int]:
+    """means [N, 3] -> (uint8 [N, 9] of 24-bit fixed point, fractional bits): 12 bits, fewer for large scenes."""
+    m = np.abs(means).max() if len(means) else 0.0
+    bits = FRACTIONAL_BITS if m == 0 else min(FRACTIONAL_BITS, math.floor(math.log2((2**23 - 1) / m)))
+    while bits >= 0 and np.abs(_round_away(means.astype(np.float64) * 2.0**bits)).max(initial=0) > 2**23 - 1:
+        bits -= 1
+    if bits < 0:
+        raise SpzError(f"{path}: positions up to {m:g} do not fit 24-bit fixed point (|x| < 2^23)")
+    fixed = _round_away(means.astype(np.float64) * 2.0**bits).astype(np.int32)
+    return fixed.astype("<i4").view(np.uint8).reshape(len(means), 3, 4)[:, :, :3].reshape(-1, 9), bits
+
+
+def _pack_rotations(quats: np.ndarray) -> np.ndarray:
+    """wxyz unit quaternions [N, 4] -> uint8 [N, 4]: the smallest-three uint32 of version 3."""
+    q = quats[:, [1, 2, 3, 0]].astype(np.float64)  # xyzw, the format's order
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    n = len(q)
+    largest = np.abs(q).argmax(1)
+    negate = q[np.arange(n), largest] < 0
+    comp = largest.astype(np.uint32)
+    for i in range(4):
+        mag = np.floor(511.0 * np.abs(q[:, i]) / _SQRT1_2 + 0.5).astype(np.uint32)
+        sign = ((q[:, i] < 0) ^ negate).astype(np.uint32)
+        word = (comp << np.uint32(10)) | (sign << np.uint32(9)) | mag
+        comp = np.where(largest == i, comp, word)
+    return comp.astype("<u4").view(np.uint8).reshape(n, 4)
+
+
+def _quantise_sh(x: np.ndarray, bits: int) -> np.ndarray:
+    """The reference quantizeSH: q = round(128 x) + 128 snapped to buckets of 2^(8 - bits), clamped."""
+    bucket = 1 << (8 - bits)
+    q = _round_away(x.astype(np.float64) * 128.0) + 128.0
+    q = np.floor((q + bucket // 2) / bucket) * bucket  # a negative q clamps to 0 whichever way it rounds
+    return np.clip(q, 0, 255).astype(np.uint8)
+
+
+def encode_spz(scene: GaussianScene, path: str | os.PathLike = "<memory>", antialiased: bool = False) -> bytes:
+    """The uncompressed version-3 bytes (header and blocks) of ``scene`` (module docstring)."""
+    path = Path(path)
+    n, k = len(scene), (scene.sh_degree + 1) ** 2
+    positions, bits = _pack_positions(scene.means, path)
+    header = np.zeros((), _HEADER)
+    header[()] = (MAGIC, WRITE_VERSION, n, scene.sh_degree, bits, FLAG_ANTIALIASED if antialiased else 0, 0)
+    alphas = _to_u8(scene.opacities.astype(np.float64) * 255.0)
+    colours = _to_u8(scene.sh[:, 0, :].astype(np.float64) * (COLOR_SCALE * 255.0) + 0.5 * 255.0)
+    scales = _to_u8((np.log(scene.scales.astype(np.float64)) + 10.0) * 16.0)
+    sh = np.empty((n, k - 1, 3), np.uint8)
+    if k > 1:
+        sh[:, :3] = _quantise_sh(scene.sh[:, 1:4], SH1_BITS)
+        sh[:, 3:] = _quantise_sh(scene.sh[:, 4:], SH_REST_BITS)
+    blocks = [header, positions, alphas, colours, scales, _pack_rotations(scene.quats), sh]
+    return b"".join(np.ascontiguousarray(b).tobytes() for b in blocks)
+
+
+def save_spz(scene: GaussianScene, path: str | os.PathLike, durable: bool = True, antialiased: bool = False,
+             level: int = GZIP_LEVEL) -> Path:
+    """Write ``scene`` as a version-3 ``.spz`` (gzip ``level``), atomically. Returns the path."""
+    path = Path(path)
+    data = gzip.compress(encode_spz(scene, path, antialiased), compresslevel=level, mtime=0)
+    atomic_write_bytes(path, data, durable=durable)
+    return path
+
+
+def _unpack_rotations(raw: np.ndarray, version: int) -> np.ndarray:
+    """uint8 [N, 4] (v3) or [N, 3] (v2) -> unit wxyz float64 [N, 4]."""
+    n = len(raw)
+    xyzw = np.empty((n, 4), dtype=np.float64)
+    if version == 2:
+        xyzw[:, :3] = raw.astype(np.float64) / 127.5 - 1.0
+        xyzw[:, 3] = np.sqrt(np.maximum(0.0, 1.0 - (xyzw[:, :3] ** 2).sum(1)))
+    else:
+        comp = np.ascontiguousarray(raw).view("<u4").reshape(n).astype(np.uint32)
+        largest = (comp >> np.uint32(30)).astype(np.int64)
+        for i in range(3, -1, -1):  # the last component written sits in the lowest bits
+            mag = (comp & np.uint32(511)).astype(np.float64)
+            value = np.where((comp >> np.uint32(9)) & np.uint32(1), -1.0, 1.0) * _SQRT1_2 * mag / 511.0
+            here = largest != i
+            xyzw[here, i] = value[here]
+            comp = np.where(here, comp >> np.uint32(10), comp)
+        others = np.where(np.arange(4)[None] == largest[:, None], 0.0, xyzw)
+        xyzw[np.arange(n), largest] = np.sqrt(np.maximum(0.0, 1.0 - (others**2).sum(1)))
+    norm = np.linalg.norm(xyzw, axis=1, keepdims=True)
+    xyzw = np.where(norm > 0, xyzw / np.where(norm > 0, norm, 1.0), [0.0, 0.0, 0.0, 1.0])
+    return xyzw[:, [3, 0, 1, 2]]
+
+
+def load_spz(path: str | os.PathLike) -> GaussianScene:
+    """Read a version 2 or 3 ``.spz`` into a ``GaussianScene``; ``SpzError`` naming the file and field."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise SpzError(f"{path}: cannot open ({e.strerror or e})") from None
+    if raw[:4] == b"NGSP":
+        version = int(np.frombuffer(raw, "<u4", 1, 4)[0]) if len(raw) >= 8 else None
+        raise SpzError(f"{path}: .spz version {version} (zstd streams) is not read here (versions "
+                       f"{', '.join(map(str, READ_VERSIONS))}); `splat-transform {path.name} out.ply` converts it")
+    if raw[:2] != b"\x1f\x8b":
+        raise SpzError(f"{path}: not a .spz file (neither gzip nor 'NGSP' magic at the start)")
+    try:
+        data = gzip.decompress(raw)
+    except (OSError, EOFError, zlib.error) as e:
+        raise SpzError(f"{path}: corrupt gzip stream ({e})") from None
+    if len(data) < _HEADER.itemsize:
+        raise SpzError(f"{path}: header truncated ({len(data)} of {_HEADER.itemsize} bytes)")
+    h = np.frombuffer(data, _HEADER, 1)[0]
+    if int(h["magic"]) != MAGIC:
+        raise SpzError(f"{path}: header magic is {int(h['magic']):#x}, expected {MAGIC:#x} ('NGSP')")
+    version, n, degree = int(h["version"]), int(h["num_points"]), int(h["sh_degree"])
+    if version not in READ_VERSIONS:
+        raise SpzError(f"{path}: header version {version} is not supported (reads {READ_VERSIONS})")
+    if degree > 3:
+        raise SpzError(f"{path}: header shDegree {degree}: SH degree 0..3 supported")
+    k = (degree + 1) ** 2
+    sizes = {"positions": 9, "alphas": 1, "colours": 3, "scales": 3, "rotations": 4 if version >= 3 else 3,
+             "sh": 3 * (k - 1)}
+    need = _HEADER.itemsize + n * sum(sizes.values())
+    if len(data) < need:
+        raise SpzError(f"{path}: body truncated: header numPoints {n} needs {need} bytes, the stream has "
+                       f"{len(data)}")
+    blocks, offset = {}, _HEADER.itemsize
+    for name, size in sizes.items():
+        blocks[name] = np.frombuffer(data, np.uint8, n * size, offset).reshape(n, size)
+        offset += n * size
+    p = blocks["positions"].reshape(n, 3, 3).astype(np.int32)
+    fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
+    fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+    sh = np.empty((n, k, 3), np.float32)
+    sh[:, 0] = (blocks["colours"].astype(np.float64) / 255.0 - 0.5) / COLOR_SCALE
+    sh[:, 1:] = ((blocks["sh"].astype(np.float64) - 128.0) / 128.0).reshape(n, k - 1, 3)
+    scene = GaussianScene((fixed / 2.0 ** int(h["fractional_bits"])).astype(np.float32),
+                          _unpack_rotations(blocks["rotations"], version).astype(np.float32),
+                          np.exp(blocks["scales"].astype(np.float64) / 16.0 - 10.0).astype(np.float32),
+                          (blocks["alphas"][:, 0] / 255.0).astype(np.float32), sh, degree)
+    return scene

@@ -1,0 +1,101 @@
+"""``sgmodel bench predict --video``: a stereo stream's pairs per second and latency, model alone and end to end.
+
+A synthetic side-by-side video (``--frames`` frames of one eye's ``--size``, a smooth texture panning by
+one pixel a frame with a 4-pixel disparity; MPEG-4 part 2 in ``.mp4``, the codec OpenCV's wheel encodes)
+goes through the path of ``sgmodel predict --video`` (``sgmodel.video.stream``): decode (reader thread),
+the pair transform, the model, one novel view per frame, encode (mp4v, writer thread).
+
+* model alone: ``Reconstructor`` on a batch of ``--batch-size`` model-ready pairs already on the device
+  (encoder to Gaussians, with their validity), synchronised; ``--repeats`` batches after ``--warmup``;
+  pairs/s = batch size / median time, latency = a batch's time.
+* end to end: the whole video through ``stream``; frames/s = frames / wall time, latency of a frame = its
+  batch's decode time plus the time from the batch's model start to the end of its encode (a frame waits for
+  its batch; the wait of frames decoded ahead for the model to finish the batch before is not counted).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from scenesplat_stereo.encode import to_uint8
+from scenesplat_stereo.text import markdown_table
+
+from ..calib import Calibration
+from ..inference import Reconstructor
+from ..model import Predictor
+from ..pairs import Pair, prepare_pairs, to_tensor
+from ..video import CODECS, StereoSource, Trajectory, VideoSink, stream
+from . import report, synced_clock
+from .predict import describe, synthetic_pair
+
+#: The novel view of the end-to-end run: the left camera moved 5 cm to the right.
+OFFSET = (0.05, 0.0, 0.0)
+
+
+def write_synthetic_video(path: Path, width: int, height: int, frames: int, fps: float = 30.0) -> Calibration:
+    """A side-by-side mp4v video of ``synthetic_pair`` panning one pixel a frame; its calibration."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*CODECS["mp4v"].fourcc), fps, (2 * width, height))
+    for f in range(frames):
+        left, right, K, baseline = synthetic_pair(width, height, torch.device("cpu"), shift=f)
+        sbs = torch.cat([left, right], dim=-1)[0].permute(1, 2, 0).numpy()
+        writer.write(np.ascontiguousarray(to_uint8(sbs)[..., ::-1]))
+    writer.release()
+    return Calibration(K[0].double().numpy(), float(baseline[0]), size=(width, height), source="synthetic")
+
+
+def _rate(per_second: float) -> str:
+    """Pairs per second, with two decimals below 10 (a CPU's rates) and one above."""
+    return f"{per_second:.2f}" if per_second < 10 else f"{per_second:.1f}"
+
+
+def _stats(seconds: list[float], per_call: int) -> list[str]:
+    ms = 1e3 * np.asarray(seconds)
+    return [_rate(per_call / np.median(seconds)), f"{np.median(ms):.1f}", f"{np.percentile(ms, 99):.1f}"]
+
+
+def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.device) -> int:
+    width, height = args.size
+    reconstructor, b = Reconstructor(predictor=predictor), args.batch_size
+    prepare = prepare_pairs(min(width, height))
+    now = synced_clock(device)
+    with tempfile.TemporaryDirectory() as tmp:
+        video = Path(tmp) / "sbs.mp4"
+        calib = write_synthetic_video(video, width, height, args.frames)
+        source = StereoSource(str(video))
+        left, right = source.read(b)
+        source.close()
+        pair = prepare(Pair(to_tensor(left).to(device), to_tensor(right).to(device), calib))
+        K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None].expand(len(left), 3, 3)
+        baseline = torch.full((len(left),), pair.calib.baseline, device=device)
+        model_times = []
+        for i in range(args.warmup + args.repeats):
+            t = now()
+            reconstructor(pair.left, pair.right, K, baseline)
+            if i >= args.warmup:
+                model_times.append(now() - t)
+        source = StereoSource(str(video))
+        w, h = pair.left.shape[-1], pair.left.shape[-2]
+        sink = VideoSink(Path(tmp) / "novel_view.mp4", "mp4v", source.fps, w, h)
+        result = stream(source, calib, None, prepare, reconstructor, Trajectory("offset", offset=OFFSET), sink,
+                        device, b, progress=False)
+        source.close()
+    latency = [x.latency for x in result.batches for _ in range(x.frames)]
+    e2e = [_rate(result.frames / result.wall), f"{1e3 * np.median(latency):.1f}",
+           f"{1e3 * np.percentile(latency, 99):.1f}"]
+    rows = [["model alone (encoder to Gaussians)", b, *_stats(model_times, b)],
+            ["end to end (decode, model, one novel view, encode)", b, *e2e]]
+    stages = {k: sum(getattr(x, e) - getattr(x, s) for x in result.batches) / result.frames * 1e3
+              for k, s, e in (("decode", "decode_start", "decode_end"), ("model", "model_start", "model_end"),
+                              ("render", "model_end", "render_end"))}
+    report(f"Stereo video of {width}x{height} per eye on {describe(args, predictor, device)}, {result.frames} frames in batches of {b}; model alone: {args.repeats} batches after "
+           f"{args.warmup} warm-up.\n\n"
+           f"{markdown_table(['measure', 'batch', 'pairs/s', 'latency median ms', 'latency p99 ms'], rows)}\n\n"
+           f"End to end per frame: decode {stages['decode']:.1f} ms (reader thread), model {stages['model']:.1f} ms, "
+           f"render {stages['render']:.1f} ms (main thread); encode in the writer thread.\n", args.out)
+    return 0
