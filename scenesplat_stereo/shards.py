@@ -23,7 +23,7 @@ import json
 import os
 import re
 import tarfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -279,14 +279,16 @@ class _SampleBuffer:
         self._f.write(data)
 
 
-def iter_shard(path: Path) -> Iterator[tuple[str, dict[str, bytes]]]:
+def iter_shard(path: Path, want: Callable[[int], bool] | None = None
+               ) -> Iterator[tuple[str, dict[str, bytes] | None]]:
     """Samples of one tar in file order, grouped WebDataset-style: (key, {suffix: bytes}).
 
-    The key is the member name up to the first '.' of its base name. Raises ValueError (naming the file)
-    when a sample's members are not contiguous.
+    The key is the member name up to the first '.' of its base name. ``want(i)`` False for the i-th sample
+    (0-based): its members are not read (the reader seeks past them) and None is yielded in their place.
+    Raises ValueError (naming the file) when a sample's members are not contiguous.
     """
     seen: set[str] = set()
-    key, members = None, {}
+    key, members, index = None, {}, -1
     with tarfile.open(path, "r") as tar:
         for info in tar:
             if not info.isfile():
@@ -301,8 +303,10 @@ def iter_shard(path: Path) -> Iterator[tuple[str, dict[str, bytes]]]:
                 if k in seen:
                     raise ValueError(f"{path}: members of sample {k!r} are not contiguous")
                 seen.add(k)
-                key, members = k, {}
-            members[suffix] = tar.extractfile(info).read()
+                index += 1
+                key, members = k, ({} if want is None or want(index) else None)
+            if members is not None:
+                members[suffix] = tar.extractfile(info).read()
     if key is not None:
         yield key, members
 

@@ -126,6 +126,13 @@ def validate(model, loader, world: World, amp: bool, sheet_samples: int, limit: 
     return {"val_psnr": total / count, "val_psnr_masked": total_masked / count, "val_targets": int(count)}, shown
 
 
+def mean_over_ranks(world: World, stats: dict) -> dict:
+    """The step's loss, its parts and PSNR averaged over ranks (each rank measured its share of the global
+    batch, all shares the same size), so a record means the same on any number of GPUs; lr as it is."""
+    keys = [k for k in stats if k != "lr"]
+    return {**stats, **dict(zip(keys, (v / world.size for v in all_sum(world, [stats[k] for k in keys]))))}
+
+
 def to_device(batch: dict, device: torch.device) -> dict:
     return {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v for k, v in batch.items()}
 
@@ -249,8 +256,10 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
         ms = (time.perf_counter() - t0) * 1e3
         bar.update(1)
         bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", ms=f"{ms:.0f}")
-        if world.main and (step % tp.log_every == 0 or step == tp.steps):
-            _append_jsonl(paths.metrics, {"step": step, **stats, "step_ms": ms})
+        if step % tp.log_every == 0 or step == tp.steps:
+            stats = mean_over_ranks(world, stats)
+            if world.main:
+                _append_jsonl(paths.metrics, {"step": step, **stats, "step_ms": ms})
         if step % tp.val_every == 0 or step == tp.steps:
             improved, psnr = validation(step, best)
             if improved:
