@@ -70,18 +70,20 @@ class GaussianScene:
                 want = "[N, 3]" if n is None else str(list(shape))
                 raise ValueError(f"GaussianScene.{name} must have shape {want} (sh_degree "
                                  f"{self.sh_degree}), got {list(a.shape)}")
-            bad = int((~np.isfinite(a)).reshape(n, int(np.prod(shape[1:]))).any(1).sum())
-            if bad:
+            if not np.isfinite(a).all():  # rows counted only when the cheap whole-array test fails
+                bad = int((~np.isfinite(a)).reshape(n, int(np.prod(shape[1:]))).any(1).sum())
                 raise ValueError(f"GaussianScene.{name} has {bad} rows with non-finite values")
-        qnorm = np.linalg.norm(self.quats.astype(np.float64), axis=1)
-        checks = (
-            ("quats", np.abs(qnorm - 1.0) > QUAT_VALIDATE_ATOL, f"not unit norm (±{QUAT_VALIDATE_ATOL})"),
-            ("scales", (self.scales <= 0).any(1), "not > 0"),
-            ("opacities", (self.opacities < 0) | (self.opacities > 1), "outside [0, 1]"),
+        q = self.quats.astype(np.float64)
+        checks = (  # each a function: rows are counted only when a check fails
+            ("quats", lambda: np.abs(np.sqrt(np.einsum("ij,ij->i", q, q)) - 1.0) > QUAT_VALIDATE_ATOL,
+             f"not unit norm (±{QUAT_VALIDATE_ATOL})"),
+            ("scales", lambda: (self.scales <= 0).any(1), "not > 0"),
+            ("opacities", lambda: (self.opacities < 0) | (self.opacities > 1), "outside [0, 1]"),
         )
         for name, bad_rows, what in checks:
-            if bad_rows.any():
-                raise ValueError(f"GaussianScene.{name}: {int(bad_rows.sum())} rows {what}")
+            bad = bad_rows()
+            if bad.any():
+                raise ValueError(f"GaussianScene.{name}: {int(bad.sum())} rows {what}")
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
@@ -136,10 +138,10 @@ class GaussianScene:
 
 def content_sh_degree(sh: np.ndarray) -> int:
     """The smallest SH degree that holds every non-zero coefficient of sh [N, K, 3] (0 when the bands above
-    the DC term are all zero, e.g. plain-colour Gaussians)."""
-    nonzero = np.flatnonzero((sh != 0).any(axis=(0, 2)))
-    last = int(nonzero[-1]) if len(nonzero) else 0
-    return math.isqrt(last)
+    the DC term are all zero, e.g. plain-colour Gaussians). Takes a numpy array or a torch tensor (which
+    is reduced where it lives: on a GPU only K booleans come back)."""
+    used = (sh != 0).any(-1).any(0).tolist()  # [K]: is coefficient k non-zero anywhere
+    return math.isqrt(max((k for k, u in enumerate(used) if u), default=0))
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ import json
 import os
 import re
 import tarfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -282,15 +282,17 @@ class ShardError(ValueError):
     """A shard that cannot be read: not a tar, truncated or corrupt; the message names the shard and the member."""
 
 
-def iter_shard(path: Path) -> Iterator[tuple[str, dict[str, bytes]]]:
+def iter_shard(path: Path, want: Callable[[int], bool] | None = None
+               ) -> Iterator[tuple[str, dict[str, bytes] | None]]:
     """Samples of one tar in file order, grouped WebDataset-style: (key, {suffix: bytes}).
 
-    The key is the member name up to the first '.' of its base name. Raises ``ShardError`` (a ValueError
-    naming the file, and the member where it stopped) when a sample's members are not contiguous, or the
-    tar is not one, truncated or corrupt.
+    The key is the member name up to the first '.' of its base name. ``want(i)`` False for the i-th sample
+    (0-based): its members are not read (the reader seeks past them) and None is yielded in their place.
+    Raises ``ShardError`` (a ValueError naming the file, and the member where it stopped) when a sample's
+    members are not contiguous, or the tar is not one, truncated or corrupt.
     """
     seen: set[str] = set()
-    key, members = None, {}
+    key, members, index = None, {}, -1
     where = "its first member"
     try:
         with tarfile.open(path, "r") as tar:
@@ -307,9 +309,11 @@ def iter_shard(path: Path) -> Iterator[tuple[str, dict[str, bytes]]]:
                     if k in seen:
                         raise ShardError(f"{path}: members of sample {k!r} are not contiguous")
                     seen.add(k)
-                    key, members = k, {}
+                    index += 1
+                    key, members = k, ({} if want is None or want(index) else None)
                 where = f"member {info.name!r}"
-                members[suffix] = tar.extractfile(info).read()
+                if members is not None:
+                    members[suffix] = tar.extractfile(info).read()
                 where = f"the member after {info.name!r}"
     except (tarfile.TarError, EOFError) as e:
         raise ShardError(f"{path}: {where}: truncated or corrupt tar ({e}); rebuild this shard") from None

@@ -11,13 +11,16 @@ the left camera's frame (OpenCV, metres) into each target camera.
 Streaming (``ShardStream``, a ``torch.utils.data.IterableDataset``): the order of samples is planned by
 ``sample_order`` from ``index.json`` and the shards are read sequentially with ``shards.iter_shard``.
 
-Reproducible training order. The batch of global step k on a rank is a pure function of (seed, k) for a
-fixed (batch_size, num_workers, world_size, shuffle_buffer, dataset): the DataLoader gives batch k to worker
-k % workers; each worker's stream of samples is a pure function of (seed, epoch, stream) (see
-``sample_order``), epochs are skipped by arithmetic on ``index.json`` counts and positions inside an epoch
-by planning, and the targets of slot i of step k are drawn with ``numpy.random.default_rng([seed, rank, k,
-i])``. A run resumed at step k builds its loader with ``start_step=k`` and sees exactly the batches k, k+1,
-... of the uninterrupted run (``sample_order.resume_worker``).
+Reproducible training order, the same on any number of GPUs and loader workers. Training reads one
+global sequence of samples, a pure function of the seed (``sample_order.train_walk``: each epoch every
+sample once, shards in a seeded order, a seeded shuffle buffer); the batch of global step k is its
+positions k B .. k B + B - 1 for the global batch size B (``sample_order.batch_positions``), and the
+targets of slot i of step k are drawn with ``numpy.random.default_rng([seed, k, i])``. Rank r of W takes
+slots r B/W .. (r + 1) B/W - 1; DataLoader worker w of n makes the batches of steps start + w, start + w + n,
+... (a DataLoader hands local batch j to worker j % n). So step k sees the same samples and targets with 1,
+2 or 8 ranks and any number of workers, and a run resumed at step k (``start_step=k``) on another number of
+GPUs sees exactly the batches k, k+1, ... of the uninterrupted run. Each worker walks every shard's tar
+headers but reads the bytes of its own samples only (``shards.iter_shard(want=...)`` seeks past the rest).
 
 Bad input raises ``DataError`` naming the file (and the JSON field, through ``SampleMetaError``).
 """
@@ -220,6 +223,9 @@ class ShardStream(IterableDataset):
         self.resolution, self.targets, self.seed, self.train = resolution, targets, seed, train
         self.batch_size, self.rank, self.world_size = batch_size, rank, world_size
         self.shuffle_buffer, self.start_step = shuffle_buffer, start_step
+        if train and batch_size * world_size > sum(self.counts):
+            raise DataError(f"{self.shards[0].path.parent}: a batch of {batch_size * world_size} pairs over all ranks "
+                            f"is larger than the {sum(self.counts)} samples of the split; use a smaller --batch-size")
 
     def __len__(self) -> int:
         """Samples in the split (all ranks together)."""
@@ -231,39 +237,47 @@ class ShardStream(IterableDataset):
 
     def __iter__(self) -> Iterator[dict]:
         worker, workers = self._worker()
-        streams = self.world_size * workers
         if not self.train:
-            items = sample_order.validation_items(self.counts, self.rank * workers + worker, streams)
-            for key, members, source in self._read(items, list(range(len(items))), 0):
+            items = sample_order.validation_items(self.counts, self.rank * workers + worker, self.world_size * workers)
+            for key, members, source in self._read(items, list(range(len(items)))):
                 yield load_sample(key, members, source, self.resolution, self.targets)
             return
-        if sum(self.counts) < streams:
-            raise DataError(f"{self.shards[0].path.parent}: {sum(self.counts)} training samples cannot feed "
-                            f"{streams} loader streams (world_size x num_workers); use fewer workers")
-        virtual, first_batch = sample_order.resume_worker(self.start_step, worker, workers)
-        stream = self.rank * workers + virtual
-        position = skip = first_batch * self.batch_size  # samples of this stream already consumed
-        epoch = 0
-        while True:
-            items, emit = sample_order.train_epoch(self.counts, self.seed, epoch, stream, streams, self.shuffle_buffer)
-            if skip >= len(emit):
-                skip -= len(emit)
-                epoch += 1
-                continue
-            for key, members, source in self._read(items, emit, skip):
-                batch, slot = divmod(position, self.batch_size)
-                rng = np.random.default_rng([self.seed, self.rank, batch * workers + virtual, slot])
-                yield load_sample(key, members, source, self.resolution, self.targets, rng)
-                position += 1
-            skip, epoch = 0, epoch + 1
+        yield from self._training(worker, workers)
 
-    def _read(self, items: list[sample_order.Item], emit: list[int], start: int
-              ) -> Iterator[tuple[str, dict[str, bytes], str]]:
-        """Yield (key, members, shard name) for ``items[emit[start:]]``, reading shards in item order
-        and holding only what the emission order has not reached yet."""
-        wanted = {items[q]: q for q in emit[start:]}
+    def _slots(self, worker: int, workers: int) -> Iterator[tuple[int, int, int]]:
+        """(global step, slot in the global batch, position in the global sequence) of every sample this
+        worker makes, in the order the DataLoader batches them."""
+        global_batch, first = self.batch_size * self.world_size, self.rank * self.batch_size
+        step = self.start_step + worker
+        while True:
+            for slot, position in enumerate(sample_order.batch_positions(step, global_batch, first, self.batch_size),
+                                            first):
+                yield step, slot, position
+            step += workers
+
+    def _training(self, worker: int, workers: int) -> Iterator[dict]:
+        """This worker's training samples (see the module docstring), epoch by epoch of the global sequence."""
+        total = sum(self.counts)
+        slots = self._slots(worker, workers)
+        pending = next(slots)
+        while True:
+            epoch, wanted = pending[2] // total, []
+            while pending[2] // total == epoch:
+                wanted.append(pending)
+                pending = next(slots)
+            items, emit = sample_order.train_walk(self.counts, self.seed, epoch, self.shuffle_buffer)
+            picks = [emit[position % total] for *_, position in wanted]
+            for (key, members, source), (step, slot, _) in zip(self._read(items, picks), wanted):
+                rng = np.random.default_rng([self.seed, step, slot])
+                yield load_sample(key, members, source, self.resolution, self.targets, rng)
+
+    def _read(self, items: list[sample_order.Item], emit: list[int]) -> Iterator[tuple[str, dict[str, bytes], str]]:
+        """Yield (key, members, shard name) for ``items[emit[j]]``, j in order (distinct indices), reading
+        shards in item order, the bytes of wanted samples only, and holding only what the emission order has
+        not reached yet."""
+        wanted = {items[q]: j for j, q in enumerate(emit)}
         held: dict[int, tuple] = {}
-        nxt = start
+        nxt = 0
         by_shard: dict[int, list[int]] = {}
         for s, i in items:
             by_shard.setdefault(s, []).append(i)
@@ -271,15 +285,15 @@ class ShardStream(IterableDataset):
             if not any((s, i) in wanted for i in indices):
                 continue
             shard, i = self.shards[s], -1
-            for i, (key, members) in enumerate(iter_shard(shard.path)):
+            for i, (key, members) in enumerate(iter_shard(shard.path, want=lambda i, s=s: (s, i) in wanted)):
                 if i >= len(shard.keys) or key != shard.keys[i]:
                     listed = shard.keys[i] if i < len(shard.keys) else "nothing more"
                     raise DataError(f"{shard.path}: sample {i} is {key!r}, index.json lists {listed!r}")
-                q = wanted.get((s, i))
-                if q is not None:
-                    held[q] = (key, members, str(shard.path))
-                while nxt < len(emit) and emit[nxt] in held:
-                    yield held.pop(emit[nxt])
+                j = wanted.get((s, i))
+                if j is not None:
+                    held[j] = (key, members, str(shard.path))
+                while nxt in held:
+                    yield held.pop(nxt)
                     nxt += 1
             if i + 1 < len(shard.keys):
                 raise DataError(f"{shard.path}: {i + 1} samples, index.json lists {len(shard.keys)}")

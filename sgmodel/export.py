@@ -37,13 +37,15 @@ def to_scene(gaussians: dict, index: int = 0, keep: torch.Tensor | None = None) 
     if keep is not None:
         rows = torch.nonzero(keep.to(g["means"].device)).squeeze(1)
         g = {k: v.index_select(0, rows) for k, v in g.items()}
+    degree = content_sh_degree(g["sh"])  # where the Gaussians live, before anything is copied
     quats = g["quats"].double()
     quats = quats / quats.norm(dim=-1, keepdim=True)
-    arrays = [a.to("cpu", torch.float32).numpy() for a in (g["means"], quats, g["scales"],
-                                                           g["opacities"].clamp(0, 1), g["sh"])]
-    degree = content_sh_degree(arrays[4])
-    arrays[4] = arrays[4][:, :(degree + 1) ** 2]
-    return GaussianScene(*arrays, sh_degree=degree)
+    fields = [g["means"], quats, g["scales"], g["opacities"].clamp(0, 1)[:, None],
+              g["sh"][:, :(degree + 1) ** 2].flatten(1)]
+    table = torch.cat([f.float() for f in fields], 1).cpu().numpy()  # one copy to the host
+    edges = np.cumsum([0] + [f.shape[1] for f in fields])
+    means, quats, scales, opacities, sh = (np.ascontiguousarray(table[:, a:b]) for a, b in zip(edges, edges[1:]))
+    return GaussianScene(means, quats, scales, opacities[:, 0], sh.reshape(len(sh), -1, 3), sh_degree=degree)
 
 
 def write_scene(scene: GaussianScene, path: str | Path, format: str = "ply") -> Path:

@@ -1,18 +1,17 @@
 """Which samples a loader stream reads, in which order: pure functions of the shard sizes, the seed and
 the epoch, computed from ``index.json`` without reading any shard.
 
-A *stream* is one DataLoader worker of one DDP rank: stream ``rank * workers + worker`` of
-``streams = world_size * workers``.
-
-- Split: with at least as many shards as streams, stream i reads the shards ``order[i::streams]`` (all
-  their samples); with fewer, every stream walks all shards in ``order`` and keeps the samples at
-  positions ``p % streams == i`` of that walk, so no stream is starved.
-- Training (endless): epoch e walks the shards in ``order = permutation(seed, e)`` (the same on every rank,
-  so the split is disjoint), and a shuffle buffer of ``buffer`` samples, seeded by (seed, e, stream),
-  reorders the walk. Emission order is therefore a pure function of (seed, epoch, stream), and the
-  samples read ahead of emission never exceed the buffer.
-- Validation: shards in index order, samples in file order, no shuffling; every sample exactly once
-  over all streams.
+- Training (endless): epoch e walks all shards in ``order = shard_permutation(seed, e)``, each shard's
+  samples in file order, and one shuffle buffer of ``buffer`` samples, seeded by (seed, e), reorders the
+  walk (``train_walk``). Concatenated over epochs this is one global sequence; global step k takes its
+  batch of B samples from positions k B .. k B + B - 1 (``batch_positions``), so every sample is used once
+  per epoch and the batch of step k depends on (seed, k, B) alone, not on how many ranks or loader workers
+  share the work: rank r of W takes slots r B/W .. (r + 1) B/W - 1 of it.
+- Validation: a *stream* is one DataLoader worker of one DDP rank (stream ``rank * workers + worker`` of
+  ``streams = world_size * workers``). With at least as many shards as streams, stream i reads the shards
+  ``order[i::streams]`` (all their samples); with fewer, every stream walks all shards in ``order`` and keeps
+  the samples at positions ``p % streams == i`` of that walk. Shards in index order, samples in file order,
+  no shuffling; every sample exactly once over all streams.
 
 An input item is ``(shard, sample)``: the shard's position in ``index.json`` and the sample's position in
 that shard.
@@ -61,26 +60,23 @@ def shard_permutation(num_shards: int, seed: int, epoch: int) -> list[int]:
     return [int(s) for s in np.random.default_rng([seed, epoch]).permutation(num_shards)]
 
 
-def train_epoch(counts: Sequence[int], seed: int, epoch: int, stream: int, streams: int,
-                buffer: int) -> tuple[list[Item], list[int]]:
-    """(items in read order, emission order as indices into them) of one training epoch of a stream."""
-    items = split_items(counts, shard_permutation(len(counts), seed, epoch), stream, streams)
-    rng = np.random.default_rng([seed, epoch, stream, 1])  # 1: the buffer's stream of draws
+def train_walk(counts: Sequence[int], seed: int, epoch: int, buffer: int) -> tuple[list[Item], list[int]]:
+    """(items in read order, emission order as indices into them) of training epoch ``epoch``: every
+    shard in ``shard_permutation(seed, epoch)``, each in file order, through one shuffle buffer."""
+    items = [(s, i) for s in shard_permutation(len(counts), seed, epoch) for i in range(counts[s])]
+    rng = np.random.default_rng([seed, epoch, 1])  # 1: the buffer's stream of draws
     return items, buffer_shuffle(len(items), buffer, rng)
+
+
+def batch_positions(step: int, batch_size: int, first_slot: int = 0, slots: int | None = None) -> range:
+    """Positions in the global training sequence of slots ``first_slot .. first_slot + slots - 1`` of the
+    batch of global step ``step`` (``batch_size`` samples over all ranks; all slots by default)."""
+    slots = batch_size - first_slot if slots is None else slots
+    if not (0 <= first_slot and first_slot + slots <= batch_size):
+        raise ValueError(f"slots {first_slot}..{first_slot + slots - 1} not in a batch of {batch_size}")
+    return range(step * batch_size + first_slot, step * batch_size + first_slot + slots)
 
 
 def validation_items(counts: Sequence[int], stream: int, streams: int) -> list[Item]:
     """The items of a validation stream, in index and file order."""
     return split_items(counts, range(len(counts)), stream, streams)
-
-
-def resume_worker(start_step: int, worker: int, workers: int) -> tuple[int, int]:
-    """(virtual worker, first local batch) of DataLoader worker ``worker`` when a run restarts at global
-    step ``start_step``.
-
-    A DataLoader hands batch k of an iterable dataset to worker k % workers, as that worker's batch
-    k // workers. A restarted loader counts from 0 again, so its worker w plays the part that worker
-    v = (w + start_step) % workers played, from v's batch number ceil((start_step - v) / workers) on.
-    """
-    virtual = (worker + start_step) % workers
-    return virtual, max(0, -(-(start_step - virtual) // workers))

@@ -155,6 +155,13 @@ def validate(model, loader, world: World, amp: bool, sheet_samples: int, limit: 
     return {"val_psnr": total / count, "val_psnr_masked": total_masked / count, "val_targets": int(count)}, shown
 
 
+def mean_over_ranks(world: World, stats: dict) -> dict:
+    """The step's loss, its parts and PSNR averaged over ranks (each rank measured its share of the global
+    batch, all shares the same size), so a record means the same on any number of GPUs; lr as it is."""
+    keys = [k for k in stats if k != "lr"]
+    return {**stats, **dict(zip(keys, (v / world.size for v in all_sum(world, [stats[k] for k in keys]))))}
+
+
 def to_device(batch: dict, device: torch.device) -> dict:
     return {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v for k, v in batch.items()}
 
@@ -265,7 +272,7 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
     if tp.batch_size % world.size:
         raise ValueError(f"--batch-size {tp.batch_size} must be divisible by the {world.size} ranks")
     check_run_folder(paths, data)
-    read_split_checked(data, model_params.resolution, tp.targets, world.size * max(1, tp.workers))
+    read_split_checked(data, model_params.resolution, tp.targets)
     torch.manual_seed(tp.seed)
     # every training step has the same shapes: let cuDNN time its algorithms once (8% of a step on an H100)
     torch.backends.cudnn.benchmark = world.device.type == "cuda"
@@ -370,8 +377,10 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
                 if not (grads_ok and weights_ok):
                     raise diverged(step, "a gradient is NaN or infinite" if not grads_ok else
                                    "a weight is NaN or infinite")
-            if world.main and logged:
-                append_line(paths.metrics, json.dumps({"step": step, **stats, "step_ms": ms}))
+            if logged:
+                stats = mean_over_ranks(world, stats)
+                if world.main:
+                    append_line(paths.metrics, json.dumps({"step": step, **stats, "step_ms": ms}))
             if checkpoint:
                 improved, psnr = validation(step, best)
                 if improved:
@@ -414,10 +423,10 @@ def summary_table(metrics_path: Path, summary: dict) -> str:
             f"{summary['steps']} steps in {summary['wall_s']:.0f} s; checkpoints in {summary['run']}/checkpoints")
 
 
-def read_split_checked(data: Path, resolution: int, targets: int, streams: int = 1) -> None:
+def read_split_checked(data: Path, resolution: int, targets: int) -> None:
     """Both splits a run needs exist, list readable shards, and their first samples decode at
-    ``resolution`` with ``targets`` training targets; the training split feeds ``streams`` loader
-    streams. DataError naming the file (and the flag) otherwise. Reads only."""
+    ``resolution`` with ``targets`` training targets. DataError naming the file (and the flag) otherwise.
+    Reads only."""
     for split in ("train", "val"):
         shards = read_split(Path(data), split)
         first = shards[0]
@@ -429,7 +438,3 @@ def read_split_checked(data: Path, resolution: int, targets: int, streams: int =
         except DataError as e:
             flag = "--targets" if "'targets'" in str(e) else "--resolution" if "'width'" in str(e) else "--data"
             raise DataError(f"{flag}: {e}") from None
-        count = sum(len(s.keys) for s in shards)
-        if split == "train" and count < streams:
-            raise DataError(f"--workers: {count} training samples in {data} cannot feed {streams} loader streams "
-                            f"(ranks x workers); use fewer --workers")

@@ -113,7 +113,6 @@ TRAIN_FLAGS = [  # (flags, message); each refused by its argparse type or the pa
     (["--encoder-weights", "/nonexistent/w.pth"], "--encoder-weights: encoder 'sgbm' is classical and takes no "
                                                    "weights"),
     (["--targets", "11"], "--targets: .*shard-000000.tar:.*field 'targets': 10 stored, 11 asked for"),
-    (["--workers", "64"], "--workers: 12 training samples in .* cannot feed 64 loader streams"),
     (["--lpips-vgg", "/nonexistent/vgg16.pth"], "--lpips-vgg /nonexistent/vgg16.pth: no such file"),
 ]
 

@@ -147,11 +147,16 @@ def test_split_covers_every_sample_once(counts, streams):
     seen = [it for s in range(streams) for it in sample_order.validation_items(counts, s, streams)]
     assert sorted(seen) == [(s, i) for s, n in enumerate(counts) for i in range(n)]
     for epoch in range(3):
-        items = [sample_order.train_epoch(counts, 7, epoch, s, streams, 4) for s in range(streams)]
-        assert sorted(it for its, _ in items for it in its) == sorted(seen)
-        assert all(sorted(emit) == list(range(len(its))) for its, emit in items)
-        if sum(counts) >= streams:
-            assert all(its for its, _ in items)  # nobody starved
+        items, emit = sample_order.train_walk(counts, 7 + streams, epoch, 4)
+        assert sorted(items) == sorted(seen) and sorted(emit) == list(range(len(items)))
+
+
+def test_batch_positions_tile_the_global_sequence():
+    assert list(sample_order.batch_positions(3, 8)) == list(range(24, 32))
+    halves = [list(sample_order.batch_positions(3, 8, r * 4, 4)) for r in range(2)]
+    assert halves[0] + halves[1] == list(range(24, 32))
+    with pytest.raises(ValueError, match="not in a batch of 8"):
+        sample_order.batch_positions(0, 8, 6, 4)
 
 
 def test_validation_loader_over_ranks_and_workers(demo_dataset):
@@ -236,5 +241,68 @@ def test_too_small_and_too_few_targets(demo_dataset):
         first_val_batch(demo_dataset, resolution=300)  # 72 px short side < 300 / 4
     with pytest.raises(DataError, match="field 'targets': 4 stored, 5 asked"):
         first_val_batch(demo_dataset, train=True, targets=5)
-    with pytest.raises(DataError, match="cannot feed"):
-        next(iter(ShardStream(demo_dataset, "val", 32, 4, world_size=6, rank=5)))
+    with pytest.raises(DataError, match="a batch of 6 pairs over all ranks is larger than the 5 samples"):
+        ShardStream(demo_dataset, "val", 32, 4, world_size=6, rank=5)
+
+
+def global_batches(root: Path, world: int, workers: int, steps: int, global_batch: int = 4, start: int = 0,
+                   real_loader: bool = False) -> list[list[tuple[str, tuple[int, ...]]]]:
+    """The (key, target ids) of every slot of global steps start .. start + steps - 1, ranks side by side,
+    as ``world`` ranks with ``workers`` DataLoader workers each would make them."""
+    local = global_batch // world
+    per_rank = []
+    for rank in range(world):
+        kw = dict(resolution=32, targets=4, seed=11, rank=rank, world_size=world, start_step=start, shuffle_buffer=3)
+        if real_loader:
+            batches = collect(make_loader(root, "train", local, num_workers=workers, **kw), steps)
+        else:  # the DataLoader's schedule: local batch j comes from worker j % workers, in that worker's order
+            streams = [iter(ShardStream(root, "train", batch_size=local, **kw)._training(w, max(workers, 1)))
+                       for w in range(max(workers, 1))]
+            batches = []
+            for j in range(steps):
+                samples = [next(streams[j % max(workers, 1)]) for _ in range(local)]
+                batches.append(([s["key"] for s in samples], [s["target_ids"].tolist() for s in samples]))
+        per_rank.append(batches)
+    return [[(k, tuple(ids)) for keys, targets in (b[step] for b in per_rank) for k, ids in zip(keys, targets)]
+            for step in range(steps)]
+
+
+def test_training_order_is_the_same_on_any_number_of_ranks_and_workers(demo_dataset):
+    """The batch of a global step (samples and drawn targets) does not depend on the world size or the
+    loader workers (sgmodel.data docstring): 1, 2 and 4 ranks, 0 to 3 workers, 7 steps (2.3 epochs)."""
+    one = global_batches(demo_dataset, 1, 0, 7)
+    assert sorted(k for step in one[:3] for k, _ in step) == sorted(read_all(demo_dataset, "train"))
+    for world, workers in [(2, 0), (4, 0), (1, 3), (2, 2), (4, 3)]:
+        assert global_batches(demo_dataset, world, workers, 7) == one, (world, workers)
+    assert global_batches(demo_dataset, 2, 2, 4, real_loader=True) == one[:4]  # spawned DataLoader workers
+
+
+def test_training_resumes_on_another_number_of_ranks(demo_dataset):
+    """A run stopped after step 4 on 2 ranks continues on 1 (and 4) with the batches the uninterrupted run
+    would have seen."""
+    full = global_batches(demo_dataset, 2, 0, 9)
+    for world, workers in [(1, 0), (4, 2), (2, 1)]:
+        assert global_batches(demo_dataset, world, workers, 5, start=4) == full[4:], (world, workers)
+
+
+def test_iter_shard_reads_only_wanted_samples(demo_dataset, monkeypatch):
+    """Unwanted samples of a shard are skipped by seeking: their bytes are never read."""
+    shard = sorted((demo_dataset / "train").glob("shard-*.tar"))[0]
+    full = list(iter_shard(shard))
+    reads: list[int] = []
+    real_open = open
+
+    class Counting(io.FileIO):
+        def read(self, n=-1):
+            data = super().read(n)
+            reads.append(len(data))
+            return data
+
+    monkeypatch.setattr(tarfile, "bltn_open", lambda name, mode="rb", *a, **k: Counting(name, mode)
+                        if mode == "rb" else real_open(name, mode, *a, **k))
+    part = list(iter_shard(shard, want=lambda i: i == 1))
+    assert [k for k, _ in part] == [k for k, _ in full]
+    assert part[1][1] == full[1][1] and all(m is None for i, (_, m) in enumerate(part) if i != 1)
+    wanted_bytes = sum(len(v) for v in full[1][1].values())
+    assert sum(reads) < wanted_bytes + 512 * (4 + sum(len(m) for _, m in full)), (sum(reads), wanted_bytes)
+    assert sum(reads) < 0.6 * shard.stat().st_size
