@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 import tarfile
+from pathlib import Path
 
 import pytest
 
@@ -238,3 +239,17 @@ def test_folder_lock_refuses_a_second_holder_and_takes_over_a_dead_ones(tmp_path
         assert (run / LOCK_FILE).read_text() == f"{os.getpid()}\n"
     assert f"took over the lock of pid {int(dead.stdout)}" in caplog.text
     assert run.is_dir() and not (run / LOCK_FILE).exists()
+
+
+def test_the_irs_tools_run_as_scripts_from_anywhere_and_as_installed_commands(tmp_path):
+    """``python pipelines/<tool>.py`` from another folder, and the console commands of pyproject.toml."""
+    root = Path(__file__).resolve().parents[1]
+    for tool in ("irs_pose_recovery", "irs_targets"):
+        done = subprocess.run([sys.executable, str(root / "pipelines" / f"{tool}.py"), "--help"], capture_output=True,
+                              text=True, cwd=tmp_path, timeout=300)
+        assert done.returncode == 0 and f"usage: {tool.replace('_', '-')}" in done.stdout, done.stderr[-1000:]
+    for command in ("irs-pose-recovery", "irs-targets"):
+        script = Path(sys.executable).parent / command
+        assert script.is_file(), f"{command} is not installed: pip install -e ."
+        done = subprocess.run([str(script), "--help"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+        assert done.returncode == 0 and f"usage: {command}" in done.stdout, done.stderr[-1000:]
