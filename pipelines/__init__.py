@@ -1,2 +1,2 @@
-"""Dataset pipelines run from a source checkout: ``python -m pipelines.irs_pose_recovery``,
-``python -m pipelines.irs_targets`` (IRS, paper appendix F; see docs/irs.md)."""
+"""Dataset pipelines (IRS, paper appendix F; see docs/irs.md), installed as the commands ``irs-pose-recovery``
+and ``irs-targets``; ``python pipelines/<tool>.py`` and ``python -m pipelines.<tool>`` run the same."""

@@ -1,8 +1,9 @@
 """Camera poses for IRS scene variants (paper appendix F) or for any image folder, with COLMAP.
 
-Dataset mode::
+Dataset mode (``irs-pose-recovery`` is the installed command; ``python pipelines/irs_pose_recovery.py`` and
+``python -m pipelines.irs_pose_recovery`` run the same)::
 
-    python -m pipelines.irs_pose_recovery DATASET_ROOT --out DIR [--workers N]
+    irs-pose-recovery DATASET_ROOT --out DIR [--workers N]
 
 Every folder under DATASET_ROOT holding ``l_<n>.png`` (with ``r_<n>.png`` and ``d_<n>.exr``) is one scene
 variant. Each is reconstructed from its left images with the intrinsics fixed (IRS: fx = fy = 480,
@@ -14,11 +15,14 @@ x right / y down / z forward, metres; right = left Trans(0.1 m, 0, 0)), ``DIR/<v
 
 Folder mode (no metric scale without depth)::
 
-    python -m pipelines.irs_pose_recovery recover --images DIR --intrinsics fx,fy,cx,cy --out poses.json
+    irs-pose-recovery recover --images DIR --intrinsics fx,fy,cx,cy --out poses.json
 
 writes ``{"frames": [{"image": name, "c2w": 4x4}], "registered": n, "mean_reprojection_error": e}``
 (c2w OpenCV, in COLMAP's arbitrary units; e in pixels). Images are taken in natural name order
 (frame_2 before frame_10), which sequential matching relies on.
+
+Exit status (``scenesplat_stereo.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
+file), 130 interrupted, 1 internal error; ``recover`` exits 1 when no image registers.
 """
 
 from __future__ import annotations
@@ -33,11 +37,12 @@ from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION
                            MIN_REGISTERED_FRAMES, Filters, VariantConfig, run_dataset, summary_table)
 from scenesplat_stereo.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera, RecoveryOptions,
                                       image_size, recover_poses, recovery_json)
-from scenesplat_stereo.commandline import Parser
+from scenesplat_stereo.commandline import Parser, run_command
 from scenesplat_stereo.files import atomic_write_json, check_writable
 from scenesplat_stereo.text import argtype, parse_size, positive_number, whole_number
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+PROG = "irs-pose-recovery"  # the installed command (pyproject.toml [project.scripts])
 
 
 def _colmap_arguments(p: argparse.ArgumentParser) -> None:
@@ -66,7 +71,7 @@ def _options(args: argparse.Namespace) -> RecoveryOptions:
 
 
 def dataset_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m pipelines.irs_pose_recovery", description=__doc__,
+    p = Parser(prog=PROG, description=__doc__,
                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("root", type=Path, metavar="DATASET_ROOT", help="IRS dataset root (searched recursively)")
     p.add_argument("--out", type=Path, required=True, help="output folder (one sub-folder per variant)")
@@ -85,11 +90,12 @@ def dataset_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-colmap", action="store_true", help="keep each variant's COLMAP database and models")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _colmap_arguments(p)
+    p.set_defaults(func=run_dataset_cli)
     return p
 
 
 def recover_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m pipelines.irs_pose_recovery recover",
+    p = Parser(prog=f"{PROG} recover",
                description="Recover camera poses (c2w, OpenCV axes, arbitrary units) of the "
                            "images of one folder seen by one fixed pinhole camera.")
     p.add_argument("--images", type=Path, required=True, help="folder of images (natural name order)")
@@ -97,6 +103,7 @@ def recover_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output poses.json")
     p.add_argument("--work-dir", type=Path, default=None, help="COLMAP work folder to keep (default: a temp one)")
     _colmap_arguments(p)
+    p.set_defaults(func=run_recover)
     return p
 
 
@@ -108,15 +115,11 @@ def run_recover(args: argparse.Namespace) -> int:
     images = sorted((p for p in args.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
                     key=lambda p: _natural_key(p.name)) if args.images.is_dir() else []
     if not images:
-        print(f"error: --images {args.images}: no images ({', '.join(IMAGE_SUFFIXES)})", file=sys.stderr)
-        return 2
-    try:
-        camera = PinholeCamera.parse(args.intrinsics, *image_size(images[0]))
-        with tempfile.TemporaryDirectory(prefix="colmap-") as tmp:
-            recovery = recover_poses(images, camera, args.work_dir or Path(tmp), _options(args))
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        raise ValueError(f"--images {args.images}: no images ({', '.join(IMAGE_SUFFIXES)})")
+    camera = PinholeCamera.parse(args.intrinsics, *image_size(images[0]))
+    check_writable(Path(args.out).parent, "--out", create=False)
+    with tempfile.TemporaryDirectory(prefix="colmap-") as tmp:
+        recovery = recover_poses(images, camera, args.work_dir or Path(tmp), _options(args))
     atomic_write_json(args.out, recovery_json(recovery, [p.name for p in images]))
     print(f"{recovery.registered}/{len(images)} images registered, mean reprojection error "
           f"{recovery.mean_reprojection_error:.3f} px ({recovery.matching} matching) -> {args.out}")
@@ -130,21 +133,18 @@ def run_dataset_cli(args: argparse.Namespace) -> int:
     cfg = VariantConfig(out=args.out, camera=camera, focal_baseline=args.focal_baseline,
                         filters=Filters(args.min_registered, args.max_reprojection_error, args.max_scale_iqr),
                         options=_options(args), keep_colmap=args.keep_colmap)
-    try:
-        check_writable(args.out, "--out")
-        reports = run_dataset(args.root, cfg, workers=args.workers, progress=not args.no_progress)
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    check_writable(args.out, "--out")
+    reports = run_dataset(args.root, cfg, workers=args.workers, progress=not args.no_progress)
     print(summary_table(reports))
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    """``irs-pose-recovery``: the dataset mode, or ``recover`` as the first word; errors as every command's."""
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     if argv and argv[0] == "recover":
-        return run_recover(recover_parser().parse_args(argv[1:]))
-    return run_dataset_cli(dataset_parser().parse_args(argv))
+        return run_command(recover_parser(), argv[1:])
+    return run_command(dataset_parser(), argv)
 
 
 if __name__ == "__main__":

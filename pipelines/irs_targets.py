@@ -1,8 +1,9 @@
 """IRS target selection and shards (paper appendix F, "IRS target selection and training"; SPEC section 6).
 
-    python -m pipelines.irs_targets POSES_DIR --out SHARDS_DIR [--val-variants 8] [--min-targets 4]
+    irs-targets POSES_DIR --out SHARDS_DIR [--val-variants 8] [--min-targets 4]
 
-POSES_DIR is the output of ``irs_pose_recovery.py``: only variants whose report.json says ``kept`` are
+(the installed command; ``python pipelines/irs_targets.py`` and ``python -m pipelines.irs_targets`` run the
+same). POSES_DIR is the output of ``irs-pose-recovery``: only variants whose report.json says ``kept`` are
 used. Targets are existing left frames of the same variant:
 - reference frames: the first registered frame, then each frame that moved >= 5 cm or turned >= 5 deg
   from the last reference (in frame order);
@@ -23,6 +24,9 @@ selection order, ``mask_<jj>.png`` all valid (255: real images have no holes), a
 ``targets`` = the target c2w (OpenCV, metres), ``target_ids`` = 0..T-1, ``teacher_psnr`` null, ``rho`` =
 the largest reference-to-target distance (metres; IRS targets are not on a sphere), plus
 ``target_frames`` (IRS frame numbers) and ``target_coverage``.
+
+Exit status (``scenesplat_stereo.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
+file, nothing removed), 130 interrupted, 1 internal error.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ import numpy as np
 
 from pipelines.irs import IRS_FOCAL_BASELINE, depth_from_disparity, read_disparity
 from scenesplat_stereo.cameras import rotation_angle_deg
-from scenesplat_stereo.commandline import Parser
+from scenesplat_stereo.commandline import Parser, run_command
 from scenesplat_stereo.text import format_table, key_safe_name, positive_number, whole_number
 
 # Paper appendix F, "IRS target selection and training".
@@ -296,7 +300,7 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
     from tqdm import tqdm
 
     from scenesplat_stereo.files import atomic_write_json
-    from scenesplat_stereo.encode import SampleEncoder
+    from scenesplat_stereo.encode_pool import SampleEncoder
     from scenesplat_stereo.protocol import split_scenes
     from scenesplat_stereo.shards import (ShardWriter, collect_stats, finished_shards, remove_shard, write_index,
                                           write_stats)
@@ -368,9 +372,9 @@ def summary_table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = Parser(prog="python -m pipelines.irs_targets", description=__doc__,
-               formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("poses_dir", type=Path, metavar="POSES_DIR", help="output folder of irs_pose_recovery.py")
+    """``irs-targets``; errors as every command's (``commandline.run_command``)."""
+    p = Parser(prog="irs-targets", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("poses_dir", type=Path, metavar="POSES_DIR", help="output folder of irs-pose-recovery")
     p.add_argument("--out", type=Path, required=True, help="shard folder (OUT/<split>/shard-*.tar)")
     p.add_argument("--val-variants", type=whole_number("--val-variants", 0), default=VAL_VARIANTS,
                    help=f"validation variants, chosen with random.Random(42) (default {VAL_VARIANTS})")
@@ -384,14 +388,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=whole_number("--workers"), default=1,
                    help="processes for target selection and threads for JPEG encoding (default 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    args = p.parse_args(argv)
-    try:
-        rows = write_irs_shards(args.poses_dir, args.out, args.val_variants, args.min_targets,
-                                TargetRules(depth_stride=args.depth_stride), args.focal_baseline,
-                                args.samples_per_shard, args.workers, not args.no_progress)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    p.set_defaults(func=_run)
+    return run_command(p, argv)
+
+
+def _run(args: argparse.Namespace) -> int:
+    rows = write_irs_shards(args.poses_dir, args.out, args.val_variants, args.min_targets,
+                            TargetRules(depth_stride=args.depth_stride), args.focal_baseline,
+                            args.samples_per_shard, args.workers, not args.no_progress)
     print(summary_table(rows))
     return 0
 

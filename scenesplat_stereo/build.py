@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import time
 import warnings
 from collections import defaultdict
@@ -32,7 +31,9 @@ from tqdm import tqdm
 from scenesplat_stereo import shards
 from scenesplat_stereo.benchmark import Benchmark, write_benchmark
 from scenesplat_stereo.build_settings import SPLITS_OF_MODE, BuildSettings, add_arguments, settings_from_args
-from scenesplat_stereo.encode import SampleEncoder
+from scenesplat_stereo.commandline import NotAvailable
+from scenesplat_stereo.encode_pool import SampleEncoder
+from scenesplat_stereo.files import read_json
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.nvjpeg import NvJpegEncoder
 from scenesplat_stereo.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_PER_SCENE, VAL_SCENES, SamplePlan,
@@ -169,7 +170,7 @@ def _run_ray(jobs: list[TeacherJob], settings: BuildSettings, bar: tqdm) -> list
     try:
         import ray
     except ImportError:
-        raise RuntimeError("--backend ray needs Ray: pip install 'stereogaussians[ray]'") from None
+        raise NotAvailable("--backend ray needs Ray: pip install 'stereogaussians[ray]'") from None
     if not ray.is_initialized():
         ray.init(address=settings.ray_address)
     gpus = 1 if str(settings.device).startswith("cuda") else 0
@@ -339,7 +340,8 @@ def rendered_benchmark(settings: BuildSettings) -> Benchmark:
 
 def _write_stats(settings: BuildSettings, report: BuildReport) -> None:
     path = Path(settings.out) / shards.STATS_NAME
-    old = json.loads(path.read_text()).get("teachers", {}) if path.is_file() else {}
+    doc = read_json(path) if path.is_file() else {}
+    old = doc.get("teachers", {}) if isinstance(doc, dict) else {}
     drops = report.discovery.rejected + report.dropped + _failed_as_rejections(report)
     old[settings.split_mode] = {
         "found": len(report.discovery.teachers) + len(report.discovery.rejected),
@@ -378,12 +380,8 @@ def summary(report: BuildReport) -> str:
 
 
 def run(args) -> int:
-    """CLI entry: build, print the summary; exit 0, exit 2 with one line naming the flag or file when an
-    input is refused (nothing is written then), or ``EXIT_TEACHER_FAILED`` if some teacher failed."""
-    try:
-        report = build(settings_from_args(args))
-    except (OSError, ValueError, RuntimeError) as e:
-        print(f"scenesplat-stereo build: error: {e}", file=sys.stderr)
-        return 2
+    """CLI entry: build, print the summary; exit 0, or ``EXIT_TEACHER_FAILED`` if some teacher failed. A refused
+    input raises (nothing is written then); ``commandline.run_command`` makes it one line and exit 2."""
+    report = build(settings_from_args(args))
     print(summary(report))
     return EXIT_TEACHER_FAILED if report.failed else 0

@@ -12,7 +12,7 @@ COLMAP, which is the SPEC section 1 convention: pixel (u, v) covers [u, u+1) x [
 top-left pixel is (0.5, 0.5).
 
 pycolmap is a regular dependency, imported when a function needs it (``import_pycolmap`` turns a failed
-import into a RuntimeError that says how to install it).
+import into a ``NotAvailable`` that says how to install it).
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from scenesplat_stereo.commandline import NotAvailable
 
 # Matching strategy: exhaustive up to this many frames (all n(n-1)/2 pairs: robust, but O(n^2)), sequential
 # above (about 14 pairs per frame with the overlap below). Measured at 960x540 with 8192 SIFT features on a
@@ -225,11 +227,11 @@ def _observations(image: Any, xyz: dict[int, np.ndarray]) -> Observations:
 
 
 def import_pycolmap() -> Any:
-    """The ``pycolmap`` module; RuntimeError with the install command when it cannot be imported."""
+    """The ``pycolmap`` module; ``NotAvailable`` with the install command when it cannot be imported."""
     try:
         import pycolmap
     except ImportError as e:
-        raise RuntimeError(f"pose recovery needs pycolmap (a dependency of this package): pip install "
+        raise NotAvailable(f"pose recovery needs pycolmap (a dependency of this package): pip install "
                            f"'pycolmap>=4.0' ({e})") from None
     return pycolmap
 

@@ -22,11 +22,15 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from scenesplat_stereo.files import atomic_write_bytes
-from scenesplat_stereo.gaussians import SH_C0, GaussianScene, PlyError, PlyHeader, _columns, _read_elements
+from scenesplat_stereo.ply import SH_C0, PlyError, PlyHeader, columns, read_elements
+
+if TYPE_CHECKING:
+    from scenesplat_stereo.gaussians import GaussianScene
 
 #: Splats per ``chunk`` row.
 CHUNK_SIZE = 256
@@ -63,7 +67,7 @@ def _unorm_111011(bits: np.ndarray) -> np.ndarray:
 def decode_compressed(header: PlyHeader) -> tuple[np.ndarray, ...]:
     """(means, quats wxyz, log scales, opacities, sh float32, finite rows) of a compressed file, float64."""
     path = header.path
-    el = _read_elements(header, {e.name for e in header.elements if e.name in ("chunk", "vertex", "sh")})
+    el = read_elements(header, {e.name for e in header.elements if e.name in ("chunk", "vertex", "sh")})
     chunk, vertex = el["chunk"], el["vertex"]
     n = len(vertex)
     if len(chunk) != -(-n // CHUNK_SIZE):
@@ -77,12 +81,12 @@ def decode_compressed(header: PlyHeader) -> tuple[np.ndarray, ...]:
         if t is not None and (t.kind != "u" or t.itemsize != size):
             raise PlyError(f"{path}: element '{e}' property '{name}' must be {8 * size}-bit unsigned, "
                            f"got {t}")
-    packed = _columns(path, vertex, "vertex", PACKED).astype(np.uint32)
+    packed = columns(path, vertex, "vertex", PACKED).astype(np.uint32)
     colour_names = [c for c in CHUNK_COLOUR if c in (chunk.dtype.names or ())]
     if colour_names and len(colour_names) != len(CHUNK_COLOUR):
         raise PlyError(f"{path}: element 'chunk' has colour ranges {colour_names} but lacks "
                        f"{sorted(set(CHUNK_COLOUR) - set(colour_names))}")
-    ranges = _columns(path, chunk, "chunk", CHUNK_BOX + colour_names)[np.arange(n) // CHUNK_SIZE]
+    ranges = columns(path, chunk, "chunk", CHUNK_BOX + colour_names)[np.arange(n) // CHUNK_SIZE]
     pos, rot, scl, col = packed.T
 
     def lerp(t: np.ndarray, lo: int) -> np.ndarray:  # ranges[:, lo:lo+3] are the mins, +3 the maxes
@@ -104,7 +108,7 @@ def decode_compressed(header: PlyHeader) -> tuple[np.ndarray, ...]:
     if k > 1:
         if len(el["sh"]) != n:
             raise PlyError(f"{path}: element 'sh' has {len(el['sh'])} rows, element 'vertex' {n}")
-        rest = _columns(path, el["sh"], "sh", [f"f_rest_{i}" for i in range(3 * (k - 1))])
+        rest = columns(path, el["sh"], "sh", [f"f_rest_{i}" for i in range(3 * (k - 1))])
         t = np.where(rest == 0, 0.0, np.where(rest == 255, 1.0, (rest + 0.5) / 256.0))
         sh[:, 1:, :] = ((t - 0.5) * 2 * SH_RANGE).reshape(n, 3, k - 1).transpose(0, 2, 1)
     finite = np.isfinite(means).all(1) & np.isfinite(log_scales).all(1) & np.isfinite(sh).all((1, 2))

@@ -5,43 +5,33 @@
 - Valid masks: 8-bit single-channel PNG holding 0 or 255 (rendered alpha >= 0.5 -> 255), written with zlib.
 - Left depth (``--with-depth``): single-channel float16 OpenEXR (ZIP), expected depth along the camera's
   z axis in world units (metres); 0 where nothing was rendered.
+- Decoding (``decode_image``): any image OpenImageIO reads, turned upright by its EXIF Orientation tag.
 
 Every encoder fixes all settings (and the EXR ``DateTime``, which OpenImageIO otherwise stamps with the
 wall clock), so the same pixels always give the same bytes. OpenImageIO's Python bindings cannot write to
 memory, so each call goes through a per-thread scratch file in a private folder (in ``/dev/shm`` when it
 has 1 GiB free, else the system temp folder), read back and removed.
 
-``SampleEncoder`` keeps the renderer from waiting on the encoder: a bounded queue of samples encoded by
-worker threads, or by worker processes that those threads feed (``encode_pool``: the same bytes, outside
-the caller's GIL), and a writer thread that hands them, in submission order, to the shard writer.
-OpenImageIO releases the GIL while it encodes, but every call takes it back, and with a busy Python
-thread beside them encoder threads wait for it (``encode_pool`` has the measurement); ``python -m
-scenesplat_stereo.bench.encode`` compares the two modes on the machine at hand.
+``encode_sample`` turns one ``SampleImages`` into its shard members; ``encode_pool.SampleEncoder`` runs it
+in encoder threads or processes behind a bounded queue (this module imports nothing of that one).
 """
 
 from __future__ import annotations
 
 import atexit
 import os
-import queue
 import shutil
 import struct
 import tempfile
 import threading
-import time
 import zlib
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import numpy as np
 import OpenImageIO as oiio
 
-from scenesplat_stereo import encode_pool
 from scenesplat_stereo.protocol import JPEG_QUALITY
 
-ENCODER_MODES = ("auto", "threads", "processes")
 JPEG_ENCODERS = ("cpu", "nvjpeg")  # where JPEGs are encoded: encoder workers, or the GPU (``nvjpeg``)
 
 # Fixed so that EXR files do not carry the wall-clock time (byte-identical rebuilds).
@@ -65,7 +55,7 @@ _scratch: dict[str, str] = {}  # {"pid": ..., "dir": ...} of this process
 _local = threading.local()
 
 
-def _scratch_dir() -> str:
+def scratch_dir() -> str:
     """This process's private scratch folder (created on first use, removed at exit)."""
     pid = str(os.getpid())
     with _scratch_lock:
@@ -91,7 +81,7 @@ def _scratch_path(ext: str) -> str:
         _local.pid = os.getpid()
         _local.paths = {}
     if ext not in _local.paths:
-        _local.paths[ext] = os.path.join(_scratch_dir(), f"t{threading.get_ident()}.{ext}")
+        _local.paths[ext] = os.path.join(scratch_dir(), f"t{threading.get_ident()}.{ext}")
     return _local.paths[ext]
 
 
@@ -203,11 +193,27 @@ def encode_depth_exr(depth: np.ndarray) -> bytes:
     return _write(depth[:, :, None], "exr", "half", attrs)
 
 
+#: EXIF Orientation (TIFF tag 274) -> how the stored pixels [H, W, C] become the upright image: 1 as stored,
+#: 2 mirrored left-right, 3 turned 180 deg, 4 mirrored top-bottom, 5 transposed, 6 turned 90 deg clockwise,
+#: 7 transversed, 8 turned 90 deg anticlockwise (the same as OpenCV's imread; tests/test_bad_input_model.py).
+_UPRIGHT = {
+    1: lambda a: a,
+    2: lambda a: a[:, ::-1],
+    3: lambda a: a[::-1, ::-1],
+    4: lambda a: a[::-1],
+    5: lambda a: a.transpose(1, 0, 2),
+    6: lambda a: a.transpose(1, 0, 2)[:, ::-1],
+    7: lambda a: a[::-1, ::-1].transpose(1, 0, 2),
+    8: lambda a: a.transpose(1, 0, 2)[::-1],
+}
+
+
 def decode_image(data: bytes, ext: str) -> np.ndarray:
     """Decode image bytes of type ``ext`` ("jpg", "png", "exr", with or without a dot) with OpenImageIO.
 
-    Returns [H, W, C] in the file's pixel type: uint8 for JPEG and PNG, float32 for (half) EXR.
-    Raises ValueError when the bytes do not decode.
+    Returns [H, W, C] upright (an EXIF Orientation tag other than 1, as phones write, is applied; H and W
+    are then those of the upright image) in the file's pixel type: uint8 for JPEG and PNG, float32 for
+    (half) EXR. Raises ValueError when the bytes do not decode.
     """
     ext = ext.lower().lstrip(".")
     path = _scratch_path("in." + ext)
@@ -223,11 +229,13 @@ def decode_image(data: bytes, ext: str) -> np.ndarray:
             arr = inp.read_image(fmt)
             if arr is None or inp.has_error:
                 raise ValueError(f"decode_image: truncated or corrupt .{ext} image: {inp.geterror()}")
+            orientation = spec.get_int_attribute("Orientation", 1)
         finally:
             inp.close()
     finally:
         _remove(path)
-    return np.asarray(arr).reshape(spec.height, spec.width, spec.nchannels)
+    arr = np.asarray(arr).reshape(spec.height, spec.width, spec.nchannels)
+    return np.ascontiguousarray(_UPRIGHT.get(orientation, _UPRIGHT[1])(arr)) if orientation != 1 else arr
 
 
 @dataclass
@@ -277,161 +285,3 @@ def encode_other_members(sample: SampleImages) -> dict[str, bytes]:
         members["left_depth.exr"] = encode_depth_exr(sample.depth)
     members["json"] = sample.meta
     return members
-
-
-def default_encoder_workers() -> int:
-    """Encoder workers by default: half the CPU cores (at least 1). Measured on a 16-core GPU host
-    (docs/benchmarks.md, bench build): JPEG throughput peaks at 8 threads and falls at 16, where the
-    encoders compete with the renderer's own thread and OpenImageIO's I/O for the cores."""
-    return max(1, (os.cpu_count() or 1) // 2)
-
-
-#: "auto" picks encoder processes on a machine with at least this many cores, else threads. Measured
-#: (docs/benchmarks.md, issue 12): on the 16-core H100 host the build ran 139 pairs/s with 8 encoder
-#: processes against 73 with 8 threads at 616x456 (threads wait for the GIL behind the renderer's Python
-#: thread), 25 against 28 at 1752x1168; on the 2-core development machine threads win (72.7 against 70.5
-#: samples/s at 616x456, 13.5 against 9.1 at 1752x1168): there the extra processes compete for two cores.
-PROCESSES_MIN_CORES = 8
-DEFAULT_ENCODER_MODE = "auto"
-
-
-def resolve_encoder_mode(mode: str) -> str:
-    """"threads" or "processes" for ``mode`` ("auto": processes on PROCESSES_MIN_CORES cores or more)."""
-    if mode not in ENCODER_MODES:
-        raise ValueError(f"encoder mode must be one of {ENCODER_MODES}, got {mode!r}")
-    if mode == "auto":
-        return "processes" if (os.cpu_count() or 1) >= PROCESSES_MIN_CORES else "threads"
-    return mode
-
-
-class SampleEncoder:
-    """Encoder workers behind a bounded queue, and one writer thread that hands the results to
-    ``sink(key, members)`` in submission order.
-
-    ``mode`` "threads": ``workers`` threads encode. "processes": ``workers`` threads each copy a sample
-    into a shared slot and wait while one of ``workers`` encoder processes (``encode_pool``, started once
-    per process and reused) encodes it; the bytes are the same. ``workers=0`` encodes and writes inline
-    (no threads, no processes), whatever the mode.
-
-    The renderer calls ``submit`` and goes back to rendering: it blocks only while ``max_pending``
-    samples are queued (encoding, or encoded and waiting for the writer). Writing (tar, checksum) runs in
-    the writer thread, one sample at a time, in order, whatever the encoder timing. An error in encoding
-    (in a thread or a process) or in the sink stops the writer and is raised by the next ``submit`` or by
-    ``close``. ``close`` (or leaving the ``with`` block normally) drains the queue; leaving it with an
-    exception drops the queued samples without handing them to the sink.
-
-    Timings (seconds): ``encode_s`` summed over encoder threads (processes mode: copy to the slot, the
-    worker's encoding and the bytes' way back), ``wait_s`` the caller's time blocked on the queue,
-    ``sink_s`` time spent in the sink.
-    """
-
-    def __init__(
-        self,
-        sink: Callable[[str, dict[str, bytes]], None],
-        workers: int,
-        quality: int = JPEG_QUALITY,
-        max_pending: int | None = None,
-        mode: str = DEFAULT_ENCODER_MODE,
-    ) -> None:
-        if workers < 0:
-            raise ValueError(f"SampleEncoder: workers must be >= 0, got {workers}")
-        mode = resolve_encoder_mode(mode)
-        self.sink, self.quality, self.workers = sink, quality, workers
-        self.max_pending = max_pending if max_pending is not None else max(2, 3 * workers)
-        self.encode_s = self.wait_s = self.sink_s = 0.0
-        self._time_lock = threading.Lock()
-        self._error: BaseException | None = None
-        self._stop = threading.Event()
-        self._procs = encode_pool.process_pool(workers) if workers and mode == "processes" else None
-        # one slot per thread: a free slot is always there for a running thread
-        self._all_slots = encode_pool.take_slots(workers, _scratch_dir()) if self._procs is not None else []
-        self._slots: queue.SimpleQueue = queue.SimpleQueue()
-        for slot in self._all_slots:
-            self._slots.put(slot)
-        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="encode") if workers else None
-        self._queue: queue.Queue = queue.Queue(maxsize=self.max_pending)
-        self._writer = None
-        if self._pool is not None:
-            self._writer = threading.Thread(target=self._write_loop, name="shard-writer", daemon=True)
-            self._writer.start()
-
-    def _encode(self, sample: SampleImages) -> dict[str, bytes]:
-        t0 = time.perf_counter()
-        members = encode_sample(sample, self.quality) if self._procs is None else self._encode_in_process(sample)
-        with self._time_lock:
-            self.encode_s += time.perf_counter() - t0
-        return members
-
-    def _encode_in_process(self, sample: SampleImages) -> dict[str, bytes]:
-        slot = self._slots.get()
-        try:
-            names = ("masks", "depth") + (() if sample.jpegs is not None else ("left", "right", "targets"))
-            arrays = {n: getattr(sample, n) for n in names if getattr(sample, n) is not None}
-            path, layout = slot.put(arrays)
-            future = self._procs.submit(encode_pool.encode_in_worker, path, layout, sample.key,
-                                        tuple(sample.target_ids), sample.meta, self.quality)
-            try:
-                return (sample.jpegs or {}) | future.result()
-            except BrokenProcessPool:
-                encode_pool.discard_pool(self.workers, self._procs)
-                raise
-        finally:
-            self._slots.put(slot)
-
-    def _write(self, key: str, members: dict[str, bytes]) -> None:
-        t0 = time.perf_counter()
-        self.sink(key, members)
-        self.sink_s += time.perf_counter() - t0
-
-    def _write_loop(self) -> None:
-        while (item := self._queue.get()) is not None:
-            if self._error is not None or self._stop.is_set():
-                continue  # keep draining so that the producer never blocks on a dead writer
-            try:
-                self._write(item[0], item[1].result())
-            except BaseException as e:  # noqa: BLE001  (handed to the producer thread, re-raised there)
-                self._error = e
-
-    def _raise_if_failed(self) -> None:
-        if self._error is not None:
-            raise self._error
-
-    def submit(self, sample: SampleImages) -> None:
-        """Queue one sample; blocks while ``max_pending`` samples are queued."""
-        self._raise_if_failed()
-        t0 = time.perf_counter()
-        if self._pool is None:
-            members = self._encode(sample)
-            self.wait_s += time.perf_counter() - t0
-            self._write(sample.key, members)
-            return
-        self._queue.put((sample.key, self._pool.submit(self._encode, sample)))
-        self.wait_s += time.perf_counter() - t0
-
-    def close(self) -> None:
-        """Wait until every queued sample has been handed to the sink, in order; raise a pending error."""
-        self._finish()
-        self._raise_if_failed()
-
-    def abort(self) -> None:
-        """Drop the queued samples (their results never reach the sink)."""
-        self._stop.set()
-        self._finish()
-
-    def _finish(self) -> None:
-        if self._writer is not None and self._writer.is_alive():
-            self._queue.put(None)
-            self._writer.join()
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-        encode_pool.give_back_slots(self._all_slots)
-        self._all_slots = []
-
-    def __enter__(self) -> SampleEncoder:
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()

@@ -4,8 +4,8 @@ Conventions (SPEC section 1): world units as in the file (metres for SceneSplat 
 wxyz, unit norm; scales linear; opacities in [0, 1]; SH coefficients ``[N, K, 3]`` with K = (d+1)^2,
 ``sh[:, 0]`` the DC term.
 
-This module owns the PLY container (header, elements) and the INRIA layout (3DGS trainer, gsplat,
-nerfstudio, SuperSplat export): element ``vertex`` with properties read by name, in any order and of any
+This module owns the INRIA layout (3DGS trainer, gsplat, nerfstudio, SuperSplat export) on the PLY container
+of ``scenesplat_stereo.ply`` (header, elements): element ``vertex`` with properties read by name, in any order and of any
 numeric type; ``x y z``, ``f_dc_0..2``, optional ``f_rest_*`` (0, 9, 24 or 45 of them, channel-major),
 ``opacity`` (a logit), ``scale_0..2`` (natural logs), ``rot_0..3`` (wxyz, any norm); ``nx ny nz`` and any
 other property are ignored. ascii, binary_little_endian, binary_big_endian. ``load_ply`` also reads the
@@ -28,37 +28,16 @@ from typing import Any
 
 import numpy as np
 
+from scenesplat_stereo.compressed_ply import decode_compressed
 from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.ply import PlyError, PlyHeader, PlyRepairWarning, columns, read_elements, read_ply_header
 
-#: Real SH constant of band 0 (SPEC section 1): colour = 0.5 + SH_C0 * f_dc.
-SH_C0 = 0.28209479177387814
-#: Number of ``f_rest_*`` properties -> SH degree (3 channels x ((d+1)^2 - 1) coefficients).
-SH_DEGREE_OF_REST_COUNT = {0: 0, 9: 1, 24: 2, 45: 3}
 #: Opacities are clipped to [eps, 1 - eps] before the logit in ``save_ply`` so that 0 and 1 stay finite.
 OPACITY_EPS = 1e-7
 #: Quaternions whose norm is within this of 1 are kept bit-exact on load (unit within float32 rounding).
 QUAT_UNIT_ATOL = 2.0**-20
 #: ``GaussianScene`` rejects quaternions whose norm is further than this from 1.
 QUAT_VALIDATE_ATOL = 1e-4
-_HEADER_LIMIT = 1 << 20
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
-
-
-class PlyError(ValueError):
-    """A ``.ply`` file that cannot be read as a Gaussian scene; the message names the file and the field."""
-
-
-class PlyRepairWarning(UserWarning):
-    """Rows were dropped while loading a ``.ply`` (the message names the file and the counts per reason)."""
-
-
 @dataclass(eq=False)
 class GaussianScene:
     """A 3D Gaussian scene in memory (numpy float32, row i is Gaussian i).
@@ -157,44 +136,6 @@ class GaussianScene:
             raise ValueError(f"GaussianScene.{what}() of an empty scene")
 
 
-@dataclass(frozen=True)
-class PlyElement:
-    """One header element: name, row count, properties as (name, numpy type code), (name, None) for lists."""
-
-    name: str
-    count: int
-    properties: tuple[tuple[str, str | None], ...]
-
-    def names(self) -> list[str]:
-        return [p for p, _ in self.properties]
-
-    def dtype(self, byte_order: str) -> np.dtype:
-        return np.dtype([(p, byte_order + t) for p, t in self.properties])  # type: ignore[operator]
-
-    def has_lists(self) -> bool:
-        return any(t is None for _, t in self.properties)
-
-
-@dataclass(frozen=True)
-class PlyHeader:
-    """A parsed ``.ply`` header; ``layout`` is "inria" or "compressed", ``sh_degree`` follows from it."""
-
-    path: Path
-    format: str
-    elements: tuple[PlyElement, ...]
-    body_offset: int
-    layout: str
-    sh_degree: int
-
-    def element(self, name: str) -> PlyElement | None:
-        return next((e for e in self.elements if e.name == name), None)
-
-    @property
-    def num_gaussians(self) -> int:
-        """Rows of element ``vertex`` (before any row is dropped by ``load_ply``)."""
-        return self.element("vertex").count  # type: ignore[union-attr]
-
-
 def content_sh_degree(sh: np.ndarray) -> int:
     """The smallest SH degree that holds every non-zero coefficient of sh [N, K, 3] (0 when the bands above
     the DC term are all zero, e.g. plain-colour Gaussians). Takes a numpy array or a torch tensor (which
@@ -203,148 +144,13 @@ def content_sh_degree(sh: np.ndarray) -> int:
     return math.isqrt(max((k for k, u in enumerate(used) if u), default=0))
 
 
-def read_ply_header(path: str | os.PathLike) -> PlyHeader:
-    """Parse and check the header of a Gaussian ``.ply`` (cheap: the body is not read)."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            head = f.read(_HEADER_LIMIT)
-    except OSError as e:
-        raise PlyError(f"{path}: cannot open ({e.strerror or e})") from e
-    if not (head.startswith(b"ply\n") or head.startswith(b"ply\r\n")):
-        raise PlyError(f"{path}: not a PLY file (it does not start with the 'ply' magic line)")
-    end = head.find(b"\nend_header")
-    if end < 0:
-        raise PlyError(f"{path}: no 'end_header' line within the first {_HEADER_LIMIT} bytes")
-    body = end + len(b"\nend_header")
-    if head[body:body + 1] != b"\n" and head[body:body + 2] != b"\r\n":
-        raise PlyError(f"{path}: malformed 'end_header' line")
-    body += 2 if head[body:body + 2] == b"\r\n" else 1
-    try:
-        lines = head[:end].decode("ascii").splitlines()[1:]
-    except UnicodeDecodeError as e:
-        raise PlyError(f"{path}: header is not ASCII text") from e
-    fmt, elements, current = None, [], None
-    for i, line in enumerate(lines, start=2):
-        words = line.split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "format" and len(words) == 3:
-            if words[1] not in _FORMATS:
-                raise PlyError(f"{path}: unsupported format '{words[1]}' (header line {i})")
-            fmt = words[1]
-        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
-            if words[1] in (e[0] for e in elements):
-                raise PlyError(f"{path}: element '{words[1]}' is declared twice (header line {i})")
-            current = [words[1], int(words[2]), []]
-            elements.append(current)
-        elif words[0] == "property" and current is not None and len(words) in (3, 5):
-            if len(words) == 5 and words[1] != "list":
-                raise PlyError(f"{path}: malformed property line {i}: {line!r}")
-            name, typ = words[-1], words[-2]
-            if typ not in _PLY_TYPES or (len(words) == 5 and words[2] not in _PLY_TYPES):
-                raise PlyError(f"{path}: element '{current[0]}' property '{name}' has unknown type '{typ}'")
-            if name in (p for p, _ in current[2]):
-                raise PlyError(f"{path}: element '{current[0]}' property '{name}' is declared twice")
-            current[2].append((name, None if len(words) == 5 else _PLY_TYPES[typ]))
-        else:
-            raise PlyError(f"{path}: malformed header line {i}: {line!r}")
-    if fmt is None:
-        raise PlyError(f"{path}: header has no 'format' line")
-    elems = tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements)
-    by_name = {e.name: e for e in elems}
-    if "vertex" not in by_name:
-        raise PlyError(f"{path}: no element 'vertex'")
-    layout = "compressed" if "chunk" in by_name else "inria"
-    if layout == "compressed":
-        rest = len(by_name["sh"].properties) if "sh" in by_name else 0
-    else:
-        rest = sum(p.startswith("f_rest_") for p in by_name["vertex"].names())
-    if rest not in SH_DEGREE_OF_REST_COUNT:
-        raise PlyError(f"{path}: {rest} f_rest_* properties; expected 0, 9, 24 or 45 (SH degree 0..3)")
-    return PlyHeader(path, fmt, elems, body, layout, SH_DEGREE_OF_REST_COUNT[rest])
-
-
-def _read_elements(header: PlyHeader, wanted: set[str]) -> dict[str, np.ndarray]:
-    """Structured arrays of the ``wanted`` elements (their properties must be scalars)."""
-    path, out = header.path, {}
-    last = max(i for i, e in enumerate(header.elements) if e.name in wanted)
-    for e in header.elements[:last + 1]:
-        if e.has_lists() and (e.name in wanted or header.format != "ascii"):
-            raise PlyError(f"{path}: element '{e.name}' has list properties, which are not supported here")
-    if header.format == "ascii":
-        with open(path, "rb") as f:
-            f.seek(header.body_offset)
-            lines = [ln for ln in f.read().split(b"\n") if ln.strip()]
-        row = 0
-        for e in header.elements[:last + 1]:
-            block = lines[row:row + e.count]
-            if len(block) < e.count:
-                raise PlyError(f"{path}: body truncated: element '{e.name}' needs {e.count} lines, "
-                               f"found {len(block)}")
-            row += e.count
-            if e.name in wanted:
-                out[e.name] = _parse_ascii(path, e, block)
-        if last == len(header.elements) - 1 and row < len(lines):
-            e = header.elements[last]
-            raise PlyError(f"{path}: element '{e.name}' declares {e.count} rows but the body has "
-                           f"{len(lines) - row} more non-empty lines after them")
-        return out
-    size, offset = path.stat().st_size, header.body_offset
-    with open(path, "rb") as f:
-        for e in header.elements[:last + 1]:
-            dtype = e.dtype(_FORMATS[header.format])  # type: ignore[arg-type]
-            need = dtype.itemsize * e.count
-            if offset + need > size:
-                raise PlyError(f"{path}: body truncated: element '{e.name}' needs {need} bytes at offset "
-                               f"{offset}, the file has {max(size - offset, 0)}")
-            if e.name in wanted:
-                f.seek(offset)
-                out[e.name] = np.fromfile(f, dtype=dtype, count=e.count)
-            offset += need
-    rest = header.elements[last + 1:]
-    if offset < size and not any(e.has_lists() for e in rest):
-        extra = size - offset - sum(e.dtype("<").itemsize * e.count for e in rest)
-        if extra > 0:
-            warnings.warn(f"{path}: {extra} bytes after the last element were ignored", PlyRepairWarning,
-                          stacklevel=3)
-    return out
-
-
-def _parse_ascii(path: Path, e: PlyElement, block: list[bytes]) -> np.ndarray:
-    rows = [ln.split() for ln in block]
-    for i, r in enumerate(rows):
-        if len(r) != len(e.properties):
-            raise PlyError(f"{path}: element '{e.name}' row {i} has {len(r)} values, expected "
-                           f"{len(e.properties)}")
-    try:
-        values = np.array(rows, dtype=np.float64).reshape(len(rows), len(e.properties))
-    except ValueError as err:
-        raise PlyError(f"{path}: element '{e.name}' has a non-numeric value ({err})") from err
-    arr = np.empty(len(rows), dtype=e.dtype("="))
-    for j, (name, _) in enumerate(e.properties):
-        arr[name] = values[:, j]
-    return arr
-
-
-def _columns(path: Path, arr: np.ndarray, element: str, names: list[str]) -> np.ndarray:
-    """float64 [N, len(names)] of the named properties; a missing one is a PlyError naming it."""
-    missing = [n for n in names if n not in (arr.dtype.names or ())]
-    if missing:
-        raise PlyError(f"{path}: element '{element}' lacks required properties {', '.join(missing)}")
-    out = np.empty((len(arr), len(names)), dtype=np.float64)
-    for j, n in enumerate(names):
-        out[:, j] = arr[n]
-    return out
-
-
 def _sigmoid(x: np.ndarray) -> np.ndarray:
     return np.exp(-np.logaddexp(0.0, -x))
 
 
 def _decode_inria(header: PlyHeader) -> tuple[np.ndarray, ...]:
     path = header.path
-    v = _read_elements(header, {"vertex"})["vertex"]
+    v = read_elements(header, {"vertex"})["vertex"]
     n_rest = 3 * ((header.sh_degree + 1) ** 2 - 1)
     rest_names = [f"f_rest_{i}" for i in range(n_rest)]
     present = set(p for p in v.dtype.names or () if p.startswith("f_rest_"))
@@ -352,8 +158,8 @@ def _decode_inria(header: PlyHeader) -> tuple[np.ndarray, ...]:
         raise PlyError(f"{path}: f_rest_* properties must be f_rest_0..f_rest_{n_rest - 1}; unexpected "
                        f"{sorted(present - set(rest_names))}, missing {sorted(set(rest_names) - present)}")
     names = ["x", "y", "z", "rot_0", "rot_1", "rot_2", "rot_3", "scale_0", "scale_1", "scale_2", "opacity"]
-    cols = _columns(path, v, "vertex", names)
-    _columns(path, v[:0], "vertex", ["f_dc_0", "f_dc_1", "f_dc_2"])  # checks presence only
+    cols = columns(path, v, "vertex", names)
+    columns(path, v[:0], "vertex", ["f_dc_0", "f_dc_1", "f_dc_2"])  # checks presence only
     n, k = len(v), (header.sh_degree + 1) ** 2
     sh = np.empty((n, k, 3), dtype=np.float32)  # float32 straight away: SH is most of a large scene
     with np.errstate(all="ignore"):  # doubles beyond the float32 range become inf: non-finite, dropped
@@ -401,8 +207,6 @@ def load_ply(path: str | os.PathLike, strict: bool = False) -> GaussianScene:
     """
     header = read_ply_header(path)
     if header.layout == "compressed":
-        from scenesplat_stereo.compressed_ply import decode_compressed  # it builds on this module
-
         return _assemble(header, *decode_compressed(header), strict=strict)
     return _assemble(header, *_decode_inria(header), strict=strict)
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import sys
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -281,8 +280,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     """CLI entry: print the table, notes and problems; exit 1 when any check fails, 2 when OUT is no folder."""
     if not Path(args.out).is_dir():
-        print(f"scenesplat-stereo inspect: error: OUT {args.out}: not a folder", file=sys.stderr)
-        return 2
+        raise ValueError(f"OUT {args.out}: not a folder")
     sheet = args.contact_sheet or Path(args.out) / "contact_sheet.png"
     report = inspect_dataset(args.out, sheet, args.sheet_samples, args.quick, progress=not args.no_progress)
     print(table(report))

@@ -38,6 +38,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import torch
 
+from scenesplat_stereo.commandline import NotAvailable
 from scenesplat_stereo.protocol import JPEG_QUALITY
 
 # nvjpeg.h constants
@@ -72,7 +73,7 @@ def _candidates() -> list[str]:
 
 
 def load_library() -> ctypes.CDLL:
-    """The nvJPEG library (loaded once); RuntimeError naming where it was looked for when it is missing."""
+    """The nvJPEG library (loaded once); ``NotAvailable`` naming where it was looked for when it is missing."""
     with _lib_lock:
         if not _lib:
             tried = []
@@ -86,7 +87,7 @@ def load_library() -> ctypes.CDLL:
                 _lib.append(lib)
                 break
             else:
-                raise RuntimeError(f"--jpeg-encoder nvjpeg: nvJPEG not found (tried {', '.join(tried)}). "
+                raise NotAvailable(f"--jpeg-encoder nvjpeg: nvJPEG not found (tried {', '.join(tried)}). "
                                    + INSTALL_HINT)
         return _lib[0]
 

@@ -68,15 +68,11 @@ def _teacher_for(source: Path, orbit: OrbitSpec) -> Teacher:
 
 
 def run(args: argparse.Namespace) -> int:
-    """CLI entry: exit 2 with one line naming the flag or file when an input is unusable."""
-    try:
-        if args.out.exists() and not args.out.is_dir():
-            raise ValueError(f"--out {args.out}: exists and is not a folder")
-        teacher = _teacher_for(args.source, args.orbit)
-        scene = load_ply(teacher.ply_path)
-    except (OSError, ValueError) as e:
-        print(f"scenesplat-stereo render: error: {e}", file=sys.stderr)
-        return 2
+    """CLI entry: an unusable input raises a ValueError naming the flag or file before anything is written."""
+    if args.out.exists() and not args.out.is_dir():
+        raise ValueError(f"--out {args.out}: exists and is not a folder")
+    teacher = _teacher_for(args.source, args.orbit)
+    scene = load_ply(teacher.ply_path)
     teacher = resolve_trajectory(teacher, scene.means)
     c2w, Ks, width, height = teacher.c2w, teacher.Ks, teacher.width, teacher.height
     if args.resolution:

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from scenesplat_stereo.files import TMP_PREFIX as _TMP_PREFIX
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.files import atomic_write_bytes, remove_temp_files
 
 __all__ = ["atomic_write_bytes"]  # re-exported: the one atomic writer lives in scenesplat_stereo.files
 
@@ -242,8 +242,7 @@ def remove_unplanned(root: Path, split: str, planned: set[int]) -> int:
     folder = Path(root) / split
     if not folder.is_dir():
         return 0
-    for tmp in [*folder.glob(f"{_TMP_PREFIX}*"), *(folder / DONE_DIR).glob(f"{_TMP_PREFIX}*")]:
-        tmp.unlink(missing_ok=True)
+    remove_temp_files(folder)  # the shard folder and its .done markers
     numbers = {int(m.group(1)) for p in folder.glob("shard-*.tar") if (m := _SHARD_RE.match(p.name))}
     numbers |= {int(m.group(1)) for p in (folder / DONE_DIR).glob("shard-*.json")
                 if (m := _SHARD_RE.match(p.name.replace(".json", ".tar")))}
@@ -279,34 +278,45 @@ class _SampleBuffer:
         self._f.write(data)
 
 
+class ShardError(ValueError):
+    """A shard that cannot be read: not a tar, truncated or corrupt; the message names the shard and the member."""
+
+
 def iter_shard(path: Path, want: Callable[[int], bool] | None = None
                ) -> Iterator[tuple[str, dict[str, bytes] | None]]:
     """Samples of one tar in file order, grouped WebDataset-style: (key, {suffix: bytes}).
 
     The key is the member name up to the first '.' of its base name. ``want(i)`` False for the i-th sample
     (0-based): its members are not read (the reader seeks past them) and None is yielded in their place.
-    Raises ValueError (naming the file) when a sample's members are not contiguous.
+    Raises ``ShardError`` (a ValueError naming the file, and the member where it stopped) when a sample's
+    members are not contiguous, or the tar is not one, truncated or corrupt.
     """
     seen: set[str] = set()
     key, members, index = None, {}, -1
-    with tarfile.open(path, "r") as tar:
-        for info in tar:
-            if not info.isfile():
-                continue
-            base = info.name.rsplit("/", 1)[-1]
-            if "." not in base:
-                raise ValueError(f"{path}: member {info.name!r} has no suffix")
-            k, suffix = base.split(".", 1)
-            if k != key:
-                if key is not None:
-                    yield key, members
-                if k in seen:
-                    raise ValueError(f"{path}: members of sample {k!r} are not contiguous")
-                seen.add(k)
-                index += 1
-                key, members = k, ({} if want is None or want(index) else None)
-            if members is not None:
-                members[suffix] = tar.extractfile(info).read()
+    where = "its first member"
+    try:
+        with tarfile.open(path, "r") as tar:
+            for info in tar:
+                if not info.isfile():
+                    continue
+                base = info.name.rsplit("/", 1)[-1]
+                if "." not in base:
+                    raise ShardError(f"{path}: member {info.name!r} has no suffix")
+                k, suffix = base.split(".", 1)
+                if k != key:
+                    if key is not None:
+                        yield key, members
+                    if k in seen:
+                        raise ShardError(f"{path}: members of sample {k!r} are not contiguous")
+                    seen.add(k)
+                    index += 1
+                    key, members = k, ({} if want is None or want(index) else None)
+                where = f"member {info.name!r}"
+                if members is not None:
+                    members[suffix] = tar.extractfile(info).read()
+                where = f"the member after {info.name!r}"
+    except (tarfile.TarError, EOFError) as e:
+        raise ShardError(f"{path}: {where}: truncated or corrupt tar ({e}); rebuild this shard") from None
     if key is not None:
         yield key, members
 

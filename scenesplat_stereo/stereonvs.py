@@ -44,7 +44,6 @@ must be new, empty or an earlier import (a build's folder is refused).
 from __future__ import annotations
 
 import argparse
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -385,13 +384,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """CLI entry: import and print the summary; exit 2 with one line naming the file or flag when an input
-    is refused (OUT is then untouched)."""
-    try:
-        report = import_stereonvs(args.root, args.out, args.baseline, args.scenes, args.scale_tolerance,
-                                  args.rectification_tolerance, args.samples_per_shard, not args.no_progress)
-    except (OSError, ValueError) as e:
-        print(f"scenesplat-stereo import stereonvs: error: {e}", file=sys.stderr)
-        return 2
+    """CLI entry: import and print the summary. A refused input raises (OUT is then untouched);
+    ``commandline.run_command`` makes it one line naming the file or flag, and exit 2."""
+    report = import_stereonvs(args.root, args.out, args.baseline, args.scenes, args.scale_tolerance,
+                              args.rectification_tolerance, args.samples_per_shard, not args.no_progress)
     print(summary_table(report))
     return 0

@@ -37,9 +37,10 @@ def argtype(parse: Callable[[str, str], object], flag: str) -> Callable[[str], o
     return convert
 
 
-def parse_number(text: str, flag: str, kind: type = int, low: float | None = None, strict: bool = False):
-    """``kind(text)`` (int or float, finite), at least ``low`` (above it when ``strict``); ValueError naming
-    ``flag`` otherwise."""
+def parse_number(text: str, flag: str, kind: type = int, low: float | None = None, strict: bool = False,
+                 high: float | None = None, strict_high: bool = False):
+    """``kind(text)`` (int or float, finite), at least ``low`` (above it when ``strict``) and at most ``high``
+    (below it when ``strict_high``); ValueError naming ``flag`` otherwise."""
     try:
         value = kind(text)
     except ValueError:
@@ -48,17 +49,29 @@ def parse_number(text: str, flag: str, kind: type = int, low: float | None = Non
         raise ValueError(f"{flag} {text!r}: expected a finite number")
     if low is not None and (value <= low if strict else value < low):
         raise ValueError(f"{flag} {value}: must be {'>' if strict else '>='} {low}")
+    if high is not None and (value >= high if strict_high else value > high):
+        raise ValueError(f"{flag} {value}: must be {'<' if strict_high else '<='} {high}")
     return value
 
 
-def whole_number(flag: str, low: int = 1) -> Callable[[str], int]:
-    """An argparse ``type`` for a whole number >= ``low``."""
-    return argtype(lambda t, f: parse_number(t, f, int, low), flag)
+def whole_number(flag: str, low: int = 1, high: int | None = None) -> Callable[[str], int]:
+    """An argparse ``type`` for a whole number >= ``low`` (and <= ``high``)."""
+    return argtype(lambda t, f: parse_number(t, f, int, low, high=high), flag)
 
 
 def positive_number(flag: str) -> Callable[[str], float]:
     """An argparse ``type`` for a finite number > 0."""
     return argtype(lambda t, f: parse_number(t, f, float, 0.0, strict=True), flag)
+
+
+def non_negative_number(flag: str) -> Callable[[str], float]:
+    """An argparse ``type`` for a finite number >= 0."""
+    return argtype(lambda t, f: parse_number(t, f, float, 0.0), flag)
+
+
+def open_fraction(flag: str) -> Callable[[str], float]:
+    """An argparse ``type`` for a number strictly between 0 and 1."""
+    return argtype(lambda t, f: parse_number(t, f, float, 0.0, strict=True, high=1.0, strict_high=True), flag)
 
 
 def parse_sizes(text: str, what: str = "sizes") -> list[tuple[int, int]]:

@@ -8,22 +8,26 @@ so an interrupted ablation resumes where it stopped: finished evaluations are re
 
 Padding variants are multiples of the default padding P (paper: 0, 32 and 64 pixels beside P = 16 at
 S = 256, i.e. 0, 2P and 4P), so a smaller preset keeps the paper's proportions.
+
+Before anything is written: the flags, every ``--only`` word (each must match a variant or a baseline),
+the data (both splits' first samples at the run's size), and OUT (a folder that can be written, not inside
+the data, empty or an earlier ablation). One ablation at a time writes OUT (``OUT/.lock``).
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
-import json
 import time
 from pathlib import Path
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.files import (LOCK_FILE, TMP_PREFIX, FolderLock, atomic_write_bytes, check_apart,
+                                     check_writable, read_json)
 from scenesplat_stereo.text import markdown_table
 
 from . import evaluate
 from .config import ConfigurationError, ModelParams, TrainParams
-from .train import train
+from .train import read_split_checked, train
 
 
 def variants(base: ModelParams) -> list[tuple[str, str, ModelParams]]:
@@ -61,7 +65,7 @@ def _slug(name: str) -> str:
 def _evaluated(folder: Path, make_method, data: Path, device: str, lpips_vgg: str | None, progress: bool) -> dict:
     done = folder / "metrics.json"
     if done.exists():
-        return json.loads(done.read_text())
+        return read_json(done)
     return evaluate.evaluate(make_method(), data, "val", folder, device, lpips_vgg, progress=progress)
 
 
@@ -69,6 +73,34 @@ def ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, devi
            only: list[str] | None = None, progress: bool = True) -> str:
     """Train and evaluate every variant (or those whose names contain one of ``only``); returns table.md."""
     t0 = time.perf_counter()
+    check_ablation(base, schedule, data, out, only)
+    with FolderLock(out, "--out", "sgmodel ablate"):
+        return _ablate(base, schedule, data, out, device, lpips_vgg, only, progress, t0)
+
+
+def check_ablation(base: ModelParams, schedule: TrainParams, data: Path, out: Path, only: list[str] | None) -> None:
+    """Everything ``ablate`` can check before it writes (ValueError naming the flag): see the module docstring."""
+    names = [name for _, name, _ in variants(base)] + list(evaluate.METHODS)
+    for word in only or []:
+        if not any(word.lower() in name.lower() for name in names):
+            raise ValueError(f"--only {word!r}: matches no variant; the variants are {', '.join(names)}")
+    base.validate()
+    schedule.validate()
+    out = Path(out)
+    check_writable(out, "--out", create=False)
+    check_apart(out, "--out", {"--data": data})
+    known = {"table.md", LOCK_FILE} | {_slug(n) for n in names[:-len(evaluate.METHODS)]} | \
+        {f"baseline-{m}" for m in evaluate.METHODS}
+    other = sorted(p.name for p in out.iterdir() if p.name not in known and not p.name.startswith(TMP_PREFIX)) \
+        if out.is_dir() else []
+    if other:
+        raise ValueError(f"--out {out}: holds {other[0]!r}, which is not part of an ablation; choose a new or empty "
+                         f"--out")
+    read_split_checked(data, base.resolution, schedule.targets)
+
+
+def _ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, device: str, lpips_vgg: str | None,
+            only: list[str] | None, progress: bool, t0: float) -> str:
     rows = []
     for block, name, params in variants(base):
         if only and not any(o.lower() in name.lower() for o in only):
@@ -89,7 +121,6 @@ def ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, devi
             method, base.encoder, base.resolution, device), data, device, lpips_vgg, progress)
         rows.append(("Baselines without learned prediction", method, result))
     text = table(rows, schedule, base, device, time.perf_counter() - t0)
-    out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out / "table.md", text.encode())
     return text
 
@@ -119,7 +150,7 @@ def table(rows: list[tuple[str, str, dict]], schedule: TrainParams, base: ModelP
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, required=True, help="dataset folder written by `scenesplat-stereo build`")
     p.add_argument("--out", type=Path, required=True, help="ablation folder (a sub-folder per variant; resumes)")
-    p.add_argument("--only", nargs="+", help="only the variants whose names contain one of these words")
-    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    p.add_argument("--only", nargs="+", help="only the variants whose names contain one of these words (the two "
+                                             "baselines always run)")
     p.add_argument("--lpips-vgg", help="VGG16 ImageNet weights (default: torch's hub cache, else 1 - SSIM)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -2,20 +2,27 @@
 
 ``add_model_arguments`` / ``add_train_arguments`` add the flags of ``ModelParams`` / ``TrainParams`` (used
 by ``train``, ``ablate``, ``bench train``, ``bench predict``); ``params_from_args`` merges dataclass
-defaults, the ``--preset`` and the flags given; ``device_from_flag`` checks ``--device``. The command line
+defaults, the ``--preset`` and the flags given, and checks the result (a ValueError naming the flag);
+``add_device_argument`` / ``device_from_flag`` give every command the same ``--device`` (checked when
+parsed: cpu, cuda or cuda:N with that GPU present). Every number is checked by its argparse type (finite,
+in range), so a refused value names its flag before any command starts. The command line
 (``sgmodel.cli``) and the benchmarks (``sgmodel.bench``) both import this module, never each other.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 
 import torch
 
-from scenesplat_stereo.text import positive_number, whole_number
+from scenesplat_stereo.raster import check_device
+from scenesplat_stereo.text import argtype, non_negative_number, open_fraction, positive_number, whole_number
 
-from .config import PRESETS, ModelParams, TrainParams
+from .config import MAX_SEED, PRESETS, ModelParams, TrainParams
 from .encoders.flags import add_encoder_arguments, encoder_params
+
+log = logging.getLogger(__name__)
 
 
 def add_model_arguments(p: argparse.ArgumentParser) -> None:
@@ -26,7 +33,7 @@ def add_model_arguments(p: argparse.ArgumentParser) -> None:
                         "32-channel decoder/predictor, sgbm encoder, batch 4, 2 targets, 200 steps (minutes on 2 "
                         "CPU cores)")
     add_encoder_arguments(g, "the preset's: psmnet-kitti, or sgbm with cpu-small")
-    g.add_argument("--resolution", type=whole_number("--resolution"),
+    g.add_argument("--resolution", type=whole_number("--resolution", 16),
                    help="S: square input and target size, pixels (default 256)")
     g.add_argument("--padding", type=whole_number("--padding", 0),
                    help="P: canvas padding per side, pixels (default 16)")
@@ -51,24 +58,31 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--targets", type=whole_number("--targets"),
                    help="targets per pair per step, of the stored 10 (default 4)")
     g.add_argument("--lr", type=positive_number("--lr"), help="AdamW peak learning rate (default 4e-4)")
-    g.add_argument("--weight-decay", type=float, help="AdamW weight decay (default 0.01)")
-    g.add_argument("--warmup", type=float, help="OneCycleLR warm-up fraction (default 0.09)")
-    g.add_argument("--lpips-weight", type=float, help="weight of the LPIPS (or 1 - SSIM) term (default 0.05)")
+    g.add_argument("--weight-decay", type=non_negative_number("--weight-decay"),
+                   help="AdamW weight decay (default 0.01)")
+    g.add_argument("--warmup", type=open_fraction("--warmup"), help="OneCycleLR warm-up fraction, in (0, 1) "
+                                                                    "(default 0.09)")
+    g.add_argument("--lpips-weight", type=non_negative_number("--lpips-weight"),
+                   help="weight of the LPIPS (or 1 - SSIM) term (default 0.05; 0: MSE alone)")
     g.add_argument("--val-every", type=whole_number("--val-every"), help="steps between validations (default 3000)")
     g.add_argument("--val-samples", type=whole_number("--val-samples"), help="cap on validation samples (default: all)")
     g.add_argument("--log-every", type=whole_number("--log-every"),
                    help="steps between metrics.jsonl records (default 10)")
-    g.add_argument("--seed", type=int, help="data order, target draws and initialisation (default 0)")
+    g.add_argument("--seed", type=whole_number("--seed", 0, MAX_SEED),
+                   help="data order, target draws and initialisation (default 0)")
     g.add_argument("--workers", type=whole_number("--workers", 0), help="DataLoader workers per rank (default 4)")
     g.add_argument("--no-amp", action="store_true", help="float32 convolutions on CUDA (default: bf16 autocast)")
+    p.set_defaults(**{_TRAINING: True})
 
 
+_TRAINING = "training_flags"  # set by add_train_arguments: the schedule flags are the user's, check them
 _TRAIN_FLAGS = ("steps", "batch_size", "targets", "lr", "weight_decay", "warmup", "lpips_weight", "val_every",
                 "val_samples", "log_every", "seed", "workers")
 
 
 def params_from_args(args: argparse.Namespace) -> tuple[ModelParams, TrainParams]:
-    """Dataclass defaults <- the preset <- flags the user gave."""
+    """Dataclass defaults <- the preset <- flags the user gave; ValueError naming the flag for a model that
+    cannot be built or (with ``add_train_arguments``' flags) a schedule that cannot run."""
     preset = PRESETS[args.preset]
     model = ModelParams.from_dict(_merge(ModelParams().to_dict(), preset["model"]))
     train = TrainParams(**_merge(TrainParams().to_dict(), preset["train"]))
@@ -92,6 +106,11 @@ def params_from_args(args: argparse.Namespace) -> tuple[ModelParams, TrainParams
     if getattr(args, "no_amp", False):
         train.amp = False
     train.betas = tuple(train.betas)
+    model.validate()
+    if getattr(args, _TRAINING, False):  # the benches reuse some names (--warmup: untimed runs) for themselves
+        train.validate()
+    if train.lpips_weight == 0:
+        log.warning("--lpips-weight 0: the loss is the MSE alone (no LPIPS or 1 - SSIM term)")
     return model, train
 
 
@@ -102,12 +121,15 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
+def add_device_argument(p: argparse.ArgumentParser) -> None:
+    """``--device``: cpu, cuda or cuda:N (that GPU present), checked when parsed; default cuda when available."""
+    p.add_argument("--device", type=argtype(check_device, "--device"), default=None,
+                   help="cpu, cuda or cuda:N (default: cuda when available)")
+
+
 def device_from_flag(name: str | None) -> str:
-    """``--device``: None picks cuda when available, else cpu; anything but cpu / cuda[:N] is a ValueError."""
+    """``--device`` as parsed by ``add_device_argument``: None picks cuda when available, else cpu; a name is
+    checked again (ValueError naming --device) for callers that did not parse it."""
     if name is None:
         return "cuda" if torch.cuda.is_available() else "cpu"
-    if name != "cpu" and not name.startswith("cuda"):
-        raise ValueError(f"--device must be cpu or cuda[:N], got {name!r}")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: CUDA is not available on this machine")
-    return name
+    return check_device(name, "--device")

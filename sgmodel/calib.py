@@ -19,6 +19,7 @@ line and the field.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import re
 from dataclasses import dataclass
@@ -31,6 +32,9 @@ _MIDDLEBURY_KEYS = ("cam0", "cam1", "doffs", "baseline", "width", "height", "ndi
 _MIDDLEBURY_REQUIRED = ("cam0", "baseline")
 #: Middlebury 2014 states the baseline in millimetres.
 _MM = 1e-3
+#: A principal point further than this fraction of the image size from its centre gets a warning.
+OFF_CENTRE = 0.2
+log = logging.getLogger(__name__)
 
 
 class CalibError(ValueError):
@@ -53,6 +57,20 @@ class Calibration:
         if self.size is not None and tuple(self.size) != (width, height):
             raise CalibError(f"{self.source}: width={self.size[0]}, height={self.size[1]} do not match "
                              f"{image} ({width}x{height})")
+
+    def check_principal_point(self, width: int, height: int, image: str) -> None:
+        """CalibError when the principal point (cx, cy) lies outside the image (width x height pixels); a
+        warning when it lies more than ``OFF_CENTRE`` of the size from the centre, as a K computed for
+        another resolution puts it (a K of twice the size lands near the far corner)."""
+        cx, cy = self.K[0, 2], self.K[1, 2]
+        if not (0 < cx < width and 0 < cy < height):
+            raise CalibError(f"{self.source}: principal point cx={cx:g}, cy={cy:g} lies outside {image} "
+                             f"({width}x{height} pixels): is the calibration for another image size?")
+        off = max(abs(cx - width / 2) / width, abs(cy - height / 2) / height)
+        if off > OFF_CENTRE:
+            log.warning(f"{self.source}: principal point cx={cx:g}, cy={cy:g} is {100 * off:.0f}% of the image "
+                        f"size from the centre of {image} ({width / 2:g}, {height / 2:g}): is the calibration for "
+                        f"another image size?")
 
     def scaled(self, sx: float, sy: float) -> Calibration:
         """The calibration of the images resized by (sx, sy): fx, cx, doffs times sx; fy, cy times sy

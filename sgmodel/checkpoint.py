@@ -10,7 +10,9 @@ A checkpoint is a plain ``torch.save`` dict (PyTorch convention; load with ``wei
   (so a resumed run continues exactly; the data order is a function of (seed, step)).
 
 Writes are atomic (a temporary file renamed over the old one), so an interrupted save never leaves a
-half-written ``last.pt``.
+half-written ``last.pt``. Reading refuses (``CheckpointError``, naming the file) a file that is not a
+checkpoint, one of another format version, and one whose weights hold NaN or infinity (a diverged run:
+``sgmodel train`` never writes one, and ``eval``/``predict`` must not use one).
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from typing import Any
 import torch
 
 from scenesplat_stereo.files import atomic_write_bytes
+
+from .config import ModelParams
 
 CHECKPOINT_FORMAT = "sgmodel-checkpoint-v1"
 REQUIRED = ("format", "model_params", "model", "step")
@@ -53,5 +57,38 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if missing:
         raise CheckpointError(f"{path}: missing fields {missing} (not written by `sgmodel train`?)")
     if ckpt["format"] != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: format {ckpt['format']!r}, this version reads {CHECKPOINT_FORMAT!r}")
+        raise CheckpointError(f"{path}: format {ckpt['format']!r} (another version of sgmodel); this version "
+                              f"reads {CHECKPOINT_FORMAT!r}")
+    if not isinstance(ckpt["model"], dict):
+        raise CheckpointError(f"{path}: field 'model' is a {type(ckpt['model']).__name__}, not a state dict")
+    bad = nonfinite_weights(ckpt["model"])
+    if bad:
+        raise CheckpointError(f"{path}: {len(bad)} weight tensors hold NaN or infinity (e.g. {bad[0]}): a "
+                              f"diverged model; use a checkpoint from before the divergence")
     return ckpt
+
+
+def model_params_of(ckpt: dict[str, Any], path: str | Path) -> ModelParams:
+    """The ``ModelParams`` a checkpoint was trained with; CheckpointError naming the file when its record is
+    of another version (unknown or missing fields)."""
+    try:
+        return ModelParams.from_dict(ckpt["model_params"])
+    except (TypeError, ValueError, AttributeError) as e:
+        raise CheckpointError(f"{path}: its model_params do not fit this version of sgmodel ({e})") from None
+
+
+def load_weights(model: torch.nn.Module, ckpt: dict[str, Any], path: str | Path) -> None:
+    """``model.load_state_dict(ckpt["model"])``; CheckpointError naming the file and the first mismatched
+    weights when the checkpoint is of another architecture."""
+    try:
+        model.load_state_dict(ckpt["model"])
+    except RuntimeError as e:
+        detail = [line.strip() for line in str(e).splitlines()[1:] if line.strip()][:2]
+        raise CheckpointError(f"{path}: its weights do not fit this model ({'; '.join(detail)[:300]})") from None
+
+
+def nonfinite_weights(state: dict[str, Any]) -> list[str]:
+    """Names of the floating-point tensors of a state dict that hold NaN or infinity."""
+    if not isinstance(state, dict):
+        return []
+    return [k for k, v in state.items() if torch.is_tensor(v) and v.is_floating_point() and not torch.isfinite(v).all()]

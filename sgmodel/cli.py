@@ -1,24 +1,29 @@
 """``sgmodel`` command line: parse, call, print. Each command's work lives in its room.
 
 Commands: ``train``, ``eval``, ``predict``, ``rectify``, ``ablate``, ``weights fetch``, ``bench train``,
-``bench encoders``, ``bench predict``. Errors in what the user typed (a bad flag value, a missing file,
-weights that are not there) print one line naming the flag or file and exit 2; nothing is written before
-the inputs are checked.
+``bench encoders``, ``bench predict``. Every command checks all its inputs before it writes anything; its
+errors end in ``scenesplat_stereo.commandline.run_command``: exit 2 with one line naming the flag or file
+for bad arguments and input (a bad flag value, a missing or corrupt file, weights that are not there, a
+diverged run, a full disk, running out of memory), 130 for Ctrl-C (what was kept is said), 1 with one line
+for an internal error (the traceback with ``--debug`` or ``STEREOGAUSSIANS_DEBUG=1``).
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
+import shlex
 from pathlib import Path
 
-from scenesplat_stereo.commandline import Parser
+import torch
 
-from .args import add_model_arguments, add_train_arguments, device_from_flag, params_from_args
-from .checkpoint import CheckpointError
-from .weights import SOURCES, WeightsError
+from scenesplat_stereo.commandline import Parser, run_command
 
-EXIT_USAGE = 2
+from .args import add_device_argument, add_model_arguments, add_train_arguments, device_from_flag, params_from_args
+from .weights import SOURCES
+
+#: Errors that are not ValueErrors but that the user fixes with other settings (exit 2, with this advice).
+USER_ERRORS = {torch.cuda.OutOfMemoryError: "out of GPU memory: lower --batch-size or --resolution",
+               MemoryError: "out of memory: lower --batch-size, --resolution or --workers"}
 
 
 def _add_train(sub) -> None:
@@ -28,7 +33,10 @@ def _add_train(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, required=True, help="dataset folder written by `scenesplat-stereo build`")
     p.add_argument("--out", type=Path, required=True, help="run folder (created; an existing run resumes)")
-    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    p.add_argument("--init-from", type=Path, metavar="CKPT",
+                   help="start a new run from this checkpoint's weights (not its optimiser or step), e.g. the "
+                        "last.pt of a diverged run, with other settings")
+    add_device_argument(p)
     p.add_argument("--lpips-vgg", help="torchvision VGG16 ImageNet weights vgg16-397923af.pth (default: torch's hub "
                                        "cache); without them the LPIPS term becomes 1 - SSIM")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -37,11 +45,37 @@ def _add_train(sub) -> None:
 
     def run(args) -> int:
         model, tp = params_from_args(args)
-        train.train(model, tp, args.data, args.out, device=device_from_flag(args.device), vgg_path=args.lpips_vgg,
-                    progress=not args.no_progress)
+        try:
+            train.train(model, tp, args.data, args.out, device=device_from_flag(args.device), vgg_path=args.lpips_vgg,
+                        progress=not args.no_progress, init_from=args.init_from)
+        except train.TrainingDiverged as e:
+            raise train.TrainingDiverged(f"{e}; the command: {restart_command(args.command_argv, e, args.out)}",
+                                         e.step, e.checkpoint, e.checkpoint_step, e.lr) from None
         return 0
 
     p.set_defaults(func=run)
+
+
+def restart_command(argv: list[str], e, out: Path) -> str:
+    """The ``sgmodel train`` command that goes on after the divergence ``e`` of the run typed as ``argv``: the
+    same flags with half the learning rate, from the last checkpoint into a new run folder when there is one
+    (``--init-from``), else again in the same folder (which saved nothing)."""
+    drop, kept, skip = {"--out", "--lr", "--init-from"}, [], False
+    for word in argv:
+        if skip:
+            skip = False
+        elif word in drop:
+            skip = True
+        elif word.split("=", 1)[0] not in drop:
+            kept.append(word)
+    new_out, extra = out, []
+    if e.checkpoint is not None:
+        n, new_out = 1, out.with_name(f"{out.name}-from-{e.checkpoint_step}")
+        while new_out.exists():
+            n += 1
+            new_out = out.with_name(f"{out.name}-from-{e.checkpoint_step}-{n}")
+        extra = ["--init-from", str(e.checkpoint)]
+    return shlex.join(["sgmodel", *kept, "--out", str(new_out), "--lr", f"{e.lr / 2:g}", *extra])
 
 
 def _add_weights(sub) -> None:
@@ -72,7 +106,17 @@ def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split",
                        description=evaluate.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     evaluate.add_arguments(p)
-    p.set_defaults(func=lambda args: evaluate.run(args, device_from_flag(args.device)))
+    add_device_argument(p)
+
+    def run(args) -> int:
+        methods = evaluate.methods_of(args)
+        if len(args.data) > 1 or len(methods) > 1:  # a table in the layout of the paper's Table 2
+            from . import table2
+
+            return table2.run_table(args, methods, device_from_flag(args.device))
+        return evaluate.run(args, methods[0], device_from_flag(args.device))
+
+    p.set_defaults(func=run)
 
 
 def _add_predict(sub) -> None:
@@ -100,6 +144,7 @@ def _add_ablate(sub) -> None:
     p = sub.add_parser("ablate", help="train and evaluate the Table 4 variants with one schedule",
                        description=ablate.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ablate.add_arguments(p)
+    add_device_argument(p)
     add_model_arguments(p)
     add_train_arguments(p)
 
@@ -128,8 +173,7 @@ def _add_bench(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(prog="sgmodel", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(prog="sgmodel", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version="sgmodel 0.1.0")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_train(sub)
@@ -143,13 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        return args.func(args)
-    except (ValueError, WeightsError, CheckpointError, FileNotFoundError) as e:
-        print(f"sgmodel {args.command}: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
+    """Run one command; the exit status and its one-line errors are ``commandline.run_command``'s."""
+    return run_command(build_parser(), argv, USER_ERRORS)
 
 
 if __name__ == "__main__":

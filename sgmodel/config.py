@@ -9,10 +9,12 @@ machines without a GPU: they change sizes and schedules, never the method.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 EDGE_MASKS = ("none", "hard", "soft")
+MAX_SEED = 2**63 - 1  # seeds numpy and torch both take (torch.manual_seed refuses more than 64 bits)
 
 
 class ConfigurationError(ValueError):
@@ -74,19 +76,22 @@ class ModelParams:
                    composer=ComposerParams(**d.pop("composer", {})), **d)
 
     def validate(self) -> None:
-        """Raise ConfigurationError naming the field for a configuration that cannot be built."""
+        """Raise ConfigurationError naming the flag (the field of the same name) for a configuration that
+        cannot be built."""
         if self.resolution < 16 or self.resolution % 16:
-            raise ConfigurationError(f"resolution must be a multiple of 16 and >= 16, got {self.resolution}")
+            raise ConfigurationError(f"--resolution {self.resolution}: must be a multiple of 16 and >= 16")
         if self.padding < 0:
-            raise ConfigurationError(f"padding must be >= 0, got {self.padding}")
+            raise ConfigurationError(f"--padding {self.padding}: must be >= 0")
         if self.composer.edge_mask not in EDGE_MASKS:
-            raise ConfigurationError(f"edge_mask must be one of {EDGE_MASKS}, got {self.composer.edge_mask!r}")
+            raise ConfigurationError(f"--edge-mask {self.composer.edge_mask!r}: must be one of {EDGE_MASKS}")
         if self.composer.edge_mask != "none" and not self.composer.back_layer:
-            raise ConfigurationError("an edge mask gates the back layer: it needs back_layer=True")
+            raise ConfigurationError(f"--edge-mask {self.composer.edge_mask}: an edge mask gates the back layer; it "
+                                     "cannot be combined with --no-back-layer")
         for name, width, groups in (("decoder", self.decoder.channels, self.decoder.groups),
                                     ("predictor", self.predictor.channels, self.predictor.groups)):
             if width < 1 or groups < 1 or width % groups:
-                raise ConfigurationError(f"{name}.channels ({width}) must be a positive multiple of {name}.groups ({groups})")
+                raise ConfigurationError(f"--{name}-channels {width}: must be a positive multiple of {name}.groups "
+                                         f"({groups})")
 
 
 @dataclass
@@ -113,15 +118,26 @@ class TrainParams:
         return dataclasses.asdict(self)
 
     def validate(self) -> None:
-        for name in ("steps", "batch_size", "targets", "val_every", "log_every"):
+        """ValueError naming the flag (the field of the same name) for a schedule that cannot run."""
+        for name in ("steps", "batch_size", "targets", "val_every", "log_every", "sheet_samples"):
             if getattr(self, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
-        if self.lr <= 0:
-            raise ValueError(f"--lr must be > 0, got {self.lr}")
+                raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)}: must be >= 1")
+        if self.val_samples is not None and self.val_samples < 1:
+            raise ValueError(f"--val-samples {self.val_samples}: must be >= 1")
+        for name, low in (("lr", 0.0), ("weight_decay", None), ("lpips_weight", None), ("div_factor", 0.0),
+                          ("final_div_factor", 0.0)):
+            value = getattr(self, name)
+            if not math.isfinite(value) or (value <= low if low is not None else value < 0):
+                raise ValueError(f"--{name.replace('_', '-')} {value}: must be a finite number "
+                                 f"{'> 0' if low is not None else '>= 0'}")
         if not 0 < self.warmup < 1:
-            raise ValueError(f"--warmup must be in (0, 1), got {self.warmup}")
+            raise ValueError(f"--warmup {self.warmup}: must be in (0, 1)")
+        if not all(0 <= b < 1 for b in self.betas):
+            raise ValueError(f"betas {self.betas}: each must be in [0, 1)")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ValueError(f"--seed {self.seed}: must be in 0..{MAX_SEED}")
         if self.workers < 0:
-            raise ValueError(f"--workers must be >= 0, got {self.workers}")
+            raise ValueError(f"--workers {self.workers}: must be >= 0")
 
 
 # Small configurations for a CPU: the same method at a size two cores train in minutes.

@@ -66,7 +66,7 @@ def read_split(root: Path, split: str) -> list[Shard]:
     shard, a malformed index, a shard without samples, or an empty split."""
     root = Path(root)
     if not root.is_dir():
-        raise DataError(f"{root}: data folder does not exist")
+        raise DataError(f"{root}: {'not a folder' if root.exists() else 'data folder does not exist'}")
     folder = root / split
     if not folder.is_dir():
         present = sorted(p.name for p in root.iterdir() if (p / INDEX_NAME).is_file())

@@ -7,9 +7,11 @@ stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Sev
 section 7, sgmodel.metrics): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
 when the VGG16 weights are available; each over the full image and over the valid mask.
 
-Writes REPORT/ (atomically, after every input is checked): ``metrics.json`` (means, target count, encoder,
-method or checkpoint, split), ``targets.csv`` (one row per target), ``scenes.md`` (a table per scene), and
-``sheet.png`` (the worst and the best targets by PSNR: target | render).
+Writes REPORT/ after every input is checked (the data split, the checkpoint or encoder, the LPIPS weights,
+and REPORT itself: absent, empty or an earlier report, apart from the data): ``metrics.json`` (means,
+target count, encoder, method or checkpoint, split), ``targets.csv`` (one row per target), ``scenes.md`` (a
+table per scene), and ``sheet.png`` (the worst and the best targets by PSNR: target | render). The report
+is built in a staging folder that replaces REPORT as a whole (``scenesplat_stereo.files.StagedFolder``).
 """
 
 from __future__ import annotations
@@ -25,12 +27,12 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.files import atomic_write_bytes
-from scenesplat_stereo.text import markdown_table
+from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable
+from scenesplat_stereo.text import markdown_table, whole_number
 
 from . import metrics
 from .config import EncoderParams
-from .data import eval_batches
+from .data import eval_batches, read_split
 from .encoders import DEFAULT_ENCODER
 from .encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from .inference import Reconstructor
@@ -43,6 +45,7 @@ from .train import to_device
 METHODS = ("naive-gs", "forward-splat")
 METRICS = ("psnr", "ssim", "lpips")
 SHEET_TARGETS = 4  # worst and best targets shown in sheet.png
+OWNER = "sgmodel eval"  # recorded in REPORT (files.OWNER_FILE): a later evaluation may replace it
 
 
 @dataclass
@@ -148,11 +151,11 @@ def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpi
               "resolution": method.resolution, "targets": len(rows),
               "lpips": "LPIPS-VGG v0.1" if lpips_net is not None else "not computed (no VGG16 ImageNet weights)",
               "mean": summarise(rows)}
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out / "metrics.json", (json.dumps(result, indent=2) + "\n").encode())
-    atomic_write_bytes(out / "targets.csv", _csv(rows))
-    atomic_write_bytes(out / "scenes.md", (scene_table(rows) + "\n").encode())
-    atomic_write_bytes(out / "sheet.png", target_sheet(kept))
+    with StagedFolder(out, OWNER) as tmp:
+        (tmp / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+        (tmp / "targets.csv").write_bytes(_csv(rows))
+        (tmp / "scenes.md").write_text(scene_table(rows) + "\n")
+        (tmp / "sheet.png").write_bytes(target_sheet(kept))
     return result
 
 
@@ -173,28 +176,45 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", choices=METHODS, action="append",
                    help="a baseline without learned prediction; repeat it (with or without --checkpoint) for a table")
     add_encoder_arguments(p, f"the checkpoint's; {DEFAULT_ENCODER} for --method")
-    p.add_argument("--resolution", type=int, default=256, help="S for a baseline (a checkpoint uses its own)")
+    p.add_argument("--resolution", type=whole_number("--resolution", 16), default=256,
+                   help="S for a baseline (a checkpoint uses its own)")
     p.add_argument("--out", type=Path, required=True, help="report folder")
-    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
-    p.add_argument("--batch-size", type=int, default=4, help="pairs per batch (default 4)")
+    p.add_argument("--batch-size", type=whole_number("--batch-size"), default=4, help="pairs per batch (default 4)")
     p.add_argument("--lpips-vgg", help="VGG16 ImageNet weights for LPIPS (default: torch's hub cache)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def run(args: argparse.Namespace, device: str) -> int:
-    if args.out.exists() and not args.out.is_dir():
-        raise ValueError(f"--out {args.out}: exists and is not a folder")
-    if args.batch_size < 1:
-        raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
+def check_report_folder(out: Path, inputs: dict[str, Path | None]) -> None:
+    """REPORT may be replaced by a new report: absent, empty or an earlier report, writable, apart from the
+    ``inputs`` ({flag: path}: the data, the checkpoint); ValueError naming --out. Reads only."""
+    check_replaceable(out, "--out", OWNER)
+    check_apart(out, "--out", inputs, replaced=True)
+
+
+def methods_of(args: argparse.Namespace) -> list[str]:
+    """What ``sgmodel eval`` measures: "checkpoint" (``--checkpoint``) and the ``--method`` baselines, in
+    order, each once; ValueError when there is none. Several methods or ``--data`` folders make a table
+    (``sgmodel.table2.run_table``), one of each a report (``run``)."""
     methods = (["checkpoint"] if args.checkpoint else []) + list(dict.fromkeys(args.method or []))
     if not methods:
         raise ValueError("--checkpoint / --method: give a checkpoint, a baseline, or both")
-    if len(args.data) > 1 or len(methods) > 1:
-        from .table2 import run_table  # the table is made of this module's evaluations
+    return methods
 
-        return run_table(args, methods, device)
+
+
+def eval_inputs(args: argparse.Namespace) -> dict[str, Path | None]:
+    """The inputs a report must stay apart from, by flag: each ``--data`` folder (its split checked to exist)
+    and ``--checkpoint``."""
+    for _, path in args.data:
+        read_split(path, args.split)
+    return {f"--data {name}={path}": path for name, path in args.data} | {"--checkpoint": args.checkpoint}
+
+
+def run(args: argparse.Namespace, method_name: str, device: str) -> int:
+    """``sgmodel eval`` with one ``--data`` folder and one method: REPORT is ``--out``."""
+    check_report_folder(args.out, eval_inputs(args))
     method = checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder) \
-        if args.checkpoint else baseline_method(methods[0], encoder_params(args), args.resolution, device)
+        if method_name == "checkpoint" else baseline_method(method_name, encoder_params(args), args.resolution, device)
     result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
                       not args.no_progress)
     print((args.out / "scenes.md").read_text())

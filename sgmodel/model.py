@@ -163,12 +163,13 @@ def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", e
     """Rebuild a model from a checkpoint written by ``sgmodel train`` (its ModelParams travel inside it);
     the frozen encoder is rebuilt from the registry with the checkpoint's settings, ``encoder_weights`` and
     ``encoder_repo`` over them (``--encoder-weights``, ``--encoder-repo``; ``encoder``, the ``--encoder`` flag,
-    may only repeat the checkpoint's)."""
-    from .checkpoint import load_checkpoint
+    may only repeat the checkpoint's). A checkpoint that is not ours, of another version, of weights that do
+    not fit its model or that hold NaN raises ``CheckpointError`` naming the file."""
+    from .checkpoint import load_checkpoint, load_weights, model_params_of
 
     ckpt = load_checkpoint(checkpoint)
-    params = ModelParams.from_dict(ckpt["model_params"])
+    params = model_params_of(ckpt, checkpoint)
     params.encoder = merge_encoder(params.encoder, encoder, encoder_weights, encoder_repo, checkpoint)
     model = create_model(params, device)
-    model.load_state_dict(ckpt["model"])
+    load_weights(model, ckpt, checkpoint)
     return Predictor(model, amp=bool(ckpt.get("train_params", {}).get("amp", True)))

@@ -16,9 +16,17 @@ Pixels without a valid stereo depth (no match, occluded, outside the encoder's r
 clamps) produce no Gaussian; the log says how many were dropped. Images (frames) are resized so the short
 side is the model's resolution (the checkpoint's, or ``--resolution``, or 256 for the baselines), keeping
 the aspect ratio, each side rounded to a multiple of 16; K (and doffs) are scaled to match, and the
-outputs are at that size. Every input is checked before anything is written; outputs go to a temporary
-folder beside OUT and are moved into OUT at the end. Errors in the inputs raise ``PredictError`` (or
-``CalibError``); ``run`` turns them into exit status 2.
+outputs are at that size. Images are turned upright by their EXIF Orientation tag (as OpenCV's ``imread``
+does; the calibration is of the upright pixels).
+
+Every input is checked before anything is written: the images (readable, one size, at least 16 pixels a
+side), the calibration against them (principal point inside the image; a warning when it is far from the
+centre, as with a K of another resolution), a pair's depth against the calibration (refused when ``doffs``
+or the baseline puts 99% of the pixels at the depth clamp), and OUT (absent, empty, or an earlier output of
+``sgmodel predict``; apart from the inputs). The outputs are written to a staging folder beside OUT that
+replaces OUT as a whole at the end (``scenesplat_stereo.files.StagedFolder``): no file of an earlier
+prediction is left beside new ones. Errors in the inputs raise ``PredictError`` (or ``CalibError``, a
+``StereoCheckError``), which the command line turns into one line and exit status 2.
 
 With ``--rig`` the pair (or every video frame) is raw: it is rectified first (``sgmodel.rectify``, the pair
 transform of ``sgmodel.pairs``), the scene files are then in the raw left camera's frame (the viewer files
@@ -31,10 +39,7 @@ summary repeats its figures.
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
-import sys
-import tempfile
+import logging
 from collections.abc import Callable
 from pathlib import Path
 
@@ -42,16 +47,19 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.encode import encode_png, to_uint8
+from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene_files import FORMATS
 
 from . import baselines, export, rig, stereo_check, video
+from .args import add_device_argument, device_from_flag
 from .bench import synced_clock
-from .calib import CalibError
-from .encoders import DEFAULT_ENCODER, EncoderFlagError
+from .calib import Calibration
+from .encoders import DEFAULT_ENCODER
 from .encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
+from .geometry import Z_MAX, Z_MIN
 from .inference import Reconstructor
-from .pairs import (SIZE_MULTIPLE, Pair, PredictError, prepare_pairs, read_calibration, read_pair, rectify_pair,
-                    to_tensor)
+from .pairs import prepare_pairs, read_calibration, read_pair, rectify_pair
+from .stereo_pair import SIZE_MULTIPLE, Pair, PredictError, to_tensor
 from .viewers import write_viewer_files
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
@@ -64,6 +72,11 @@ ORBIT_FRAMES = 24
 DEFAULT_FORMAT, DEFAULT_FRAME_FORMAT = "ply", "spz"
 #: Pairs per model call in a video.
 DEFAULT_BATCH = 4
+#: Fraction of a pair's pixels at the depth clamp from which its depth is refused (doffs or baseline wrong);
+#: from half of them on, a warning.
+CLAMPED_REFUSED, CLAMPED_WARNED = 0.99, 0.5
+OWNER = "sgmodel predict"  # recorded in OUT (files.OWNER_FILE): a later prediction may replace OUT
+logger = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -90,7 +103,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_encoder_arguments(parser, f"the checkpoint's; {DEFAULT_ENCODER} for --method")
     parser.add_argument("--resolution", type=int, help="short side the model runs at (default: the "
                         f"checkpoint's; {DEFAULT_RESOLUTION} for --method)")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    add_device_argument(parser)
     vid = parser.add_argument_group("video")
     vid.add_argument("--trajectory", default="orbit", help="novel view of each frame: offset:dx,dy,dz (metres "
                      "from the left camera, its axes, not turned) or orbit[:radius[,seconds]] (default: radius "
@@ -162,21 +175,34 @@ def _check_args(args: argparse.Namespace) -> None:
         raise PredictError(f"--batch-size and --max-frames must be at least 1, got {args.batch_size} and "
                            f"{args.max_frames}")
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise PredictError(f"--out {args.out}: exists and is not a folder")
     if not out.resolve().parent.is_dir():
         raise PredictError(f"--out {args.out}: parent folder {out.resolve().parent} does not exist")
-    try:
-        torch.device(args.device)
-    except RuntimeError as e:
-        raise PredictError(f"--device {args.device!r}: {e}") from None
+    check_replaceable(out, "--out", OWNER)
+    inputs = ("--left", "--right", "--video", "--left-video", "--right-video", "--calib", "--rig", "--checkpoint")
+    check_apart(out, "--out", {f: getattr(args, f[2:].replace("-", "_")) for f in inputs}, replaced=True)
+
+
+def check_depth(z: torch.Tensor, calib: Calibration) -> None:
+    """PredictError when (nearly) every pixel's depth z [1,1,H,W] is at a clamp, z_max or z_min: a ``doffs`` or
+    baseline that does not fit the pair (the numbers in the message); a warning when most are."""
+    clamped = ((z >= Z_MAX) | (z <= Z_MIN)).float().mean().item()
+    if clamped < CLAMPED_WARNED:
+        return
+    text = (f"{calib.source}: {100 * clamped:.1f}% of the pixels get a depth at the clamp ({Z_MIN:g} or {Z_MAX:g} m) "
+            f"with fx={calib.K[0, 0]:.1f} px, baseline {calib.baseline:g} m, doffs {calib.doffs:g} px (z = fx B / "
+            f"(d + doffs); d + doffs <= 0 is 'no match'): check doffs (Middlebury: cx1 - cx0, pixels) and the "
+            f"baseline; or the images do not match (the same image twice?) or the scene lies outside the model's "
+            f"depth range")
+    if clamped >= CLAMPED_REFUSED:
+        raise PredictError(text)
+    logger.warning(text)
 
 
 def predict(args: argparse.Namespace, log=print) -> None:
     """Do the work of ``sgmodel predict`` (raises PredictError / CalibError / StereoCheckError on bad input)."""
     _check_args(args)
     trajectory = video.parse_trajectory(args.trajectory)
-    device = torch.device(args.device)
+    device = torch.device(device_from_flag(args.device))
     timer = _Timer(device)
     source = None
     try:
@@ -196,15 +222,12 @@ def predict(args: argparse.Namespace, log=print) -> None:
                                        first.rectification is not None, log)
         timer.lap("stereo check")
         out = Path(args.out)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.resolve().parent))
-        try:
+        with StagedFolder(out, OWNER) as tmp:  # replaces OUT as a whole, or leaves it as it was
             if source is None:
                 _predict_pair(args, first, reconstructor, short, device, timer, tmp, log)
             else:
                 _predict_video(args, source, first, reconstructor, short, trajectory, device, tmp, log)
-            written = _move_into(tmp, out)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
+            written = sorted(str(p.relative_to(tmp)) for p in tmp.rglob("*") if p.is_file())
     finally:
         if source is not None:
             source.close()
@@ -248,6 +271,7 @@ def _predict_pair(args, raw: Pair, reconstructor: Reconstructor, short: int, dev
     baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
     timer.lap("model size")
     scenes = reconstructor(left, right, K, baseline, pair.calib.doffs, lap=timer.lap)
+    check_depth(scenes.depth[:1], pair.calib)
     kept, produced = scenes.counts(0)
     _log_dropped(kept, produced, "Gaussians" if scenes.gaussians is not None else "pixels", log)
     (tmp / "views").mkdir()
@@ -305,27 +329,7 @@ def _predict_video(args, source: video.StereoSource, first: Pair, reconstructor:
     log(report.table((w, h)))
 
 
-def _move_into(tmp: Path, out: Path) -> list[str]:
-    """Move every file of ``tmp`` into ``out`` (same file system, one ``os.replace`` each); their names."""
-    written = []
-    for src in sorted(tmp.rglob("*")):
-        dst = out / src.relative_to(tmp)
-        if src.is_dir():
-            dst.mkdir(parents=True, exist_ok=True)
-        else:
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(src, dst)
-            written.append(str(src.relative_to(tmp)))
-    return written
-
-
 def run(args: argparse.Namespace) -> int:
-    """Entry point of the CLI: 0 on success; 2 with one message on stderr for bad input."""
-    from .weights import WeightsError
-
-    try:
-        predict(args)
-    except (PredictError, CalibError, stereo_check.StereoCheckError, WeightsError, EncoderFlagError) as e:
-        print(f"sgmodel predict: error: {e}", file=sys.stderr)
-        return 2
+    """Entry point of the CLI: 0 on success (bad input raises; the command line makes it one line, exit 2)."""
+    predict(args)
     return 0

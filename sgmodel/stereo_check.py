@@ -19,7 +19,7 @@ with the numbers and the likely cause; ``--strict`` makes them an error (exit 2)
 from __future__ import annotations
 
 import argparse
-import sys
+import logging
 from dataclasses import dataclass
 
 import cv2
@@ -27,6 +27,8 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.encode import to_uint8
+
+log = logging.getLogger(__name__)
 
 #: Thresholds on |dy| (pixels of the input images): median, 95th percentile.
 DY_MEDIAN_MAX, DY_P95_MAX = 1.0, 2.0
@@ -164,8 +166,8 @@ def measure(left, right, doffs: float = 0.0, rectified_here: bool = False, max_s
 
 
 def stderr_line(line: str) -> None:
-    """Print one warning line on stderr."""
-    print(line, file=sys.stderr)
+    """One warning through ``logging`` (a command prints it as ``<command>: warning: ...`` on stderr)."""
+    log.warning(line.removeprefix("warning: "))
 
 
 def run_check(left, right, strict: bool, doffs: float = 0.0, rectified_here: bool = False, log=print,

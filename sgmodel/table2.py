@@ -25,12 +25,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from scenesplat_stereo.benchmark import read_benchmark
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.files import atomic_write_bytes, check_apart, check_replaceable, check_writable
 from scenesplat_stereo.text import key_safe_name, markdown_table
 
 from .data import read_split
 from .encoders.flags import encoder_params
-from .evaluate import Method, baseline_method, checkpoint_method, evaluate
+from .evaluate import OWNER, Method, baseline_method, checkpoint_method, eval_inputs, evaluate
 
 TABLE_MD, TABLE_JSON = "table2.md", "table2.json"
 #: Row order and labels of the paper's Table 2 ("Stereo geometry without learned prediction", then ours).
@@ -130,8 +130,14 @@ def _method(name: str, args: argparse.Namespace, device: str) -> Method:
 
 
 def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:
-    """Evaluate every method on every ``--data`` folder, write the reports and the table, print it."""
+    """Evaluate every method on every ``--data`` folder, write the reports and the table, print it. OUT and
+    each report folder in it (replaced as a whole) are checked before anything runs."""
     cols = columns(args.data, args.split)
+    check_writable(args.out, "--out", create=False)
+    check_apart(args.out, "--out", eval_inputs(args))
+    for c in cols:
+        for m in methods:
+            check_replaceable(Path(args.out) / c.name / m, "--out", OWNER)
     labels = dict(ROWS)
     order = [m for m, _ in ROWS if m in methods]
     built = {m: _method(m, args, device) for m in order}  # every checkpoint and encoder loads before any run

@@ -8,14 +8,27 @@ sheet (input, depth, targets, renders) and keeps the checkpoint with the highest
 
 Files in RUN (only rank 0 writes, every file atomically): ``config.json`` (all settings, the encoder and
 its weights hash, the loss used), ``metrics.jsonl`` (one record per ``log_every`` steps: step, loss, psnr,
-lr, step_ms; one per validation: step, val_psnr, val_psnr_masked, val_targets), ``checkpoints/last.pt``
-and ``best.pt`` (``sgmodel.checkpoint``), ``sheets/val_<step>.png``. An interrupted run resumes from
-``last.pt`` exactly: weights, optimiser, scheduler, RNG and the data order (a function of seed and step).
+lr, step_ms; one per validation: step, val_psnr, val_psnr_masked, val_targets; whole lines only),
+``checkpoints/last.pt`` and ``best.pt`` (``sgmodel.checkpoint``), ``sheets/val_<step>.png``, and ``.lock``
+while a process trains in it (a second one is refused). An interrupted or killed run resumes from
+``last.pt`` exactly: weights, optimiser, scheduler, RNG and the data order (a function of seed and step);
+a torn last line of ``metrics.jsonl`` is dropped with a warning.
+
+Nothing is written before every input is checked: the flags, ``--out`` (a folder that can be written, not
+inside ``--data``, empty, or a run of the same settings), both splits (their first samples decoded at
+the run's size), the encoder and LPIPS weights, ``--init-from``. A RUN that holds an earlier attempt of
+other settings without any checkpoint is started afresh (nothing of value is lost).
+
+Divergence: the loss is checked every step (``train_step``; its ``.item()`` syncs anyway); the gradients
+every step with one fused norm on the device (no sync), read together with the weights' norm at every log
+and checkpoint step. A NaN or infinity stops training with ``TrainingDiverged``, before any checkpoint
+holds it; ``--init-from last.pt`` starts a new run with other settings from the last finite weights.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,18 +37,34 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.commandline import Interrupted
+from scenesplat_stereo.files import (LOCK_FILE, TMP_PREFIX, FolderLock, append_line, atomic_write_bytes, check_apart,
+                                     check_writable, read_json, read_json_lines, remove_temp_files)
+from scenesplat_stereo.shards import iter_shard
 from scenesplat_stereo.text import format_table
 
 from . import metrics
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from .config import ModelParams, TrainParams
-from .data import make_loader, read_split
+from .data import DataError, load_sample, make_loader, read_split
 from .distributed import World, all_sum, broadcast_flag, close_world, init_world
 from .losses import create_objective
 from .model import StereoGaussians, create_model
 from .render import render_views
 from .sheets import validation_sheet
+
+log = logging.getLogger(__name__)
+
+
+class TrainingDiverged(ValueError):
+    """The loss, a gradient or a weight became NaN or infinite; training stopped and saved nothing of it.
+    ``step``: the step it happened at; ``checkpoint``: the last checkpoint written (holding
+    ``checkpoint_step``), or None; ``lr``: the peak learning rate used."""
+
+    def __init__(self, message: str, step: int | None = None, checkpoint: Path | None = None,
+                 checkpoint_step: int | None = None, lr: float | None = None) -> None:
+        super().__init__(message)
+        self.step, self.checkpoint, self.checkpoint_step, self.lr = step, checkpoint, checkpoint_step, lr
 
 
 @dataclass(frozen=True)
@@ -87,7 +116,7 @@ def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, 
     rgb, _, _ = render_targets(model, batch, amp)
     loss, parts = objective(rgb.flatten(0, 1), batch["targets"].flatten(0, 1))
     if not torch.isfinite(loss):
-        raise FloatingPointError(f"non-finite loss ({loss.item()}); resume from checkpoints/last.pt with a lower --lr")
+        raise TrainingDiverged(f"the loss is {loss.item()}")
     loss.backward()
     lr = optimizer.param_groups[0]["lr"]
     optimizer.step()
@@ -137,86 +166,156 @@ def to_device(batch: dict, device: torch.device) -> dict:
     return {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v for k, v in batch.items()}
 
 
-def _append_jsonl(path: Path, record: dict) -> None:
-    with open(path, "a") as f:
-        f.write(json.dumps(record) + "\n")
-        f.flush()
+def all_finite(tensors: list[torch.Tensor]) -> torch.Tensor:
+    """True (a 0-d bool tensor on their device, no sync) when every value of every tensor is finite: one
+    fused multi-tensor norm (``torch._foreach_norm``), which is NaN or infinite exactly when a value is (or
+    when a float32 norm overflows, above 1e19: a divergence too)."""
+    if not tensors:
+        return torch.tensor(True)
+    return torch.stack(torch._foreach_norm(tensors)).isfinite().all()
 
 
-def _trim_metrics(path: Path, step: int) -> None:
-    """On resume, drop records written after the checkpoint's step (they will be written again)."""
+def _trim_metrics(path: Path, step: int | None) -> None:
+    """On resume at ``step``, drop records written after it (they will be written again), and a torn last
+    line (with a warning); a new run (``step`` None) starts the file afresh."""
     if not path.exists():
         return
-    keep = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line)["step"] <= step]
+    if step is None:
+        path.unlink()
+        return
+    keep = [json.dumps(r) for r in read_json_lines(path) if r.get("step", 0) <= step]
     atomic_write_bytes(path, "".join(line + "\n" for line in keep).encode())
 
 
-def run_config(model_params: ModelParams, train_params: TrainParams, data: Path, encoder, objective) -> dict:
+def run_config(model_params: ModelParams, train_params: TrainParams, data: Path, encoder, objective,
+               init_from: dict | None = None) -> dict:
     """The record written to RUN/config.json; a resumed run must match it (except the worker count)."""
     return {"model": model_params.to_dict(), "train": train_params.to_dict(), "data": str(Path(data).resolve()),
             "encoder": {"name": encoder.name, "weights_sha256": encoder.weights_sha256},
-            "loss": objective.to_config()}
+            "loss": objective.to_config(), "init_from": init_from}
+
+
+def _run_files(root: Path) -> list[Path]:
+    """What RUN holds besides the lock and the temp files of killed writes."""
+    return [p for p in root.iterdir() if p.name != LOCK_FILE and not p.name.startswith(TMP_PREFIX)] \
+        if root.is_dir() else []
+
+
+def check_run_folder(paths: RunPaths, data: Path) -> None:
+    """``--out`` can hold a run: a folder (or creatable), writable, not inside ``--data``, and either free
+    of other files or a run (config.json). Reads only."""
+    check_writable(paths.root, "--out", create=False)
+    check_apart(paths.root, "--out", {"--data": data})
+    if _run_files(paths.root) and not paths.config.exists():
+        raise ValueError(f"--out {paths.root}: exists and is not a training run (no config.json); choose another "
+                         f"--out")
 
 
 def _check_resumable(paths: RunPaths, config: dict) -> bool:
-    """True to resume; ValueError when RUN holds another run or something that is not a run."""
-    if not paths.root.exists() or not any(paths.root.iterdir()):
-        return False
+    """True to resume from last.pt; False for a new run; ValueError when RUN holds a run of other settings
+    that saved a checkpoint (a run without one is started afresh, with a warning)."""
     if not paths.config.exists():
-        raise ValueError(f"{paths.root}: exists and is not a training run (no config.json); choose another --out")
-    old, config = json.loads(paths.config.read_text()), json.loads(json.dumps(config))  # as JSON sees it
-    for part in ("model", "data", "encoder", "loss"):
-        if old.get(part) != config[part]:
-            raise ValueError(f"{paths.root}: was trained with other settings ({part} differs); use a new --out "
-                             f"or the same flags")
-    old_train = {k: v for k, v in old["train"].items() if k != "workers"}  # workers do not change results
-    new_train = {k: v for k, v in config["train"].items() if k != "workers"}
-    if old_train != new_train:
-        raise ValueError(f"{paths.root}: was trained with other settings (train differs); use a new --out")
+        return False
+    old, config = read_json(paths.config), json.loads(json.dumps(config))  # as JSON sees it
+    if not isinstance(old, dict):
+        raise ValueError(f"{paths.config}: not a JSON object; choose another --out")
+    differs = [part for part in ("model", "data", "encoder", "loss", "init_from") if old.get(part) != config[part]]
+    ignore = ("workers",)  # workers do not change results
+    if {k: v for k, v in old.get("train", {}).items() if k not in ignore} != \
+            {k: v for k, v in config["train"].items() if k not in ignore}:
+        differs.append("train")
+    if differs and paths.last.exists():
+        raise ValueError(f"--out {paths.root}: holds a run trained with other settings ({', '.join(differs)} "
+                         f"differ); rerun with its flags to resume it, or choose a new --out (add --init-from "
+                         f"{paths.last} to start from its weights)")
+    if differs:
+        log.warning(f"--out {paths.root}: an earlier attempt with other settings saved no checkpoint; starting "
+                    f"afresh with these settings")
+        return False
     return paths.last.exists()
 
 
+def _init_from(path: Path | None, model: StereoGaussians) -> dict | None:
+    """Load ``--init-from``'s weights into ``model`` (CheckpointError naming the flag and file when they do not
+    fit); the record kept in config.json."""
+    if path is None:
+        return None
+    try:
+        ckpt = load_checkpoint(path)
+    except CheckpointError as e:
+        raise CheckpointError(f"--init-from {e}") from None
+    load_weights(model, ckpt, f"--init-from {path}")
+    theirs = ckpt.get("encoder", {}) or {}
+    if theirs.get("name") not in (None, model.encoder.name):
+        log.warning(f"--init-from {path}: trained with encoder {theirs.get('name')!r}, this run uses "
+                    f"{model.encoder.name!r}")
+    return {"checkpoint": str(Path(path).resolve()), "step": ckpt["step"]}
+
+
 def train(model_params: ModelParams, train_params: TrainParams, data: Path, out: Path, device: str = "cpu",
-          vgg_path: str | None = None, progress: bool = True) -> dict:
-    """Train (or resume) a run in ``out``; returns the summary (steps, best validation PSNR, wall time)."""
+          vgg_path: str | None = None, progress: bool = True, init_from: Path | None = None) -> dict:
+    """Train (or resume) a run in ``out``; returns the summary (steps, best validation PSNR, wall time).
+    ``init_from``: a checkpoint whose weights start a new run (its optimiser, schedule and step are not
+    taken)."""
     model_params.validate()
     train_params.validate()
     world = init_world(device)
     try:
-        return _train(model_params, train_params, Path(data), RunPaths(Path(out)), world, vgg_path, progress)
+        return _train(model_params, train_params, Path(data), RunPaths(Path(out)), world, vgg_path, progress,
+                      init_from)
     finally:
         close_world(world)
 
 
 def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPaths, world: World,
-           vgg_path: str | None, progress: bool) -> dict:
+           vgg_path: str | None, progress: bool, init_from: Path | None) -> dict:
     if tp.batch_size % world.size:
         raise ValueError(f"--batch-size {tp.batch_size} must be divisible by the {world.size} ranks")
-    local_batch = tp.batch_size // world.size
-    S = model_params.resolution
-    read_split_checked(data)
+    check_run_folder(paths, data)
+    read_split_checked(data, model_params.resolution, tp.targets)
     torch.manual_seed(tp.seed)
     # every training step has the same shapes: let cuDNN time its algorithms once (8% of a step on an H100)
     torch.backends.cudnn.benchmark = world.device.type == "cuda"
     model = create_model(model_params, world.device)
     objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp)
-    config = run_config(model_params, tp, data, model.encoder, objective)
-    resume = _check_resumable(paths, config)
+    config = run_config(model_params, tp, data, model.encoder, objective, _init_from(init_from, model))
+    lock = FolderLock(paths.root, "--out", "sgmodel train")
+    if world.main:
+        lock.acquire()  # the first write: RUN and its .lock (both undone if what follows refuses the run)
+    try:
+        return _run(model, objective, config, model_params, tp, data, paths, world, progress)
+    finally:
+        lock.release()
+
+
+def _resume_state(paths: RunPaths, config: dict, model, optimizer, scheduler, world: World) -> tuple:
+    """(step, best PSNR, best step, resumed) to start from: last.pt's, loaded into the model, the optimiser,
+    the scheduler and the RNG; or a new run's. CheckpointError naming last.pt when it does not fit."""
+    if not _check_resumable(paths, config):
+        return 0, float("-inf"), None, False
+    ckpt = load_checkpoint(paths.last, map_location=world.device)
+    load_weights(model, ckpt, paths.last)
+    try:
+        optimizer.load_state_dict(ckpt["optimizer"])
+        scheduler.load_state_dict(ckpt["scheduler"])
+        torch.set_rng_state(ckpt["rng"]["torch"].cpu())
+        if world.device.type == "cuda" and ckpt["rng"].get("cuda") is not None:
+            torch.cuda.set_rng_state(ckpt["rng"]["cuda"].cpu(), world.device)
+        return ckpt["step"], ckpt["best_val_psnr"], ckpt["best_step"], True
+    except (KeyError, ValueError, RuntimeError, TypeError) as e:
+        raise CheckpointError(f"{paths.last}: its optimiser, schedule or RNG state does not fit this run "
+                              f"({type(e).__name__}: {e})") from None
+
+
+def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPaths,
+         world: World, progress: bool) -> dict:
+    local_batch, S = tp.batch_size // world.size, model_params.resolution
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = create_optimizer(params, world.device, lr=tp.lr, betas=tp.betas, weight_decay=tp.weight_decay)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=tp.lr, total_steps=tp.steps,
                                                     pct_start=tp.warmup, div_factor=tp.div_factor,
                                                     final_div_factor=tp.final_div_factor)
-    step, best, best_step = 0, float("-inf"), None
-    if resume:
-        ckpt = load_checkpoint(paths.last, map_location=world.device)
-        model.load_state_dict(ckpt["model"])
-        optimizer.load_state_dict(ckpt["optimizer"])
-        scheduler.load_state_dict(ckpt["scheduler"])
-        step, best, best_step = ckpt["step"], ckpt["best_val_psnr"], ckpt["best_step"]
-        torch.set_rng_state(ckpt["rng"]["torch"].cpu())
-        if world.device.type == "cuda" and ckpt["rng"].get("cuda") is not None:
-            torch.cuda.set_rng_state(ckpt["rng"]["cuda"].cpu(), world.device)
+    step, best, best_step, resume = _resume_state(paths, config, model, optimizer, scheduler, world)
     train_loader = make_loader(data, "train", local_batch, S, tp.targets, tp.seed, tp.workers, world.rank,
                                world.size, train=True, start_step=step)
     val_loader = make_loader(data, "val", local_batch, S, None, tp.seed, tp.workers, world.rank, world.size,
@@ -225,14 +324,15 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
         print(f"sgmodel train: {'resuming at step ' + str(step) if resume else 'new run'} in {paths.root}; "
               f"loss {objective.description}; encoder {model.encoder.name}; {world.size} rank(s) on "
               f"{world.device}; batch {tp.batch_size} ({local_batch} per rank) at {S}x{S}", flush=True)
-        paths.root.mkdir(parents=True, exist_ok=True)
+        remove_temp_files(paths.root)  # of a killed run's unfinished writes (we hold the lock)
         atomic_write_bytes(paths.config, (json.dumps(config, indent=2) + "\n").encode())
-        _trim_metrics(paths.metrics, step)
+        _trim_metrics(paths.metrics, step if resume else None)
     net = DistributedDataParallel(model, device_ids=[world.device] if world.device.type == "cuda" else None) \
         if world.size > 1 else model
     net.train()
     t_start = time.perf_counter()
     bar = tqdm(total=tp.steps, initial=step, disable=not (progress and world.main), unit="step", dynamic_ncols=True)
+    saved = step if resume else None  # the step last.pt holds
 
     def validation(step: int, best: float) -> tuple[bool, float]:
         """Validate, log, draw the sheet; (is it the best so far, its PSNR). Step 0 is never the best."""
@@ -241,34 +341,61 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
         if world.main:
             bar.write(f"step {step}: val PSNR {val['val_psnr']:.2f} dB (valid pixels {val['val_psnr_masked']:.2f})"
                       f"{' best' if improved else ''}")
-            _append_jsonl(paths.metrics, {"step": step, **val})
+            append_line(paths.metrics, json.dumps({"step": step, **val}))
             atomic_write_bytes(paths.sheet(step), validation_sheet(shown))
         return improved, val["val_psnr"]
 
-    if step == 0:  # where training starts from, for the PSNR curve
-        validation(0, best)
-    batches = iter(train_loader)
-    while step < tp.steps:
-        t0 = time.perf_counter()
-        batch = to_device(next(batches), world.device)
-        stats = train_step(net, batch, objective, optimizer, scheduler, tp.amp)
-        step += 1
-        ms = (time.perf_counter() - t0) * 1e3
-        bar.update(1)
-        bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", ms=f"{ms:.0f}")
-        if step % tp.log_every == 0 or step == tp.steps:
-            stats = mean_over_ranks(world, stats)
-            if world.main:
-                _append_jsonl(paths.metrics, {"step": step, **stats, "step_ms": ms})
-        if step % tp.val_every == 0 or step == tp.steps:
-            improved, psnr = validation(step, best)
-            if improved:
-                best, best_step = psnr, step
-            if world.main:
-                state = _state(model, config, optimizer, scheduler, step, best, best_step, world)
-                save_checkpoint(paths.last, state)
+    def diverged(at: int, what: str) -> TrainingDiverged:
+        held = f"{paths.last} holds step {saved}" if saved is not None else "no checkpoint was written before it"
+        go_on = (f"start a new run from its last checkpoint: --init-from {paths.last} --out NEW_RUN"
+                 if saved is not None else f"rerun in the same --out {paths.root}")
+        return TrainingDiverged(f"training diverged at step {at}: {what}; nothing of it was saved ({held}). To go "
+                                f"on with other settings (a lower --lr, say {tp.lr / 2:g}), {go_on}", at,
+                                paths.last if saved is not None else None, saved, tp.lr)
+
+    grads_finite = torch.ones((), dtype=torch.bool, device=world.device)
+    try:
+        if step == 0:  # where training starts from, for the PSNR curve
+            validation(0, best)
+        batches = iter(train_loader)
+        while step < tp.steps:
+            t0 = time.perf_counter()
+            batch = to_device(next(batches), world.device)
+            try:
+                stats = train_step(net, batch, objective, optimizer, scheduler, tp.amp)
+            except TrainingDiverged as e:
+                raise diverged(step + 1, str(e)) from None
+            step += 1
+            grads_finite &= all_finite([p.grad for p in params if p.grad is not None])
+            ms = (time.perf_counter() - t0) * 1e3
+            bar.update(1)
+            bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", ms=f"{ms:.0f}")
+            logged = step % tp.log_every == 0 or step == tp.steps
+            checkpoint = step % tp.val_every == 0 or step == tp.steps
+            if logged or checkpoint:  # one sync for both flags, where the step's .item() calls synced anyway
+                grads_ok, weights_ok = torch.stack([grads_finite, all_finite(params)]).tolist()
+                if not (grads_ok and weights_ok):
+                    raise diverged(step, "a gradient is NaN or infinite" if not grads_ok else
+                                   "a weight is NaN or infinite")
+            if logged:
+                stats = mean_over_ranks(world, stats)
+                if world.main:
+                    append_line(paths.metrics, json.dumps({"step": step, **stats, "step_ms": ms}))
+            if checkpoint:
+                improved, psnr = validation(step, best)
                 if improved:
-                    save_checkpoint(paths.best, state)
+                    best, best_step = psnr, step
+                if world.main:
+                    state = _state(model, config, optimizer, scheduler, step, best, best_step, world)
+                    save_checkpoint(paths.last, state)
+                    if improved:
+                        save_checkpoint(paths.best, state)
+                saved = step
+    except KeyboardInterrupt:
+        bar.close()
+        kept = f"{paths.last} holds step {saved}" if saved is not None else "no checkpoint was written yet"
+        raise Interrupted(f"at step {step}; {kept}: rerun the same command to "
+                          f"{'resume' if saved is not None else 'start again'}") from None
     bar.close()
     summary = {"steps": step, "best_val_psnr": best, "best_step": best_step,
                "wall_s": time.perf_counter() - t_start, "run": str(paths.root)}
@@ -288,7 +415,7 @@ def _state(model, config, optimizer, scheduler, step, best, best_step, world: Wo
 
 def summary_table(metrics_path: Path, summary: dict) -> str:
     """The validation history as a text table, then the best step."""
-    rows = [json.loads(line) for line in metrics_path.read_text().splitlines() if "val_psnr" in line]
+    rows = [r for r in read_json_lines(metrics_path) if "val_psnr" in r]
     table = format_table([["step", "val PSNR (dB)", "valid-pixel PSNR (dB)", "targets"]] +
                          [[r["step"], f"{r['val_psnr']:.2f}", f"{r['val_psnr_masked']:.2f}", r["val_targets"]]
                           for r in rows], rule=True)
@@ -296,7 +423,18 @@ def summary_table(metrics_path: Path, summary: dict) -> str:
             f"{summary['steps']} steps in {summary['wall_s']:.0f} s; checkpoints in {summary['run']}/checkpoints")
 
 
-def read_split_checked(data: Path) -> None:
-    """Both splits a run needs exist and are readable (DataError naming the file otherwise)."""
+def read_split_checked(data: Path, resolution: int, targets: int) -> None:
+    """Both splits a run needs exist, list readable shards, and their first samples decode at
+    ``resolution`` with ``targets`` training targets. DataError naming the file (and the flag) otherwise.
+    Reads only."""
     for split in ("train", "val"):
-        read_split(Path(data), split)
+        shards = read_split(Path(data), split)
+        first = shards[0]
+        key, members = next(iter_shard(first.path), (None, None))
+        if key is None:
+            raise DataError(f"{first.path}: no samples, index.json lists {len(first.keys)}")
+        try:
+            load_sample(key, members, str(first.path), resolution, targets if split == "train" else None)
+        except DataError as e:
+            flag = "--targets" if "'targets'" in str(e) else "--resolution" if "'width'" in str(e) else "--data"
+            raise DataError(f"{flag}: {e}") from None

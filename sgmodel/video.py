@@ -39,7 +39,8 @@ from .bench import synced_clock
 from .calib import Calibration
 from .export import offset_camera, orbit_camera, write_scene
 from .inference import Reconstructor
-from .pairs import Pair, PairTransform, PredictError, to_tensor
+from .pairs import PairTransform
+from .stereo_pair import Pair, PredictError, to_tensor
 from .rectify import Rectification
 
 

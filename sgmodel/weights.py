@@ -23,8 +23,9 @@ from pathlib import Path
 from scenesplat_stereo.files import atomic_write_bytes
 
 
-class WeightsError(RuntimeError):
-    """Weights missing, unreadable or with the wrong hash; the message says what to run."""
+class WeightsError(ValueError):
+    """Weights missing, unreadable or with the wrong hash; the message says what to run (the user fixes it:
+    exit 2 on the command line, like every ValueError)."""
 
 
 @dataclass(frozen=True)

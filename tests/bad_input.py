@@ -48,3 +48,42 @@ def tiny_teacher(folder: Path, n_frames: int = 3, psnr: float = 33.0, size=(32, 
                                                         "w": w, "h": h, "frames": frames}))
     (folder / "scene.json").write_text(json.dumps({"psnr": psnr, "subset": "DemoGS"}))
     return folder
+
+
+def snapshots(*folders: Path) -> list[dict[str, bytes]]:
+    """``snapshot`` of each folder (for asserting that a refused command changed none of them)."""
+    return [snapshot(f) for f in folders]
+
+
+def refusal(main, argv: list, capsys) -> tuple[int, str]:
+    """(exit status, stderr without Warp's CPU-only notice) of ``main(argv)``."""
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as e:
+        rc = e.code if isinstance(e.code, int) else 1
+    err = capsys.readouterr().err
+    return rc, "\n".join(line for line in err.splitlines() if not line.startswith("Warp "))
+
+
+def model_checkpoint(path: Path, params=None, nan: bool = False, **fields) -> Path:
+    """A checkpoint of an untrained model (``sgmodel.checkpoint`` format) of ``params`` (default: the
+    cpu-small preset at 32x32, padding 2); ``nan`` puts a NaN in one weight; ``fields`` override the
+    checkpoint's fields (e.g. ``format``)."""
+    import torch
+
+    from sgmodel.checkpoint import save_checkpoint
+    from sgmodel.config import PRESETS, ModelParams
+    from sgmodel.model import create_model
+
+    if params is None:
+        params = ModelParams.from_dict(PRESETS["cpu-small"]["model"])
+        params.resolution, params.padding = 32, 2
+    torch.manual_seed(0)
+    state = create_model(params).state_dict()
+    if nan:
+        name = next(iter(state))
+        state[name] = state[name].clone()
+        state[name].view(-1)[0] = float("nan")
+    save_checkpoint(path, {"model_params": params.to_dict(), "model": state, "step": 2, "encoder": {"name": "sgbm"},
+                           **fields})
+    return path

@@ -51,3 +51,14 @@ def textured_batch(B: int = 2, T: int = 2, S: int = 32, seed: int = 0) -> dict:
             "masks": torch.ones(B, T, 1, S, S, dtype=torch.bool), "target_viewmats": view,
             "target_Ks": K[:, None].expand(B, T, 3, 3).clone(), "target_ids": torch.arange(T).expand(B, T),
             "keys": [f"s{i}" for i in range(B)], "scenes": ["plane"] * B}
+
+
+def predict_status(argv) -> int:
+    """``sgmodel predict ARGV``'s exit status, through the command line's one error path (argparse's refusals
+    included)."""
+    from sgmodel.cli import main
+
+    try:
+        return main(["predict", *[str(a) for a in argv]])
+    except SystemExit as e:
+        return e.code

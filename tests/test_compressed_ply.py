@@ -15,7 +15,8 @@ import pytest
 from ply_helpers import EPS32, random_scene
 
 from scenesplat_stereo.compressed_ply import morton_order, save_compressed_ply
-from scenesplat_stereo.gaussians import SH_C0, GaussianScene, load_ply
+from scenesplat_stereo.gaussians import GaussianScene, load_ply
+from scenesplat_stereo.ply import SH_C0
 
 
 def file_tables(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo import encode
+from scenesplat_stereo import encode, encode_pool
 from scenesplat_stereo.encode import (
-    SampleEncoder,
     SampleImages,
     decode_image,
     encode_depth_exr,
@@ -24,6 +23,7 @@ from scenesplat_stereo.encode import (
     encode_png,
     to_uint8,
 )
+from scenesplat_stereo.encode_pool import SampleEncoder
 
 
 def smooth_image(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:
@@ -199,7 +199,7 @@ def test_scratch_files_do_not_accumulate():
         list(ex.map(lambda i: (encode_jpeg(smooth_image(seed=i)), decode_image(encode_mask_png(np.eye(4, dtype=bool)), "png")),
                     range(9)))
     # only the shared slots that encoder processes reuse stay (one per worker of an earlier encoder)
-    left = os.listdir(encode._scratch_dir())
+    left = os.listdir(encode.scratch_dir())
     assert [f for f in left if not f.startswith("slot-")] == []
     assert len(left) <= 2
 
@@ -293,17 +293,15 @@ def test_sample_encoder_processes_same_bytes_order_and_errors():
 
 
 def test_auto_encoder_mode_picks_processes_on_many_cores(monkeypatch):
-    from scenesplat_stereo import encode
-
-    monkeypatch.setattr(encode.os, "cpu_count", lambda: encode.PROCESSES_MIN_CORES)
-    assert encode.resolve_encoder_mode("auto") == "processes"
-    monkeypatch.setattr(encode.os, "cpu_count", lambda: 2)
-    assert encode.resolve_encoder_mode("auto") == "threads"
-    monkeypatch.setattr(encode.os, "cpu_count", lambda: None)
-    assert encode.resolve_encoder_mode("auto") == "threads"
-    assert encode.resolve_encoder_mode("processes") == "processes"
+    monkeypatch.setattr(encode_pool.os, "cpu_count", lambda: encode_pool.PROCESSES_MIN_CORES)
+    assert encode_pool.resolve_encoder_mode("auto") == "processes"
+    monkeypatch.setattr(encode_pool.os, "cpu_count", lambda: 2)
+    assert encode_pool.resolve_encoder_mode("auto") == "threads"
+    monkeypatch.setattr(encode_pool.os, "cpu_count", lambda: None)
+    assert encode_pool.resolve_encoder_mode("auto") == "threads"
+    assert encode_pool.resolve_encoder_mode("processes") == "processes"
     with pytest.raises(ValueError, match="encoder mode"):
-        encode.resolve_encoder_mode("fibers")
+        encode_pool.resolve_encoder_mode("fibers")
 
 
 def _sampling_factors(jpeg: bytes) -> list[tuple[int, int]]:

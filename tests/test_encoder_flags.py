@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from foundation_standins import FFS_REPO, FS_REPO, save_ffs_model, save_fs_checkpoint
@@ -108,9 +109,10 @@ def test_train_eval_predict_ablate_with_foundation_encoders(demo_dataset, releas
     assert cli(["eval", "--data", demo_dataset, "--checkpoint", best, "--out", tmp_path / "eval", "--device", "cpu",
                 "--no-progress", "--encoder-repo", FFS_REPO]) == 0
     assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["encoder"] == "fast-foundation-stereo"
-    img = (np.random.default_rng(0).random((32, 48, 3)) * 255).astype(np.uint8)
-    for name in ("l.png", "r.png"):
-        (tmp_path / name).write_bytes(encode_png(img))
+    img = cv2.resize((np.random.default_rng(0).random((8, 16, 3)) * 255).astype(np.uint8), (52, 32),
+                     interpolation=cv2.INTER_CUBIC)  # a textured pair 2 px apart (the same image twice has no depth)
+    for name, x0 in (("l.png", 2), ("r.png", 4)):
+        (tmp_path / name).write_bytes(encode_png(img[:, x0:x0 + 48]))
     pair = ["--left", tmp_path / "l.png", "--right", tmp_path / "r.png", "--intrinsics", "50,50,24,16",
             "--baseline", "0.1", "--device", "cpu"]
     assert cli(["predict", *pair, "--checkpoint", best, "--out", tmp_path / "scene"]) == 0

@@ -157,9 +157,9 @@ def test_non_finite_disparity_is_an_error():
 def test_invalid_configurations_are_refused():
     with pytest.raises(ValueError, match="resolution"):
         small_params(resolution=30).validate()
-    with pytest.raises(ValueError, match="edge_mask"):
+    with pytest.raises(ValueError, match="--edge-mask .maybe.: must be one of"):
         small_params(composer=ComposerParams(edge_mask="maybe")).validate()
-    with pytest.raises(ValueError, match="back_layer"):
+    with pytest.raises(ValueError, match="--edge-mask hard: .* --no-back-layer"):
         small_params(composer=ComposerParams(edge_mask="hard", back_layer=False)).validate()
     with pytest.raises(ValueError, match="multiple"):
         small_params(decoder=DecoderParams(channels=10, groups=4)).validate()

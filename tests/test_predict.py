@@ -21,16 +21,7 @@ from sgmodel import predict as predict_mod
 from sgmodel.baselines import naive_gs
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.export import depth_png, orbit_cameras, to_scene, write_scene
-
-
-def make_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser()
-    predict_mod.add_arguments(p)
-    return p
-
-
-def run(argv) -> int:
-    return predict_mod.run(make_parser().parse_args([str(a) for a in argv]))
+from tests.model_helpers import predict_status as run
 
 
 class OracleEncoder:
@@ -66,7 +57,7 @@ def test_predict_naive_gs_on_the_guitar_reproduces_the_left_image(guitar_pair, t
     assert rc == 0, log
     assert "| encoder |" in log and "| render views |" in log and f"model size {W}x{H}" in log
     names = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
-    assert names == ["cameras.json", "depth.png", "orbit.gif", "scene.ply", "settings.json"] + [
+    assert names == [".written-by", "cameras.json", "depth.png", "orbit.gif", "scene.ply", "settings.json"] + [
         f"views/{v}.png" for v in ("center", "down", "forward", "left", "right", "up")]
     scene = load_ply(out / "scene.ply", strict=True)
     dropped, produced, kept = (int(x.replace(",", "")) for x in re.search(

@@ -6,7 +6,6 @@ left camera's frame."""
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -20,8 +19,6 @@ from scenesplat_stereo.encode import decode_image, encode_png
 from scenesplat_stereo.gaussians import load_ply
 from scripts.rig_pair import BASELINE, H, W, distort, render
 from sgmodel import pairs as pairs_mod
-from sgmodel import predict as predict_mod
-from sgmodel import rectify as rectify_mod
 from sgmodel.calib import read_calib
 from sgmodel.config import PRESETS, ModelParams
 from sgmodel.encoders import create_encoder
@@ -29,6 +26,7 @@ from sgmodel.geometry import depth_from_disparity
 from sgmodel.model import Predictor, create_model
 from sgmodel.rectify import Rectification, predict_from_rig
 from sgmodel.rig import RigError, read_rig
+from tests.model_helpers import predict_status as _run_predict
 
 MODELS = ["radtan", "equidistant"]
 CALIB_FILES = {"radtan": "opencv.yml", "equidistant": "camchain.yaml"}
@@ -123,12 +121,6 @@ def test_stereo_depth_after_rectification_matches_the_ground_truth(rectified_rig
     raw_d, _ = _sgbm_depth(read_png(r.folder / "left.png") / 255.0, read_png(r.folder / "right.png") / 255.0,
                            rect.K, rect.baseline)
     assert np.median(np.abs(raw_d[valid] - d_gt)) > 10 * errors["ours"][0]
-
-
-def _run_predict(argv) -> int:
-    p = argparse.ArgumentParser()
-    predict_mod.add_arguments(p)
-    return predict_mod.run(p.parse_args([str(a) for a in argv]))
 
 
 @pytest.mark.parametrize("model", MODELS)

@@ -4,7 +4,6 @@ ground truth; a swapped, a vertically shifted, a rotated, an unrectified and a t
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 
@@ -14,9 +13,9 @@ import pytest
 
 from scenesplat_stereo.encode import encode_png, to_uint8
 from scripts.rig_pair import BASELINE, H, W, render
-from sgmodel import predict as predict_mod
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.stereo_check import DY_MEDIAN_MAX, StereoCheckError, matches, measure, run_check
+from tests.model_helpers import predict_status as _predict
 
 K = np.array([[250.0, 0, W / 2], [0, 250.0, H / 2], [0, 0, 1]])
 
@@ -107,12 +106,6 @@ def test_middlebury_doffs_makes_image_disparities_valid(ideal_pair):
     assert measure(left, moved, doffs=30.0).warnings == ()
 
 
-def _predict(argv) -> int:
-    p = argparse.ArgumentParser()
-    predict_mod.add_arguments(p)
-    return predict_mod.run(p.parse_args([str(a) for a in argv]))
-
-
 def test_predict_warns_reports_and_strict_exits_2(ideal_pair, raw_rig, tmp_path, capsys):
     left, right, _ = ideal_pair
     for name, image in (("l.png", left), ("r.png", right)):
@@ -123,7 +116,7 @@ def test_predict_warns_reports_and_strict_exits_2(ideal_pair, raw_rig, tmp_path,
     out = tmp_path / "out"
     assert _predict(["--left", tmp_path / "r.png", "--right", tmp_path / "l.png", *common, "--out", out]) == 0
     captured = capsys.readouterr()
-    assert "swapped" in captured.err and captured.err.startswith("warning: stereo check: ")
+    assert "swapped" in captured.err and captured.err.startswith("sgmodel predict: warning: stereo check: ")
     assert len(captured.err.strip().splitlines()) == 1
     summary = captured.out.strip().splitlines()[-2]
     assert summary.startswith("stereo check: ") and summary.endswith(": WARNING")

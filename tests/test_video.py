@@ -4,7 +4,6 @@ left/right inputs agree; the codecs OpenCV writes here; trajectories; bad input 
 
 from __future__ import annotations
 
-import argparse
 import math
 import re
 from pathlib import Path
@@ -21,15 +20,10 @@ from sgmodel import predict as predict_mod
 from sgmodel import video
 from sgmodel.export import offset_camera, orbit_camera
 from sgmodel.render import render_views
+from tests.model_helpers import predict_status as run
 
 W, H, FRAMES = 96, 64, 6
 COMMON = ["--method", "naive-gs", "--encoder", "sgbm", "--resolution", H, "--device", "cpu", "--no-progress"]
-
-
-def run(argv) -> int:
-    p = argparse.ArgumentParser()
-    predict_mod.add_arguments(p)
-    return predict_mod.run(p.parse_args([str(a) for a in argv]))
 
 
 @pytest.fixture(scope="module")
@@ -58,8 +52,8 @@ def video_out(clip, tmp_path_factory) -> tuple[Path, str]:
 def test_video_writes_every_frame_and_a_summary(video_out):
     out, log = video_out
     names = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
-    assert names == ["cameras.json"] + [f"frames/{i:06d}.ply" for i in range(FRAMES)] + ["novel_view.mkv",
-                                                                                        "settings.json"]
+    assert names == [".written-by", "cameras.json"] + [f"frames/{i:06d}.ply" for i in range(FRAMES)] + [
+        "novel_view.mkv", "settings.json"]
     assert f"{W}x{H} per eye, 30 fps, {FRAMES} frames" in log and "| frames | 6 |" in log and "| batches | 2 |" in log
     assert re.search(r"Gaussians \(all frames\) dropped: no valid stereo depth", log)
     assert read_frames(out / "novel_view.mkv").shape == (FRAMES, H, W, 3)
@@ -102,7 +96,7 @@ def test_forward_splat_video_and_the_default_spz_frames(clip, tmp_path):
     out = tmp_path / "fs"
     assert run(["--video", clip / "sbs.mkv", "--calib", clip / "K.txt", "--out", out, "--max-frames", 2,
                 "--method", "forward-splat", "--encoder", "sgbm", "--device", "cpu", "--no-progress"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["novel_view.mp4"]
+    assert sorted(p.name for p in out.iterdir()) == [".written-by", "novel_view.mp4"]
     nb = tmp_path / "nb"
     assert run(["--video", clip / "sbs.mkv", "--calib", clip / "K.txt", "--out", nb, "--max-frames", 1, "--frames",
                 *COMMON]) == 0

@@ -34,7 +34,8 @@ import OpenImageIO as oiio
 
 from scenesplat_stereo import encode
 from scenesplat_stereo.commandline import Parser
-from scenesplat_stereo.encode import SampleEncoder, SampleImages
+from scenesplat_stereo.encode import SampleImages
+from scenesplat_stereo.encode_pool import SampleEncoder
 from scenesplat_stereo.protocol import NUM_TARGETS
 from scenesplat_stereo.shards import ShardWriter
 from scenesplat_stereo.text import parse_size
@@ -190,7 +191,7 @@ def run(args) -> int:
     if bad or args.repeats < 1 or args.samples < 1 or not workers or min(workers) < 1:
         raise SystemExit(f"bench encode: bad --modes {bad} or --repeats/--samples/--workers below 1")
     head = (f"bench encode: OpenImageIO {oiio.__version__} (threads attribute {oiio.get_int_attribute('threads')}), "
-            f"{os.cpu_count()} CPU cores, scratch folder {encode._scratch_dir()}, {args.repeats} timed runs per row "
+            f"{os.cpu_count()} CPU cores, scratch folder {encode.scratch_dir()}, {args.repeats} timed runs per row "
             f"after one untimed; samples of 2 + {args.targets} images and {args.targets} masks\n")
     print(head, flush=True)
     t1 = image_table(sizes, args.repeats, args.calls)

@@ -34,23 +34,9 @@ from ..args import add_model_arguments, params_from_args
 from ..geometry import depth_from_disparity
 from ..model import Predictor, create_model, load_predictor
 from ..render import SH_DEGREE, render_views
-from . import report, synced_clock
+from . import describe, report, synced_clock, synthetic_pair
 
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
-
-
-def synthetic_pair(width: int, height: int, device: torch.device, shift: int = 0) -> tuple[torch.Tensor, ...]:
-    """(left, right [1,3,H,W] in [0,1], K [1,3,3], baseline [1] metres): smooth texture, 4 px disparity;
-    ``shift`` moves the texture that many pixels to the left (a camera panning, for video frames)."""
-    g = torch.Generator().manual_seed(0)
-    low = torch.rand(1, 3, max(2, height // 16), max(2, (width + shift) // 16 + 1), generator=g)
-    wide = torch.nn.functional.interpolate(low, size=(height, width + shift + 4), mode="bicubic",
-                                           align_corners=False).clamp(0, 1)
-    left = wide[..., shift:shift + width]
-    right = wide[..., shift + 4:shift + 4 + width]
-    f = 0.9 * max(width, height)
-    K = torch.tensor([[[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]]])
-    return left.to(device), right.to(device), K.to(device), torch.tensor([0.1], device=device)
 
 
 def bench_model(args: argparse.Namespace, device: torch.device) -> Predictor:
@@ -111,14 +97,6 @@ def run(args: argparse.Namespace) -> int:
            f"Writing that scene ({len(scene):,} Gaussians) in each format, median of {args.repeats}:\n\n"
            f"{markdown_table(['scene', 'format', 'median ms', 'MB', 'x smaller than .ply'], formats)}\n", args.out)
     return 0
-
-
-def describe(args: argparse.Namespace, predictor: Predictor, device: torch.device) -> str:
-    """'<device> (<checkpoint or fresh model>, encoder <name>, <bf16 autocast or float32>)' for a report."""
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
-    model = f"checkpoint {args.checkpoint}" if args.checkpoint else "fresh model"
-    dtype = "bf16 autocast" if predictor.amp and device.type == "cuda" else "float32"
-    return f"{name} ({model}, encoder {predictor.model.params.encoder.name}, {dtype})"
 
 
 def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) -> list[list[str]]:

@@ -29,10 +29,10 @@ from scenesplat_stereo.text import markdown_table
 from ..calib import Calibration
 from ..inference import Reconstructor
 from ..model import Predictor
-from ..pairs import Pair, prepare_pairs, to_tensor
+from ..pairs import prepare_pairs
+from ..stereo_pair import Pair, to_tensor
 from ..video import CODECS, StereoSource, Trajectory, VideoSink, stream
-from . import report, synced_clock
-from .predict import describe, synthetic_pair
+from . import describe, report, synced_clock, synthetic_pair
 
 #: The novel view of the end-to-end run: the left camera moved 5 cm to the right.
 OFFSET = (0.05, 0.0, 0.0)
