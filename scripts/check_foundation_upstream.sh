@@ -80,7 +80,9 @@ work = Path(sys.argv[1])
 img = (np.random.default_rng(0).random((72, 104, 3)) * 255).astype(np.uint8)
 (work / "left.png").write_bytes(encode_png(img[:, :96]))  # left(x) = right(x - 8): disparity 8 px
 (work / "right.png").write_bytes(encode_png(img[:, 8:]))
-(work / "K.txt").write_text("80 0 48 0 80 36 0 0 1\n0.1\n")
+# baseline 1 m: the random-weight encoders report 38 to 211 px on this pair, and at the model size (fx = 40 px)
+# that is z = fx B / d = 0.19 to 1.05 m, inside the model's range (predict refuses a depth map at the clamp)
+(work / "K.txt").write_text("80 0 48 0 80 36 0 0 1\n1.0\n")
 EOF
 PAIR=(--left "$WORK/left.png" --right "$WORK/right.png" --calib "$WORK/K.txt" --device cpu)
 TINY=(--preset cpu-small --resolution 32 --padding 2 --steps 2 --batch-size 2 --targets 2 --val-every 2

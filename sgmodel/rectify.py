@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -28,7 +29,7 @@ import torch
 
 from scenesplat_stereo.cameras import rotation_angle_deg
 from scenesplat_stereo.encode import encode_png, to_uint8
-from scenesplat_stereo.files import atomic_write_bytes, atomic_write_json, check_writable
+from scenesplat_stereo.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
 
 from . import rig as rig_mod
 from . import stereo_check
@@ -201,6 +202,9 @@ def predict_from_rig(predictor, left, right, rig: StereoRig, short_side: int | N
 
 
 # -------------------------------------------------------------------------------------- sgmodel rectify
+RECTIFY_OWNER = "sgmodel rectify"  # recorded in OUT (files.OWNER_FILE): a later run may replace OUT
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags of ``sgmodel rectify``."""
     parser.add_argument("--left", required=True, help="raw left image (the rig's first camera, cam0)")
@@ -212,6 +216,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def rectify_command(args: argparse.Namespace, log=print) -> None:
     """Do the work of ``sgmodel rectify`` (raises a CalibError / ValueError naming the flag on bad input)."""
+    check_replaceable(args.out, "--out", RECTIFY_OWNER)
     rig = rig_mod.read_rig(args.rig, args.rig_units)
     left, right = read_image(args.left, "--left"), read_image(args.right, "--right")
     for flag, image in (("--left", left), ("--right", right)):
@@ -223,13 +228,12 @@ def rectify_command(args: argparse.Namespace, log=print) -> None:
     left, right = rect.rectify_tensors(left, right)
     rect.report(log)
     check = stereo_check.run_check(left, right, args.strict, rectified_here=True, log=log)
-    out = check_writable(args.out, "--out")
-    images = {name: encode_png(to_uint8(x[0].permute(1, 2, 0).numpy()))
-              for name, x in (("left", left), ("right", right))}
-    for name, data in images.items():
-        atomic_write_bytes(out / f"{name}.png", data)
-    atomic_write_bytes(out / "K.txt", foundation_stereo_text(rect.K, rect.baseline).encode())
-    atomic_write_json(out / "rectification.json", {**rect.to_json(), "check": check.to_json()}, indent=2)
+    out = Path(args.out)
+    with StagedFolder(out, RECTIFY_OWNER) as tmp:  # replaces OUT as a whole, or leaves it as it was
+        for name, x in (("left", left), ("right", right)):
+            atomic_write_bytes(tmp / f"{name}.png", encode_png(to_uint8(x[0].permute(1, 2, 0).numpy())))
+        atomic_write_bytes(tmp / "K.txt", foundation_stereo_text(rect.K, rect.baseline).encode())
+        atomic_write_json(tmp / "rectification.json", {**rect.to_json(), "check": check.to_json()}, indent=2)
     log(f"wrote {out}/: left.png, right.png, K.txt, rectification.json")
 
 

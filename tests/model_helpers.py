@@ -53,12 +53,17 @@ def textured_batch(B: int = 2, T: int = 2, S: int = 32, seed: int = 0) -> dict:
             "keys": [f"s{i}" for i in range(B)], "scenes": ["plane"] * B}
 
 
-def predict_status(argv) -> int:
-    """``sgmodel predict ARGV``'s exit status, through the command line's one error path (argparse's refusals
+def sgmodel_status(argv) -> int:
+    """``sgmodel ARGV``'s exit status, through the command line's one error path (argparse's refusals
     included)."""
     from sgmodel.cli import main
 
     try:
-        return main(["predict", *[str(a) for a in argv]])
+        return main([str(a) for a in argv])
     except SystemExit as e:
         return e.code
+
+
+def predict_status(argv) -> int:
+    """``sgmodel predict ARGV``'s exit status (``sgmodel_status``)."""
+    return sgmodel_status(["predict", *argv])

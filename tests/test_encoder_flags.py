@@ -14,21 +14,14 @@ from foundation_standins import FFS_REPO, FS_REPO, save_ffs_model, save_fs_check
 
 from scenesplat_stereo.encode import encode_png
 from sgmodel.cli import build_parser
-from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import EncoderParams
 from sgmodel.encoders import EncoderFlagError
 from sgmodel.encoders.flags import encoder_label, merge_encoder, parse_encoder_spec
+from tests.model_helpers import sgmodel_status
 
 TINY = ["--resolution", "32", "--padding", "2", "--decoder-channels", "16", "--predictor-channels", "16"]
 SCHEDULE = ["--steps", "2", "--batch-size", "2", "--targets", "2", "--val-every", "2", "--val-samples", "2",
             "--workers", "0", "--no-progress", "--device", "cpu"]
-
-
-def cli(args: list) -> int:
-    try:
-        return sgmodel_main([str(a) for a in args])
-    except SystemExit as e:
-        return e.code
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +77,7 @@ def test_every_command_that_makes_an_encoder_has_the_three_flags(command):
 def test_eval_baselines_with_both_encoders(demo_dataset, releases, tmp_path):
     for (name, flags), method in zip(releases.items(), ("naive-gs", "forward-splat")):
         out = tmp_path / name
-        assert cli(["eval", "--data", demo_dataset, "--method", method, *flags, "--resolution", 32, "--out", out,
+        assert sgmodel_status(["eval", "--data", demo_dataset, "--method", method, *flags, "--resolution", 32, "--out", out,
                     "--device", "cpu", "--no-progress"]) == 0
         result = json.loads((out / "metrics.json").read_text())
         assert result["encoder"] == name and result["method"] == method and result["targets"] == 20
@@ -92,7 +85,7 @@ def test_eval_baselines_with_both_encoders(demo_dataset, releases, tmp_path):
 
 def test_bench_encoders_compares_several_each_with_its_own_release(demo_dataset, releases, tmp_path, capsys):
     out = tmp_path / "encoders.md"
-    assert cli(["bench", "encoders", "--data", demo_dataset, "--encoders", spec(releases["fast-foundation-stereo"]),
+    assert sgmodel_status(["bench", "encoders", "--data", demo_dataset, "--encoders", spec(releases["fast-foundation-stereo"]),
                 spec(releases["foundation-stereo"]), "sgbm", "--resolution", 32, "--device", "cpu",
                 "--out", out]) == 0
     rows = [line.split("|")[1].strip() for line in out.read_text().splitlines() if line.startswith("| ")]
@@ -102,11 +95,11 @@ def test_bench_encoders_compares_several_each_with_its_own_release(demo_dataset,
 def test_train_eval_predict_ablate_with_foundation_encoders(demo_dataset, releases, tmp_path, capsys):
     ffs, fs = releases["fast-foundation-stereo"], releases["foundation-stereo"]
     run = tmp_path / "run"
-    assert cli(["train", "--data", demo_dataset, "--out", run, *ffs, *TINY, *SCHEDULE]) == 0
+    assert sgmodel_status(["train", "--data", demo_dataset, "--out", run, *ffs, *TINY, *SCHEDULE]) == 0
     config = json.loads((run / "config.json").read_text())
     assert config["encoder"]["name"] == "fast-foundation-stereo" and len(config["encoder"]["weights_sha256"]) == 64
     best = run / "checkpoints" / "best.pt"
-    assert cli(["eval", "--data", demo_dataset, "--checkpoint", best, "--out", tmp_path / "eval", "--device", "cpu",
+    assert sgmodel_status(["eval", "--data", demo_dataset, "--checkpoint", best, "--out", tmp_path / "eval", "--device", "cpu",
                 "--no-progress", "--encoder-repo", FFS_REPO]) == 0
     assert json.loads((tmp_path / "eval" / "metrics.json").read_text())["encoder"] == "fast-foundation-stereo"
     img = cv2.resize((np.random.default_rng(0).random((8, 16, 3)) * 255).astype(np.uint8), (52, 32),
@@ -115,14 +108,14 @@ def test_train_eval_predict_ablate_with_foundation_encoders(demo_dataset, releas
         (tmp_path / name).write_bytes(encode_png(img[:, x0:x0 + 48]))
     pair = ["--left", tmp_path / "l.png", "--right", tmp_path / "r.png", "--intrinsics", "50,50,24,16",
             "--baseline", "0.1", "--device", "cpu"]
-    assert cli(["predict", *pair, "--checkpoint", best, "--out", tmp_path / "scene"]) == 0
+    assert sgmodel_status(["predict", *pair, "--checkpoint", best, "--out", tmp_path / "scene"]) == 0
     assert (tmp_path / "scene" / "scene.ply").is_file()
     capsys.readouterr()
-    assert cli(["predict", *pair, "--checkpoint", best, "--out", tmp_path / "other", *fs]) == 2
+    assert sgmodel_status(["predict", *pair, "--checkpoint", best, "--out", tmp_path / "other", *fs]) == 2
     err = capsys.readouterr().err
     assert "--encoder foundation-stereo: checkpoint" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "other").exists()
-    assert cli(["ablate", "--data", demo_dataset, "--out", tmp_path / "ablate", "--only", "default", *fs, *TINY,
+    assert sgmodel_status(["ablate", "--data", demo_dataset, "--out", tmp_path / "ablate", "--only", "default", *fs, *TINY,
                 *SCHEDULE]) == 0
     table = (tmp_path / "ablate" / "table.md").read_text()
     assert "encoder foundation-stereo" in table and "| naive-gs |" in table and "| forward-splat |" in table
@@ -140,7 +133,7 @@ def test_bad_encoder_flags_exit_2_with_one_line(demo_dataset, tmp_path, capsys, 
     out = tmp_path / "out"
     common = ["--data", demo_dataset, "--out", out, "--device", "cpu"]
     common += ["--no-progress"] if argv[0] == "eval" else []
-    assert cli([a.format(tmp=tmp_path) for a in argv] + common) == 2
+    assert sgmodel_status([a.format(tmp=tmp_path) for a in argv] + common) == 2
     err = capsys.readouterr().err
     assert message.format(tmp=tmp_path) in err and len(err.strip().splitlines()) == 1, err
     assert not out.exists()

@@ -207,7 +207,8 @@ def test_rectify_command_writes_the_pair_and_a_k_txt_that_reads_back(raw_rig, tm
                  "--rig", str(r.folder / "intrinsics.yml"), str(r.folder / "extrinsics.yml"), "--out", str(out)]) == 0
     log = capsys.readouterr().out
     assert "stereo check: " in log and f"wrote {out}/" in log
-    assert sorted(p.name for p in out.iterdir()) == ["K.txt", "left.png", "rectification.json", "right.png"]
+    assert sorted(p.name for p in out.iterdir()) == [".written-by", "K.txt", "left.png", "rectification.json",
+                                                     "right.png"]
     rect = Rectification.of(read_rig([r.folder / "intrinsics.yml", r.folder / "extrinsics.yml"]), (W, H))
     calib = read_calib(out / "K.txt")
     np.testing.assert_array_equal(calib.K, rect.K)
@@ -226,6 +227,19 @@ def test_rectify_command_writes_the_pair_and_a_k_txt_that_reads_back(raw_rig, tm
     err = capsys.readouterr().err
     assert err.startswith("sgmodel rectify: error: --right") and len(err.strip().splitlines()) == 1
     assert not bad.exists()
+    # OUT is replaced as a whole on a second run; a folder another command wrote is refused and left as it was.
+    (out / "K.txt").write_text("stale")
+    rerun = ["rectify", "--left", str(r.folder / "left.png"), "--right", str(r.folder / "right.png"),
+             "--rig", str(r.folder / "intrinsics.yml"), str(r.folder / "extrinsics.yml")]
+    assert main(rerun + ["--out", str(out)]) == 0
+    assert read_calib(out / "K.txt").baseline == rect.baseline
+    capsys.readouterr()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    assert main(rerun + ["--out", str(mine)]) == 2
+    assert "--out" in capsys.readouterr().err
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"] and (mine / "notes.txt").read_text() == "keep"
 
 
 def test_predict_from_rig_python_api(raw_rig, capsys):

@@ -11,23 +11,16 @@ from pathlib import Path
 import pytest
 
 from scenesplat_stereo.benchmark import BENCHMARK_NAME
-from sgmodel.cli import main as sgmodel_main
 from sgmodel.data import DataError
 from sgmodel.evaluate import benchmark_flag, summarise
 from sgmodel.table2 import Column, Row, cell, columns, table_markdown
-
-
-def cli(args: list) -> int:
-    try:
-        return sgmodel_main([str(a) for a in args])
-    except SystemExit as e:
-        return e.code
+from tests.model_helpers import sgmodel_status
 
 
 @pytest.fixture(scope="module")
 def checkpoint(demo_dataset, tmp_path_factory) -> Path:
     run = tmp_path_factory.mktemp("table2") / "run"
-    assert cli(["train", "--data", demo_dataset, "--out", run, "--preset", "cpu-small", "--steps", 2, "--val-every", 2,
+    assert sgmodel_status(["train", "--data", demo_dataset, "--out", run, "--preset", "cpu-small", "--steps", 2, "--val-every", 2,
                 "--batch-size", 2, "--resolution", 32, "--padding", 2, "--device", "cpu", "--no-progress"]) == 0
     return run / "checkpoints" / "best.pt"
 
@@ -88,7 +81,7 @@ def test_columns_are_checked_before_anything_runs(stereonvs_dataset, replicags_d
 
 def test_table2_for_the_model_and_both_baselines(stereonvs_dataset, replicags_dataset, checkpoint, tmp_path, capsys):
     out = tmp_path / "table"
-    assert cli(["eval", "--split", "test", "--data", f"StereoNVS={stereonvs_dataset}", "--data",
+    assert sgmodel_status(["eval", "--split", "test", "--data", f"StereoNVS={stereonvs_dataset}", "--data",
                 f"ReplicaGS={replicags_dataset}", "--checkpoint", checkpoint, "--method", "naive-gs", "--method",
                 "forward-splat", "--encoder", "sgbm", "--resolution", 32, "--out", out, "--device", "cpu",
                 "--no-progress"]) == 0
@@ -112,7 +105,7 @@ def test_table2_for_the_model_and_both_baselines(stereonvs_dataset, replicags_da
             assert (out / bench / row["method"] / "targets.csv").is_file()
     # the same run alone gives the same numbers
     single = tmp_path / "single"
-    assert cli(["eval", "--split", "test", "--data", stereonvs_dataset, "--method", "naive-gs", "--encoder", "sgbm",
+    assert sgmodel_status(["eval", "--split", "test", "--data", stereonvs_dataset, "--method", "naive-gs", "--encoder", "sgbm",
                 "--resolution", 32, "--out", single, "--device", "cpu", "--no-progress"]) == 0
     alone = json.loads((single / "metrics.json").read_text())["mean"]
     assert alone == json.loads((out / "StereoNVS/naive-gs/metrics.json").read_text())["mean"]
@@ -127,7 +120,7 @@ def test_table2_for_the_model_and_both_baselines(stereonvs_dataset, replicags_da
 ])
 def test_table2_bad_input_exits_2_and_writes_nothing(stereonvs_dataset, tmp_path, capsys, argv, message):
     out = tmp_path / "report"
-    code = cli(["eval", "--split", "test", "--out", out, "--device", "cpu", "--encoder", "sgbm", "--no-progress"]
+    code = sgmodel_status(["eval", "--split", "test", "--out", out, "--device", "cpu", "--encoder", "sgbm", "--no-progress"]
                + [a.format(tmp=tmp_path, nvs=stereonvs_dataset) for a in argv])
     assert code == 2 and message in capsys.readouterr().err
     assert not out.exists()

@@ -18,6 +18,7 @@ import torch
 
 from scenesplat_stereo.text import markdown_table
 
+from ..args import add_device_argument, device_from_flag
 from ..data import make_loader
 from ..encoders import StereoEncoder
 from ..encoders.flags import build_encoder, encoder_label, parse_encoder_spec
@@ -61,7 +62,7 @@ def bench_encoder(label: str, encoder: StereoEncoder, loader, device: torch.devi
 
 
 def run(args: argparse.Namespace) -> int:
-    device = torch.device(args.device)
+    device = torch.device(device_from_flag(args.device))
     specs = [parse_encoder_spec(text) for text in args.encoders]
     encoders = [build_encoder(spec, device) for spec in specs]  # all of them before any is measured
     rows = []
@@ -86,5 +87,5 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "e.g. foundation-stereo,weights=FS/model_best_bp2.pth,repo=FS (default: psmnet-kitti sgbm)")
     p.add_argument("--resolution", type=int, default=256, help="S (default 256)")
     p.add_argument("--batch-size", type=int, default=4, help="pairs per batch (default 4)")
-    p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
+    add_device_argument(p)
     p.add_argument("--out", type=Path, help="also write the markdown table here")

@@ -30,7 +30,7 @@ from scenesplat_stereo.scene_files import FORMATS, save_scene
 from scenesplat_stereo.text import argtype, markdown_table, parse_size
 
 from .. import export
-from ..args import add_model_arguments, params_from_args
+from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from ..geometry import depth_from_disparity
 from ..model import Predictor, create_model, load_predictor
 from ..render import SH_DEGREE, render_views
@@ -50,7 +50,7 @@ def bench_model(args: argparse.Namespace, device: torch.device) -> Predictor:
 
 
 def run(args: argparse.Namespace) -> int:
-    device = torch.device(args.device)
+    device = torch.device(device_from_flag(args.device))
     predictor = bench_model(args, device)
     if args.video:
         from .predict_video import bench_video
@@ -132,7 +132,7 @@ def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model_arguments(p)
     p.add_argument("--checkpoint", help="a trained model (default: a fresh one of the model flags)")
-    p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
+    add_device_argument(p)
     p.add_argument("--size", type=argtype(parse_size, "--size"), default=(320, 256),
                    help="input pair (video: one eye's frame) size WxH, multiples of 16 (default 320x256)")
     p.add_argument("--warmup", type=int, default=3, help="untimed pairs (video: batches) first (default 3)")

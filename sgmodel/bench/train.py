@@ -27,7 +27,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from scenesplat_stereo.text import markdown_table
 
-from ..args import add_model_arguments, params_from_args
+from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from ..data import make_loader
 from ..geometry import depth_from_disparity
 from ..losses import Objective, create_objective
@@ -157,7 +157,7 @@ def measure(model, objective: Objective, batches, args, device: torch.device, am
 
 def run(args: argparse.Namespace) -> int:
     model_params, _ = params_from_args(args)
-    device = torch.device(args.device)
+    device = torch.device(device_from_flag(args.device))
     torch.backends.cudnn.benchmark = device.type == "cuda"  # as `sgmodel train` does
     model = create_model(model_params, device)
     S, amp = model_params.resolution, not args.no_amp
@@ -230,7 +230,7 @@ def layer_rate(model, batch: dict, amp: bool, device: torch.device, forward_ms: 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model_arguments(p)
-    p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
+    add_device_argument(p)
     p.add_argument("--data", type=Path, help="time real batches from this dataset (default: synthetic batches)")
     p.add_argument("--batch-size", type=int, default=32, help="pairs per step (default 32)")
     p.add_argument("--targets", type=int, default=4, help="targets per pair (default 4)")
