@@ -8,7 +8,7 @@
 #   cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
 # Device call 1 (carry .gpukit/a):                 bash .gpukit/a/stash.sh
 # Device call 2 (carry .gpukit/b, .whl, .devdata):
-#   bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve]
+#   bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
 #   tests:   the CUDA tests of the model's layers (Triton GroupNorm kernels), LPIPS and the soft-argmin
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
 #            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
@@ -16,6 +16,9 @@
 #   big:     512x512 (padding 32): `bench train` at batch 32, then smaller batches until one fits
 #   curve:   a small dataset (demo rooms + the guitar), then short training runs: SEEDS of this code and, with
 #            BASE, of the code before; the validation PSNR of every run side by side ($OUT/curves.md)
+#   lpips:   the step with the LPIPS term's VGG16 eager (--no-compile-lpips; `bench` times the compiled default),
+#            then training runs with the LPIPS term (random VGG16) compiled and eager, SEEDS each
+#            ($OUT/lpips_curves.md)
 # WHEELS (default .whl), KIT (.gpukit/b), SGMODEL_CACHE (.devdata), GUITAR ($SGMODEL_CACHE/guitar.ply), STEPS (200),
 # VAL (50), SEEDS ("0 1").
 set -uo pipefail
@@ -29,6 +32,33 @@ rc=0
 run() { echo "+ $*"; "$@" || { echo "FAILED ($?): $*"; rc=1; }; }
 in_base() { (cd "$base" && "$@"); }
 bench=(python3 -m sgmodel.cli bench train --device cuda --warmup 3 --repeats 8)
+data=/tmp/sgdata
+dataset() {  # the demo rooms and the guitar (orbit), 180 training and 10 validation pairs at 340x256
+  [[ -f $data/dataset/val/index.json ]] && return
+  mkdir -p $data/teachers/guitar && cp "${GUITAR:-$SGMODEL_CACHE/guitar.ply}" $data/teachers/guitar/point_cloud.ply
+  run python3 -m scenesplat_stereo.cli demo-teachers $data/teachers --frames 60 --no-progress
+  run python3 -m scenesplat_stereo.cli build --teachers $data/teachers --out $data/dataset --device cuda \
+    --val-scenes 1 --min-psnr none --orbit "radius=6,frames=60" --resolution 340x256 --no-progress
+}
+curves() {  # curves FILE RUN...: the validation PSNR of every run side by side, and its logged median step
+  local file=$1; shift
+  run python3 - "$@" > "$file" <<'EOF'
+import json, sys
+from pathlib import Path
+runs = {Path(r).name: [json.loads(line) for line in (Path(r) / "metrics.jsonl").read_text().splitlines()]
+        for r in sys.argv[1:]}
+steps = sorted({m["step"] for ms in runs.values() for m in ms if "val_psnr" in m})
+val = {k: {m["step"]: m["val_psnr"] for m in ms if "val_psnr" in m} for k, ms in runs.items()}
+ms = {k: sorted(m["step_ms"] for m in v if "step_ms" in m) for k, v in runs.items()}
+print("| step | " + " | ".join(runs) + " |\n|---|" + "---:|" * len(runs))
+for s in steps:
+    print(f"| {s} | " + " | ".join(f"{val[k].get(s, float('nan')):.3f}" for k in runs) + " |")
+print("| median step ms (logged) | " + " | ".join(f"{v[len(v) // 2]:.0f}" if v else "n/a" for v in ms.values()) + " |")
+EOF
+  cat "$file"
+}
+train=(python3 -m sgmodel.cli train --data $data/dataset --device cuda --steps ${STEPS:-200} --val-every ${VAL:-50}
+       --workers 8 --no-progress)
 
 for what in "$@"; do case $what in
 tests)
@@ -58,15 +88,7 @@ big)
       >> "$OUT/big.md"
   done ;;
 curve)
-  data=/tmp/sgdata
-  if [[ ! -f $data/dataset/val/index.json ]]; then
-    mkdir -p $data/teachers/guitar && cp "${GUITAR:-$SGMODEL_CACHE/guitar.ply}" $data/teachers/guitar/point_cloud.ply
-    run python3 -m scenesplat_stereo.cli demo-teachers $data/teachers --frames 60 --no-progress
-    run python3 -m scenesplat_stereo.cli build --teachers $data/teachers --out $data/dataset --device cuda \
-      --val-scenes 1 --min-psnr none --orbit "radius=6,frames=60" --resolution 340x256 --no-progress
-  fi
-  train=(python3 -m sgmodel.cli train --data $data/dataset --device cuda --steps ${STEPS:-200} --val-every ${VAL:-50}
-         --workers 8 --no-progress)
+  dataset
   runs=()
   for s in ${SEEDS:-0 1}; do
     run "${train[@]}" --seed $s --out /tmp/runs/new-seed$s > /tmp/runs-new-$s.log 2>&1; runs+=(/tmp/runs/new-seed$s)
@@ -75,20 +97,23 @@ curve)
       runs+=(/tmp/runs/before-seed$s)
     fi
   done
-  run python3 - "${runs[@]}" > "$OUT/curves.md" <<'EOF'
-import json, sys
-from pathlib import Path
-runs = {Path(r).name: [json.loads(line) for line in (Path(r) / "metrics.jsonl").read_text().splitlines()]
-        for r in sys.argv[1:]}
-steps = sorted({m["step"] for ms in runs.values() for m in ms if "val_psnr" in m})
-val = {k: {m["step"]: m["val_psnr"] for m in ms if "val_psnr" in m} for k, ms in runs.items()}
-ms = {k: sorted(m["step_ms"] for m in v if "step_ms" in m) for k, v in runs.items()}
-print("| step | " + " | ".join(runs) + " |\n|---|" + "---:|" * len(runs))
-for s in steps:
-    print(f"| {s} | " + " | ".join(f"{val[k].get(s, float('nan')):.3f}" for k in runs) + " |")
-print("| median step ms (logged) | " + " | ".join(f"{v[len(v) // 2]:.0f}" if v else "n/a" for v in ms.values()) + " |")
-EOF
-  cat "$OUT/curves.md" ;;
+  curves "$OUT/curves.md" "${runs[@]}" ;;
+lpips)  # the LPIPS term's VGG16 compiled (the default) and eager: the step, then training runs of each
+  run "${bench[@]}" --lpips-random-vgg --no-compile-lpips --out /tmp/bench_eager.md \
+    && { echo "## the LPIPS term's VGG16 eager (--no-compile-lpips)"; cat /tmp/bench_eager.md; } >> "$OUT/bench.md"
+  run python3 -c "import torch; from sgmodel.lpips import VGG16Trunk
+torch.manual_seed(0); torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.pth')"
+  dataset
+  runs=()
+  for s in ${SEEDS:-0 1}; do
+    for mode in compiled eager; do
+      flags=(); [[ $mode == eager ]] && flags=(--no-compile-lpips)
+      run "${train[@]}" --seed $s --lpips-vgg /tmp/vgg16-random.pth "${flags[@]}" --out /tmp/runs/lpips-$mode-seed$s \
+        > /tmp/runs-lpips-$mode-$s.log 2>&1
+      runs+=(/tmp/runs/lpips-$mode-seed$s)
+    done
+  done
+  curves "$OUT/lpips_curves.md" "${runs[@]}" ;;
 *) echo "unknown phase $what"; rc=2 ;;
 esac; done
 exit $rc

@@ -65,9 +65,12 @@ class Objective:
 
 def create_objective(vgg_path: str | os.PathLike | None = None, lin_path: str | os.PathLike | None = None,
                      device: str | torch.device = "cpu", weight: float = PERCEPTUAL_WEIGHT,
-                     amp: bool = False) -> Objective:
+                     amp: bool = False, compile_trunk: bool = False) -> Objective:
     """The objective on ``device``: LPIPS-VGG when VGG16 weights are found (``vgg_path`` or torch's hub
     cache), else the SSIM fallback. Weights that are given but unusable raise ``WeightsError``. ``amp``:
-    the LPIPS network's convolutions in bf16 on CUDA (training; the metrics of ``eval`` stay float32)."""
+    the LPIPS network's convolutions in bf16 on CUDA (training; the metrics of ``eval`` stay float32).
+    ``compile_trunk``: its VGG16 through ``torch.compile`` (``LPIPS.compile_trunk``; for CUDA)."""
     net = create_lpips(vgg_path, lin_path, device)
+    if net is not None and compile_trunk:
+        net.compile_trunk()
     return Objective(net, reason="" if net is not None else vgg16_missing_message(), weight=weight, amp=amp)

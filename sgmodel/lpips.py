@@ -170,12 +170,21 @@ class LPIPS(nn.Module):
         self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1))
         self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1))
         self.vgg_sha256 = vgg_sha256
+        self._trunk = self._trunk_eager  # compile_trunk() replaces it
         self.requires_grad_(False)
         self.eval()
 
     def train(self, mode: bool = True) -> "LPIPS":
         """Frozen: stays in eval mode whatever the caller asks."""
         return super().train(False)
+
+    def compile_trunk(self) -> "LPIPS":
+        """From now on run the scaling layer and VGG16 up to relu5_3 through ``torch.compile`` (inductor,
+        static shapes): for the bf16 training loss on CUDA (``sgmodel train``'s default there; the step with
+        the LPIPS term about 7% faster on an H100, for about 12 s of compilation per process and image
+        shape: docs/benchmarks.md). The same operations; bf16 results differ by rounding only."""
+        self._trunk = torch.compile(self._trunk_eager, dynamic=False)
+        return self
 
     def taps(self, x: Tensor, zero_one: bool = True) -> list[Tensor]:
         """The raw VGG16 features [N, C_l, h_l, w_l] of images [N, 3, H, W] at the LPIPS taps (relu1_2 ...
@@ -184,6 +193,9 @@ class LPIPS(nn.Module):
             # the bf16 training loss: channels-last convolutions, without cuDNN's layout conversions
             # (loss + backward 182.5 -> 162.6 ms with the norm below, H100, 128 pairs at 256x256)
             x = x.contiguous(memory_format=torch.channels_last)
+        return self._trunk(x, zero_one)
+
+    def _trunk_eager(self, x: Tensor, zero_one: bool) -> list[Tensor]:
         if zero_one:
             x = 2 * x - 1
         x = (x - self.shift) / self.scale

@@ -277,7 +277,8 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
     # every training step has the same shapes: let cuDNN time its algorithms once (8% of a step on an H100)
     torch.backends.cudnn.benchmark = world.device.type == "cuda"
     model = create_model(model_params, world.device)
-    objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp)
+    objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp,
+                                 compile_trunk=tp.compile_lpips and world.device.type == "cuda")
     config = run_config(model_params, tp, data, model.encoder, objective, _init_from(init_from, model))
     lock = FolderLock(paths.root, "--out", "sgmodel train")
     if world.main:

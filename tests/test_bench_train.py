@@ -69,5 +69,7 @@ def test_bench_train_reports_both_terms_on_the_cpu(tmp_path, capsys):
     text = out.read_text()
     assert "| stage | mse+ssim, median ms | mse+lpips-vgg, median ms |" in text
     assert "**free-running step**" in text and "peak memory, MiB" in text
+    assert "| first step, s (cuDNN's algorithm search; compilation) |" in text
+    assert "the LPIPS term's VGG16 eager" in text  # compiled only on CUDA
     assert "| forward (the stage above) |" in text and "| forward + backward, alone |" in text
     assert text in capsys.readouterr().out

@@ -139,9 +139,13 @@ def measure(model, objective: Objective, batches, args, device: torch.device, am
     if device.type == "cuda":
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
+    first = 0.0
     for i in range(args.warmup + args.repeats):
         batch, data_s = batches(i)
+        t_first = now()
         split = staged_step(model, objective, optimizer, batch, amp, now)
+        if i == 0:
+            first = now() - t_first
         t0 = now()
         train_step(model, batch, objective, optimizer, scheduler, amp)
         step_s = now() - t0
@@ -152,7 +156,7 @@ def measure(model, objective: Objective, batches, args, device: torch.device, am
             free.append(step_s)
     peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
     return {"stages": {k: statistics.median(v) * 1e3 for k, v in stages.items()},
-            "step": statistics.median(free) * 1e3, "peak": peak}
+            "step": statistics.median(free) * 1e3, "peak": peak, "first": first}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -161,12 +165,14 @@ def run(args: argparse.Namespace) -> int:
     torch.backends.cudnn.benchmark = device.type == "cuda"  # as `sgmodel train` does
     model = create_model(model_params, device)
     S, amp = model_params.resolution, not args.no_amp
+    compiled = device.type == "cuda" and not args.no_compile_lpips  # as `sgmodel train` does
     objectives = [Objective(None, reason="the bench times both" if args.lpips_vgg or args.lpips_random_vgg
                             else vgg16_missing_message(), amp=amp)]
     if args.lpips_random_vgg:
-        objectives.append(Objective(random_lpips(device), amp=amp))
+        net = random_lpips(device)
+        objectives.append(Objective(net.compile_trunk() if compiled else net, amp=amp))
     elif args.lpips_vgg:
-        objectives.append(create_objective(args.lpips_vgg, device=device, amp=amp))
+        objectives.append(create_objective(args.lpips_vgg, device=device, amp=amp, compile_trunk=compiled))
     loader = iter(make_loader(args.data, "train", args.batch_size, S, args.targets, 0, args.workers, 0, 1,
                               train=True)) if args.data else None
     now = synced_clock(device)
@@ -186,13 +192,16 @@ def run(args: argparse.Namespace) -> int:
     rows += [["**sum of stages (synchronised)**"] + [f"{sum(v for v in r['stages'].values() if v == v):.1f}"
                                                      for r in results],
              ["**free-running step** (`train_step`, data excluded)"] + [f"**{r['step']:.1f}**" for r in results],
-             ["peak memory, MiB"] + [f"{r['peak']:.0f}" for r in results]]
+             ["peak memory, MiB"] + [f"{r['peak']:.0f}" for r in results],
+             ["first step, s (cuDNN's algorithm search; compilation)"] + [f"{r['first']:.1f}" for r in results]]
     gaussians = (2 if model_params.composer.back_layer else 1) * (S + 2 * model_params.padding) ** 2
     report(f"One training step: {S}x{S}, batch {args.batch_size}, {args.targets} targets, encoder "
            f"{model_params.encoder.name}, {'bf16 autocast' if amp else 'float32'}, on {name}; medians of "
            f"{args.repeats} steps after {args.warmup} warm-up "
            f"({'real shards: ' + str(args.data) if args.data else 'synthetic batches'}). Losses: "
-           + "; ".join(f"{o.name} = {o.description}" for o in objectives) + ".\n\n"
+           + "; ".join(f"{o.name} = {o.description}" for o in objectives)
+           + (f"; the LPIPS term's VGG16 {'through torch.compile' if compiled else 'eager'}" if len(objectives) > 1
+              else "") + ".\n\n"
            f"{markdown_table(header, rows)}\n\nGaussians per scene: {gaussians:,}.\n\n"
            + layer_rate(model, batches(0)[0], amp, device, results[0]["stages"]["decoder + predictor"], args.repeats),
            args.out)
@@ -243,4 +252,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help="also time the step with LPIPS-VGG on randomly initialised VGG16 weights (timing only: "
                             "the time does not depend on the weights)")
     p.add_argument("--no-amp", action="store_true", help="float32 convolutions")
+    p.add_argument("--no-compile-lpips", action="store_true",
+                   help="the LPIPS term's VGG16 eagerly (default on CUDA: torch.compile, as sgmodel train)")
     p.add_argument("--out", type=Path, help="also write the markdown table here")
