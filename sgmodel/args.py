@@ -73,7 +73,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--workers", type=whole_number("--workers", 0), help="DataLoader workers per rank (default 4)")
     g.add_argument("--no-amp", action="store_true", help="float32 convolutions on CUDA (default: bf16 autocast)")
     g.add_argument("--no-compile-lpips", action="store_true",
-                   help="run the LPIPS term's VGG16 eagerly on CUDA (default: torch.compile, about 12 s once "
+                   help="run the LPIPS term's VGG16 eagerly on CUDA (default: torch.compile, about 15 s once "
                         "per process for a step about 7%% faster)")
     p.set_defaults(**{_TRAINING: True})
 

@@ -112,7 +112,7 @@ class TrainParams:
     seed: int = 0  # data order, target draws and initialisation
     workers: int = 4  # DataLoader worker processes per rank
     amp: bool = True  # bf16 autocast for the encoder and the convolutions on CUDA (rasteriser float32)
-    compile_lpips: bool = True  # torch.compile the LPIPS term's VGG16 trunk on CUDA (~12 s once per process)
+    compile_lpips: bool = True  # torch.compile the LPIPS term's VGG16 trunk on CUDA (~15 s once per process)
     sheet_samples: int = 4  # validation samples shown in each contact sheet
 
     def to_dict(self) -> dict[str, Any]:

@@ -252,11 +252,12 @@ def fused_group_norm_available(x: torch.Tensor) -> bool:
     """Whether ``group_norm_gelu`` runs the Triton kernels for ``x``: a 4D channels-last CUDA tensor in
     float32, float16 or bfloat16, with Triton installed."""
     return (x.is_cuda and x.dim() == 4 and x.dtype in (torch.float32, torch.float16, torch.bfloat16)
-            and x.is_contiguous(memory_format=torch.channels_last) and _triton_installed())
+            and x.is_contiguous(memory_format=torch.channels_last) and triton_installed())
 
 
 @functools.cache
-def _triton_installed() -> bool:
+def triton_installed() -> bool:
+    """Whether Triton can be imported (the fused GroupNorm kernels; torch.compile's GPU code)."""
     return importlib.util.find_spec("triton") is not None
 
 

@@ -181,7 +181,7 @@ class LPIPS(nn.Module):
     def compile_trunk(self) -> "LPIPS":
         """From now on run the scaling layer and VGG16 up to relu5_3 through ``torch.compile`` (inductor,
         static shapes): for the bf16 training loss on CUDA (``sgmodel train``'s default there; the step with
-        the LPIPS term about 7% faster on an H100, for about 12 s of compilation per process and image
+        the LPIPS term about 7% faster on an H100, for about 15 s of compilation per process and image
         shape: docs/benchmarks.md). The same operations; bf16 results differ by rounding only."""
         self._trunk = torch.compile(self._trunk_eager, dynamic=False)
         return self

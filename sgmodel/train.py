@@ -48,7 +48,7 @@ from .checkpoint import CheckpointError, load_checkpoint, load_weights, save_che
 from .config import ModelParams, TrainParams
 from .data import DataError, load_sample, make_loader, read_split
 from .distributed import World, all_sum, broadcast_flag, close_world, init_world
-from .losses import create_objective
+from .losses import compiles_lpips, create_objective
 from .model import StereoGaussians, create_model
 from .render import render_views
 from .sheets import validation_sheet
@@ -278,7 +278,7 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
     torch.backends.cudnn.benchmark = world.device.type == "cuda"
     model = create_model(model_params, world.device)
     objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp,
-                                 compile_trunk=tp.compile_lpips and world.device.type == "cuda")
+                                 compile_trunk=compiles_lpips(world.device, tp.compile_lpips))
     config = run_config(model_params, tp, data, model.encoder, objective, _init_from(init_from, model))
     lock = FolderLock(paths.root, "--out", "sgmodel train")
     if world.main:

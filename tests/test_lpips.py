@@ -315,3 +315,14 @@ def test_compiled_trunk_matches_eager_on_cuda(vgg_path, lin_path, amp):
     else:
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-7)
         assert ((g_got - g_want).norm() / g_want.norm()).item() < 2e-3
+
+
+def test_training_compiles_the_trunk_only_on_cuda_with_triton(monkeypatch):
+    from sgmodel import losses
+
+    cuda, cpu = torch.device("cuda"), torch.device("cpu")
+    monkeypatch.setattr(losses, "triton_installed", lambda: True)
+    assert losses.compiles_lpips(cuda) and not losses.compiles_lpips(cuda, wanted=False)
+    assert not losses.compiles_lpips(cpu)
+    monkeypatch.setattr(losses, "triton_installed", lambda: False)
+    assert not losses.compiles_lpips(cuda)

@@ -30,7 +30,7 @@ from scenesplat_stereo.text import markdown_table
 from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from ..data import make_loader
 from ..geometry import depth_from_disparity
-from ..losses import Objective, create_objective
+from ..losses import Objective, compiles_lpips, create_objective
 from ..lpips import random_lpips, vgg16_missing_message
 from ..model import create_model
 from ..render import render_views
@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
     torch.backends.cudnn.benchmark = device.type == "cuda"  # as `sgmodel train` does
     model = create_model(model_params, device)
     S, amp = model_params.resolution, not args.no_amp
-    compiled = device.type == "cuda" and not args.no_compile_lpips  # as `sgmodel train` does
+    compiled = compiles_lpips(device, not args.no_compile_lpips)  # as `sgmodel train` does
     objectives = [Objective(None, reason="the bench times both" if args.lpips_vgg or args.lpips_random_vgg
                             else vgg16_missing_message(), amp=amp)]
     if args.lpips_random_vgg:
