@@ -6,8 +6,10 @@
 #   bash ../shared/tools/warp-gpu-kit .gpukit
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 -d .whl OpenImageIO
 #   mkdir -p .devdata && cp ~/.cache/sgmodel/* .devdata/ && cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
-# Device call 1 (kind nvidia-h200-x2, carry .gpukit/a):           bash .gpukit/a/stash.sh
-# Device call 2 (same machine, carry .gpukit/b, .whl, .devdata):  bash scripts/gpu_ddp.sh
+# Device call 1 (kind nvidia-h200-x2, carry .gpukit/a):  bash .gpukit/a/stash.sh
+# Device call 2 (carry .devdata):                       mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
+# Device call 3 (carry .gpukit/b, .whl):                SGMODEL_CACHE=/root/sgcache bash scripts/gpu_ddp.sh
+# (one call carries at most 64 MiB; each call within 30 s of the one before, so the machine stays the same)
 # STEPS (default 300), FRAMES (default 100), BATCH (default 32) change the sizes; DEVICE=cpu runs the same
 # steps tiny on the CPU with gloo (a dry run).
 set -uo pipefail
@@ -17,8 +19,8 @@ work=/tmp/sgddp; mkdir -p $work
 if [[ $dev == cuda ]]; then
   source .gpukit/b/install.sh || exit 1
   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl || exit 1
-  export PYTHONPATH=/tmp/site:$PWD:${PYTHONPATH:-} SGMODEL_CACHE=$PWD/.devdata
-  guitar=$PWD/.devdata/guitar.ply
+  export PYTHONPATH=/tmp/site:$PWD:${PYTHONPATH:-} SGMODEL_CACHE=${SGMODEL_CACHE:-$PWD/.devdata}
+  guitar=$SGMODEL_CACHE/guitar.ply
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
   ranks=$(python3 -c "import torch; print(torch.cuda.device_count())")
   S=256 BATCH=${BATCH:-32} STEPS=${STEPS:-300} FRAMES=${FRAMES:-100} RES=340x256 ENC=psmnet-kitti WORKERS=6 SKIP=30

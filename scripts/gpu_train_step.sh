@@ -7,8 +7,9 @@
 #   mkdir -p .devdata && cp ~/.cache/sgmodel/* .devdata/
 #   cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
 # Device call 1 (carry .gpukit/a):                 bash .gpukit/a/stash.sh
-# Device call 2 (carry .gpukit/b, .whl, .devdata):
-#   bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
+# Device call 2 (carry .devdata):                  mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
+# Device call 3 (carry .gpukit/b, .whl; one call carries at most 64 MiB, each within 30 s of the one before):
+#   SGMODEL_CACHE=/root/sgcache bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
 #   tests:   the CUDA tests of the model's layers (Triton GroupNorm kernels), LPIPS and the soft-argmin
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
 #            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
