@@ -51,6 +51,8 @@ CHUNK_BOX = [f"{m}_{a}" for m in ("min", "max") for a in "xyz"] + [
     f"{m}_scale_{a}" for m in ("min", "max") for a in "xyz"]
 CHUNK_COLOUR = [f"{m}_{c}" for m in ("min", "max") for c in "rgb"]
 PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
+#: _OTHER_SLOTS[i]: the wxyz indices other than i, in order.
+_OTHER_SLOTS = np.array([[j for j in range(4) if j != i] for i in range(4)])
 
 
 # ---------------------------------------------------------------- reading
@@ -114,9 +116,6 @@ def decode_compressed(header: PlyHeader) -> tuple[np.ndarray, ...]:
     finite = np.isfinite(means).all(1) & np.isfinite(log_scales).all(1) & np.isfinite(sh).all((1, 2))
     return means, quats, log_scales, rgba[:, 3], sh, finite
 
-
-#: _OTHER_SLOTS[i]: the wxyz indices other than i, in order.
-_OTHER_SLOTS = np.array([[j for j in range(4) if j != i] for i in range(4)])
 
 
 # ---------------------------------------------------------------- writing
@@ -212,11 +211,11 @@ def save_compressed_ply(scene: GaussianScene, path: str | os.PathLike, durable: 
     order = morton_order(scene.means)
     log_scales = np.log(scene.scales[order].astype(np.float64)).astype(np.float32)  # the file's log scales
     colour = (scene.sh[order, 0, :].astype(np.float64) * SH_C0 + 0.5).astype(np.float32)
-    columns = [_blocks(scene.means[order]), _blocks(log_scales), _blocks(colour)]
-    boxes = [(b.min(1), b.max(1)) for b in columns]  # exact float32 values: the padding repeats a real row
+    blocks = [_blocks(scene.means[order]), _blocks(log_scales), _blocks(colour)]
+    boxes = [(b.min(1), b.max(1)) for b in blocks]  # exact float32 values: the padding repeats a real row
     boxes[1] = tuple(np.clip(x, -LOG_SCALE_CLAMP, LOG_SCALE_CLAMP) for x in boxes[1])
     chunks = np.concatenate([part for box in boxes for part in box], axis=1).astype("<f4")
-    position, scale, rgb = (_unit_interval(b, *box)[:n] for b, box in zip(columns, boxes))
+    position, scale, rgb = (_unit_interval(b, *box)[:n] for b, box in zip(blocks, boxes))
     vertex = np.empty((n, 4), dtype="<u4")
     vertex[:, 0] = _pack_111011(position)
     vertex[:, 1] = _pack_rotation(scene.quats[order])

@@ -193,11 +193,10 @@ def encode_depth_exr(depth: np.ndarray) -> bytes:
     return _write(depth[:, :, None], "exr", "half", attrs)
 
 
-#: EXIF Orientation (TIFF tag 274) -> how the stored pixels [H, W, C] become the upright image: 1 as stored,
-#: 2 mirrored left-right, 3 turned 180 deg, 4 mirrored top-bottom, 5 transposed, 6 turned 90 deg clockwise,
+#: EXIF Orientation (TIFF tag 274) -> how the stored pixels [H, W, C] become the upright image (1 and unknown
+#: values: as stored): 2 mirrored left-right, 3 turned 180 deg, 4 mirrored top-bottom, 5 transposed, 6 turned 90 deg clockwise,
 #: 7 transversed, 8 turned 90 deg anticlockwise (the same as OpenCV's imread; tests/test_bad_input_model.py).
 _UPRIGHT = {
-    1: lambda a: a,
     2: lambda a: a[:, ::-1],
     3: lambda a: a[::-1, ::-1],
     4: lambda a: a[::-1],
@@ -235,7 +234,8 @@ def decode_image(data: bytes, ext: str) -> np.ndarray:
     finally:
         _remove(path)
     arr = np.asarray(arr).reshape(spec.height, spec.width, spec.nchannels)
-    return np.ascontiguousarray(_UPRIGHT.get(orientation, _UPRIGHT[1])(arr)) if orientation != 1 else arr
+    upright = _UPRIGHT.get(orientation)
+    return arr if upright is None else np.ascontiguousarray(upright(arr))
 
 
 @dataclass

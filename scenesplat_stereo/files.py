@@ -134,12 +134,11 @@ def read_json_lines(path: str | os.PathLike) -> list[dict]:
     return records
 
 
-def remove_temp_files(folder: str | os.PathLike, recursive: bool = True) -> int:
-    """Remove the temp files (``TMP_PREFIX*``) unfinished atomic writes left in ``folder``; only call it
-    where no other process writes (e.g. under a ``FolderLock``). Returns how many were removed."""
+def remove_temp_files(folder: str | os.PathLike) -> int:
+    """Remove the temp files (``TMP_PREFIX*``) unfinished atomic writes left in ``folder`` and below; only call
+    it where no other process writes (e.g. under a ``FolderLock``). Returns how many were removed."""
     folder = Path(folder)
-    found = [p for p in (folder.rglob(f"{TMP_PREFIX}*") if recursive else folder.glob(f"{TMP_PREFIX}*"))
-             if p.is_file()] if folder.is_dir() else []
+    found = [p for p in folder.rglob(f"{TMP_PREFIX}*") if p.is_file()] if folder.is_dir() else []
     for p in found:
         p.unlink(missing_ok=True)
     return len(found)

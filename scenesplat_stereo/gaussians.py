@@ -74,14 +74,13 @@ class GaussianScene:
                 bad = int((~np.isfinite(a)).reshape(n, int(np.prod(shape[1:]))).any(1).sum())
                 raise ValueError(f"GaussianScene.{name} has {bad} rows with non-finite values")
         q = self.quats.astype(np.float64)
-        checks = (  # each a function: rows are counted only when a check fails
-            ("quats", lambda: np.abs(np.sqrt(np.einsum("ij,ij->i", q, q)) - 1.0) > QUAT_VALIDATE_ATOL,
+        checks = (  # each the rows that fail it
+            ("quats", np.abs(np.sqrt(np.einsum("ij,ij->i", q, q)) - 1.0) > QUAT_VALIDATE_ATOL,
              f"not unit norm (±{QUAT_VALIDATE_ATOL})"),
-            ("scales", lambda: (self.scales <= 0).any(1), "not > 0"),
-            ("opacities", lambda: (self.opacities < 0) | (self.opacities > 1), "outside [0, 1]"),
+            ("scales", (self.scales <= 0).any(1), "not > 0"),
+            ("opacities", (self.opacities < 0) | (self.opacities > 1), "outside [0, 1]"),
         )
-        for name, bad_rows, what in checks:
-            bad = bad_rows()
+        for name, bad, what in checks:
             if bad.any():
                 raise ValueError(f"GaussianScene.{name}: {int(bad.sum())} rows {what}")
 

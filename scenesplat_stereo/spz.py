@@ -55,8 +55,6 @@ FRACTIONAL_BITS = 12
 COLOR_SCALE = 0.15
 #: SH quantisation: bits kept for degree 1 and for degrees 2 and 3 (the reference writer's defaults).
 SH1_BITS, SH_REST_BITS = 5, 4
-#: Header flag: the scene was trained with antialiasing (mip-splatting).
-FLAG_ANTIALIASED = 0x1
 #: gzip level of the writer (zlib's default, as the reference writer's Z_DEFAULT_COMPRESSION).
 GZIP_LEVEL = 6
 _HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("num_points", "<u4"), ("sh_degree", "u1"),
@@ -113,13 +111,15 @@ def _quantise_sh(x: np.ndarray, bits: int) -> np.ndarray:
     return np.clip(q, 0, 255).astype(np.uint8)
 
 
-def encode_spz(scene: GaussianScene, path: str | os.PathLike = "<memory>", antialiased: bool = False) -> bytes:
-    """The uncompressed version-3 bytes (header and blocks) of ``scene`` (module docstring)."""
+def encode_spz(scene: GaussianScene, path: str | os.PathLike = "<memory>") -> bytes:
+    """The uncompressed version-3 bytes (header and blocks) of ``scene`` (module docstring). The header's flags
+    are 0: not antialiased (bit 0x1 marks scenes trained with mip-splatting's filter; ours render in
+    gsplat's "classic" mode)."""
     path = Path(path)
     n, k = len(scene), (scene.sh_degree + 1) ** 2
     positions, bits = _pack_positions(scene.means, path)
     header = np.zeros((), _HEADER)
-    header[()] = (MAGIC, WRITE_VERSION, n, scene.sh_degree, bits, FLAG_ANTIALIASED if antialiased else 0, 0)
+    header[()] = (MAGIC, WRITE_VERSION, n, scene.sh_degree, bits, 0, 0)
     alphas = _to_u8(scene.opacities.astype(np.float64) * 255.0)
     colours = _to_u8(scene.sh[:, 0, :].astype(np.float64) * (COLOR_SCALE * 255.0) + 0.5 * 255.0)
     scales = _to_u8((np.log(scene.scales.astype(np.float64)) + 10.0) * 16.0)
@@ -131,11 +131,10 @@ def encode_spz(scene: GaussianScene, path: str | os.PathLike = "<memory>", antia
     return b"".join(np.ascontiguousarray(b).tobytes() for b in blocks)
 
 
-def save_spz(scene: GaussianScene, path: str | os.PathLike, durable: bool = True, antialiased: bool = False,
-             level: int = GZIP_LEVEL) -> Path:
-    """Write ``scene`` as a version-3 ``.spz`` (gzip ``level``), atomically. Returns the path."""
+def save_spz(scene: GaussianScene, path: str | os.PathLike, durable: bool = True) -> Path:
+    """Write ``scene`` as a version-3 ``.spz`` (gzip level ``GZIP_LEVEL``), atomically. Returns the path."""
     path = Path(path)
-    data = gzip.compress(encode_spz(scene, path, antialiased), compresslevel=level, mtime=0)
+    data = gzip.compress(encode_spz(scene, path), compresslevel=GZIP_LEVEL, mtime=0)
     atomic_write_bytes(path, data, durable=durable)
     return path
 

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from sgmodel.encoders import create_encoder
-from sgmodel.encoders.foundation import PAD_MULTIPLE, REPO_FLAG, checkout
+from sgmodel.encoders.foundation import PAD_MULTIPLE, checkout
 
 NAMES = ("core", "Utils", "depth_anything", "dinov2", "foundation_stereo_ori")
 

@@ -210,11 +210,17 @@ def eval_inputs(args: argparse.Namespace) -> dict[str, Path | None]:
     return {f"--data {name}={path}": path for name, path in args.data} | {"--checkpoint": args.checkpoint}
 
 
+def method_of(name: str, args: argparse.Namespace, device: str) -> Method:
+    """The Method an ``eval_methods`` name stands for: the ``--checkpoint`` or a baseline with the encoder flags."""
+    if name == "checkpoint":
+        return checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
+    return baseline_method(name, encoder_params(args), args.resolution, device)
+
+
 def run(args: argparse.Namespace, method_name: str, device: str) -> int:
     """``sgmodel eval`` with one ``--data`` folder and one method: REPORT is ``--out``."""
     check_report_folder(args.out, eval_inputs(args))
-    method = checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder) \
-        if method_name == "checkpoint" else baseline_method(method_name, encoder_params(args), args.resolution, device)
+    method = method_of(method_name, args, device)
     result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
                       not args.no_progress)
     print((args.out / "scenes.md").read_text())

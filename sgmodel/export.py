@@ -15,6 +15,7 @@ import numpy as np
 import OpenImageIO as oiio
 import torch
 
+from scenesplat_stereo.cameras import translation
 from scenesplat_stereo.gaussians import GaussianScene, content_sh_degree
 from scenesplat_stereo.scene_files import save_scene
 
@@ -111,9 +112,7 @@ def orbit_cameras(n: int, radius: float, focus: float) -> np.ndarray:
 
 def offset_camera(offset: np.ndarray) -> np.ndarray:
     """The viewmat [4,4] of the left camera moved by ``offset`` [3] metres (its own axes), not turned."""
-    viewmat = np.eye(4)
-    viewmat[:3, 3] = -np.asarray(offset, dtype=np.float64)
-    return viewmat
+    return translation(-np.asarray(offset, dtype=np.float64))
 
 
 def write_orbit_gif(frames: np.ndarray, path: str | Path, fps: int = ORBIT_FPS) -> Path:

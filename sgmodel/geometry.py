@@ -15,6 +15,14 @@ import torch
 Z_MIN, Z_MAX = 0.1, 10.0
 
 
+def _per_batch(like: torch.Tensor):
+    """x (scalar or [B]) -> a tensor of ``like``'s dtype and device that broadcasts over [B,1,H,W]."""
+    def convert(x):
+        x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+        return x.reshape(-1, 1, 1, 1) if x.ndim else x
+    return convert
+
+
 def depth_from_disparity(disparity: torch.Tensor, fx: torch.Tensor | float, baseline: torch.Tensor | float,
                          z_min: float = Z_MIN, z_max: float = Z_MAX, doffs: torch.Tensor | float = 0.0) -> torch.Tensor:
     """z = clip(fx B / (d + doffs), z_min, z_max), metres; d + doffs <= 0 (no match) gives z_max.
@@ -23,10 +31,7 @@ def depth_from_disparity(disparity: torch.Tensor, fx: torch.Tensor | float, base
     pixels, the principal-point offset between the two cameras (Middlebury's ``doffs``, 0 for rectified
     pairs with equal principal points): the true disparity is d + doffs. Returns [B,1,H,W] metres.
     """
-    def per_batch(x):
-        x = torch.as_tensor(x, dtype=disparity.dtype, device=disparity.device)
-        return x.reshape(-1, 1, 1, 1) if x.ndim else x
-
+    per_batch = _per_batch(disparity)
     d = disparity + per_batch(doffs)
     valid = d > 0
     z = per_batch(fx) * per_batch(baseline) / torch.where(valid, d, torch.ones_like(d))
@@ -41,10 +46,7 @@ def disparity_validity(disparity: torch.Tensor, fx: torch.Tensor | float, baseli
     range: a match at its end may lie further), and the unclipped depth fx B / (d + doffs) lies in
     [z_min, z_max] (so d + doffs > 0). Elsewhere ``depth_from_disparity`` gives a clamp (z_max or z_min),
     not a depth. Arguments as in ``depth_from_disparity``."""
-    def per_batch(x):
-        x = torch.as_tensor(x, dtype=disparity.dtype, device=disparity.device)
-        return x.reshape(-1, 1, 1, 1) if x.ndim else x
-
+    per_batch = _per_batch(disparity)
     d = disparity + per_batch(doffs)
     fb = per_batch(fx) * per_batch(baseline)
     # z_min <= fx B / d <= z_max with d > 0, written without a division: fx B / z_max <= d <= fx B / z_min

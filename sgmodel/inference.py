@@ -51,9 +51,6 @@ class Scenes:
     gaussians: dict | None
     valid: torch.Tensor | None
 
-    def __len__(self) -> int:
-        return self.left.shape[0]
-
     def in_frame(self, frame: Callable[[dict], dict] | None) -> Scenes:
         """These Scenes with their Gaussians moved by ``frame`` (None: as they are), e.g. into a raw rig's left
         camera frame (``Rectification.to_raw_frame``) for the scene files; render the original (its cameras
@@ -75,11 +72,12 @@ class Scenes:
         valid = self.pixel_valid[index, 0]
         return float((z[valid] if valid.any() else z).median())
 
-    def counts(self, index: int) -> tuple[int, int]:
-        """(kept, produced): Gaussians of item ``index`` that stand on a stereo depth, and all of them
-        (pixels for forward-splat)."""
+    def counts(self, index: int | None = None) -> tuple[int, int]:
+        """(kept, produced): Gaussians of item ``index`` (None: of the whole batch) that stand on a stereo
+        depth, and all of them (pixels for forward-splat)."""
         valid = self.valid if self.valid is not None else self.pixel_valid.flatten(1)
-        return int(valid[index].sum()), valid.shape[1]
+        chosen = valid if index is None else valid[index]
+        return int(chosen.sum()), chosen.numel()
 
     def render(self, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int) -> torch.Tensor:
         """Each item into its T cameras: viewmats [B,T,4,4] (left camera to target), Ks [B,T,3,3] ->

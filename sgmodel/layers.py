@@ -42,6 +42,12 @@ from torch import nn
 CUDA_CHANNEL_MULTIPLE = 8
 
 
+def amp_autocast(x: torch.Tensor, amp: bool = True) -> torch.autocast:
+    """bf16 autocast when ``amp`` asks for it and ``x`` lives on CUDA (training's and inference's mixed
+    precision: the convolutions in bf16; the composer, rasteriser and losses keep float32), else a no-op."""
+    return torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp and x.is_cuda)
+
+
 def activation_format(x: torch.Tensor) -> torch.memory_format:
     """The layout of the decoder's and predictor's activations on ``x``'s device: channels-last on CUDA,
     NCHW elsewhere (module docstring)."""

@@ -16,7 +16,7 @@ import os
 import torch
 from torch import Tensor
 
-from sgmodel.layers import triton_installed
+from sgmodel.layers import amp_autocast, triton_installed
 from sgmodel.lpips import LPIPS, create_lpips, vgg16_missing_message
 from sgmodel.metrics import SSIM_RADIUS, ssim_map
 
@@ -53,7 +53,7 @@ class Objective:
             raise ValueError(f"loss: render {tuple(render.shape)} and target {tuple(target.shape)} differ")
         mse = (render - target).pow(2).mean()
         if self.lpips_net is not None:
-            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp and render.is_cuda):
+            with amp_autocast(render, self.amp):
                 perceptual = self.lpips_net(target, render).float().mean()
             parts = {"mse": mse.detach(), "lpips": perceptual.detach()}
         else:

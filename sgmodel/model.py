@@ -23,6 +23,7 @@ from .decoder import DPTDecoder
 from .encoders import StereoEncoder
 from .encoders.flags import build_encoder, merge_encoder
 from .geometry import depth_from_disparity, disparity_validity
+from .layers import amp_autocast
 from .predictor import GaussianPredictor
 
 
@@ -31,9 +32,10 @@ class Prediction:
     """One forward pass. gaussians: the composer's dict (means [B,N,3], quats [B,N,4] wxyz, scales [B,N,3],
     opacities [B,N], sh [B,N,9,3]); depth z [B,1,H,W] metres and disparity [B,1,H,W] pixels at the input
     size; canvas_K [B,3,3]; front/back [B,37,Hc,Wc] and dz [B,1,Hc,Wc] are the predictor's raw outputs (back
-    and dz are None without a back layer); valid [B,N] bool: the Gaussians that stand on a stereo depth
-    (``composer.gaussian_validity``; training renders all N, ``sgmodel predict`` drops the others) and
-    pixel_valid [B,1,H,W] bool, the pixels with one (``geometry.disparity_validity``)."""
+    and dz are None without a back layer); from ``Predictor.predict`` (None in training, which renders all N
+    Gaussians) valid [B,N] bool: the Gaussians that stand on a stereo depth (``composer.gaussian_validity``;
+    ``sgmodel predict`` drops the others) and pixel_valid [B,1,H,W] bool, the pixels with one
+    (``geometry.disparity_validity``)."""
 
     gaussians: dict[str, torch.Tensor]
     depth: torch.Tensor
@@ -42,8 +44,8 @@ class Prediction:
     front: torch.Tensor
     back: torch.Tensor | None
     dz: torch.Tensor | None
-    valid: torch.Tensor
-    pixel_valid: torch.Tensor
+    valid: torch.Tensor | None = None
+    pixel_valid: torch.Tensor | None = None
 
 
 def check_inputs(left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> None:
@@ -114,9 +116,7 @@ class StereoGaussians(nn.Module):
         disparity, features = self.encode(left, right)
         z = depth_from_disparity(disparity, K[:, 0, 0], baseline, doffs=doffs)
         front, back, dz, c = self.layers(left, z, features, K)
-        pixel_valid, valid = self.validity(disparity, K, baseline, doffs)
-        return Prediction(self.compose(front, back, dz, c, baseline), z, disparity, c.K, front, back, dz, valid,
-                          pixel_valid)
+        return Prediction(self.compose(front, back, dz, c, baseline), z, disparity, c.K, front, back, dz)
 
     def validity(self, disparity: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor, doffs: float = 0.0
                  ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -154,8 +154,10 @@ class Predictor:
     def predict(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor,
                 doffs: float = 0.0) -> Prediction:
         """The Prediction of a batch of pairs (Gaussians, depth, validity); see ``StereoGaussians.forward``."""
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp and left.is_cuda):
-            return self.model(left, right, K, baseline, doffs)
+        with amp_autocast(left, self.amp):
+            out = self.model(left, right, K, baseline, doffs)
+        out.pixel_valid, out.valid = self.model.validity(out.disparity, K, baseline, doffs)
+        return out
 
 
 def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", encoder_weights: str | None = None,

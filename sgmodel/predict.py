@@ -59,7 +59,7 @@ from .encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
 from .geometry import Z_MAX, Z_MIN
 from .inference import Reconstructor
 from .pairs import prepare_pairs, read_calibration, read_pair, rectify_pair
-from .stereo_pair import SIZE_MULTIPLE, Pair, PredictError, to_tensor
+from .stereo_pair import SIZE_MULTIPLE, Pair, PredictError, model_size, to_tensor
 from .viewers import write_viewer_files
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
@@ -99,7 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (created; existing files replaced)")
     parser.add_argument("--format", choices=sorted(FORMATS),
                         help=f"scene file format (default {DEFAULT_FORMAT} for a pair, {DEFAULT_FRAME_FORMAT} for "
-                        "--frames): ply = INRIA float32, compressed-ply = PlayCanvas (SuperSplat), spz = Niantic v3")
+                        "--frames): " + "; ".join(f"{n} = {f.description}" for n, f in FORMATS.items()))
     add_encoder_arguments(parser, f"the checkpoint's; {DEFAULT_ENCODER} for --method")
     parser.add_argument("--resolution", type=int, help="short side the model runs at (default: the "
                         f"checkpoint's; {DEFAULT_RESOLUTION} for --method)")
@@ -266,9 +266,7 @@ def _predict_pair(args, raw: Pair, reconstructor: Reconstructor, short: int, dev
     pair = prepare_pairs(short)(raw)
     _log_model_size(pair, short, log)
     _, _, h, w = pair.left.shape
-    left, right = pair.left.to(device), pair.right.to(device)
-    K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None]
-    baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
+    left, right, K, baseline = pair.model_inputs(device)
     timer.lap("model size")
     scenes = reconstructor(left, right, K, baseline, pair.calib.doffs, lap=timer.lap)
     check_depth(scenes.depth[:1], pair.calib)
@@ -306,7 +304,7 @@ def _predict_video(args, source: video.StereoSource, first: Pair, reconstructor:
     fmt = args.format or DEFAULT_FRAME_FORMAT
     codec = video.CODECS[args.codec]
     prepare = prepare_pairs(short)
-    h, w = prepare(first).left.shape[-2:]  # the size the transform gives every frame
+    w, h = model_size(first.left.shape[-1], first.left.shape[-2], short)  # the size every frame is resized to
     frames = tmp / "frames" if args.frames else None
     if frames is not None:
         frames.mkdir()

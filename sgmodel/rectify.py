@@ -85,7 +85,6 @@ class Rectification:
             raise RigError(f"{rig.source}: the rectified pair is not side by side with the right camera to the right "
                            f"(P2 = {P2.round(4).tolist()})")
         baseline = -float(P2[0, 3]) / float(P2[0, 0])
-        K = K.copy()
         K[:2, 2] += 0.5                                       # OpenCV's integer pixel centres -> +0.5
         return cls(rig, tuple(size), K, baseline, np.asarray(R1, np.float64), np.asarray(R2, np.float64),
                    tuple((m[0], m[1]) for m in maps))
@@ -195,9 +194,7 @@ def predict_from_rig(predictor, left, right, rig: StereoRig, short_side: int | N
     check = stereo_check.run_check(pair.left, pair.right, strict, rectified_here=True, log=log)
     pair = resize_pair(pair, short_side or predictor.resolution)
     device = next(predictor.model.parameters()).device
-    K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None]
-    baseline = torch.tensor([pair.calib.baseline], dtype=torch.float32, device=device)
-    out = predictor.predict(pair.left.to(device), pair.right.to(device), K, baseline)
+    out = predictor.predict(*pair.model_inputs(device))
     return RigPrediction(rect.to_raw_frame(out.gaussians), out.depth, pair.calib, rect, check, out.valid)
 
 

@@ -47,6 +47,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from scenesplat_stereo.cameras import intrinsics_matrix
+
 from .calib import CalibError
 
 #: Metres per unit of ``--rig-units``.
@@ -250,7 +252,7 @@ def _read_kalibr(path: Path, data: bytes) -> dict:
     out: dict[str, tuple[object, str]] = {"model": (models[0], f"{path}: cam0.distortion_model")}
     for i, (name, cam) in enumerate(zip(("cam0", "cam1"), cams), 1):
         fu, fv, pu, pv = _matrix(cam["intrinsics"], f"{path}: {name}.intrinsics", (4,))
-        out[f"K{i}"] = ([[fu, 0, pu], [0, fv, pv], [0, 0, 1]], f"{path}: {name}.intrinsics")
+        out[f"K{i}"] = (intrinsics_matrix(fu, fv, pu, pv), f"{path}: {name}.intrinsics")
         if str(cam["distortion_model"]).lower() == "none":
             out[f"D{i}"] = ([], f"{path}: {name}.distortion_model")
         elif "distortion_coeffs" not in cam:

@@ -48,6 +48,13 @@ class Pair:
     rectification: Rectification | None = None
     rectified: bool = False
 
+    def model_inputs(self, device: torch.device | str) -> tuple[torch.Tensor, ...]:
+        """(left, right, K [B,3,3], baseline [B] metres) on ``device``: what a model or baseline takes."""
+        n = self.left.shape[0]
+        K = torch.as_tensor(self.calib.K, dtype=torch.float32, device=device)[None].expand(n, 3, 3)
+        baseline = torch.full((n,), self.calib.baseline, dtype=torch.float32, device=device)
+        return self.left.to(device), self.right.to(device), K, baseline
+
 
 def to_tensor(rgb: np.ndarray) -> torch.Tensor:
     """uint8 (or float in [0,1]) RGB [H,W,3] or [B,H,W,3] -> [B,3,H,W] float32 in [0,1]."""

@@ -29,8 +29,7 @@ from scenesplat_stereo.files import atomic_write_bytes, check_apart, check_repla
 from scenesplat_stereo.text import key_safe_name, markdown_table
 
 from .data import read_split
-from .encoders.flags import encoder_params
-from .evaluate import OWNER, Method, baseline_method, checkpoint_method, eval_inputs, evaluate
+from .evaluate import OWNER, eval_inputs, evaluate, method_of
 
 TABLE_MD, TABLE_JSON = "table2.md", "table2.json"
 #: Row order and labels of the paper's Table 2 ("Stereo geometry without learned prediction", then ours).
@@ -123,12 +122,6 @@ def notes(cols: list[Column], rows: list[Row], split: str, targets: dict[str, in
     return "\n".join(lines)
 
 
-def _method(name: str, args: argparse.Namespace, device: str) -> Method:
-    if name == "checkpoint":
-        return checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
-    return baseline_method(name, encoder_params(args), args.resolution, device)
-
-
 def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:
     """Evaluate every method on every ``--data`` folder, write the reports and the table, print it. OUT and
     each report folder in it (replaced as a whole) are checked before anything runs."""
@@ -140,7 +133,7 @@ def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:
             check_replaceable(Path(args.out) / c.name / m, "--out", OWNER)
     labels = dict(ROWS)
     order = [m for m, _ in ROWS if m in methods]
-    built = {m: _method(m, args, device) for m in order}  # every checkpoint and encoder loads before any run
+    built = {m: method_of(m, args, device) for m in order}  # every checkpoint and encoder loads before any run
     rows, targets, lpips = [], {}, ""
     for m in order:
         means = {}

@@ -48,6 +48,7 @@ from .checkpoint import CheckpointError, load_checkpoint, load_weights, save_che
 from .config import ModelParams, TrainParams
 from .data import DataError, load_sample, make_loader, read_split
 from .distributed import World, all_sum, broadcast_flag, close_world, init_world
+from .layers import amp_autocast
 from .losses import compiles_lpips, create_objective
 from .model import StereoGaussians, create_model
 from .render import render_views
@@ -97,7 +98,7 @@ def render_targets(model: StereoGaussians | DistributedDataParallel, batch: dict
     """Predict Gaussians for the batch's pairs and render every target: (rgb [B,T,3,S,S], alpha, Prediction).
     The convolutions run under bf16 autocast on CUDA when ``amp``; the composer and rasteriser in float32."""
     left = batch["left"]
-    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp and left.is_cuda):
+    with amp_autocast(left, amp):
         pred = model(left, batch["right"], batch["K"], batch["baseline"])
     S = batch["targets"].shape[-1]
     rgb, alpha = render_views(pred.gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)

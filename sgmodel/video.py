@@ -72,26 +72,31 @@ class StereoSource:
     def __init__(self, left: str, right: str | None = None) -> None:
         self.paths = [left] if right is None else [left, right]
         flags = ["--video"] if right is None else ["--left-video", "--right-video"]
-        self.captures, first = [], []
+        self.captures = []
+        try:
+            self._open(left, right, flags)
+        except PredictError:
+            self.close()
+            raise
+
+    def _open(self, left: str, right: str | None, flags: list[str]) -> None:
+        """Open every path into ``self.captures``, decode and check the first frames, set the sizes."""
+        first = []
         for path, flag in zip(self.paths, flags):
             if not Path(path).is_file():
-                self.close()
                 raise PredictError(f"{flag} {path}: file not found")
             cap = cv2.VideoCapture(str(path))
             self.captures.append(cap)
             ok, frame = cap.read() if cap.isOpened() else (False, None)
             if not ok:
-                self.close()
                 raise PredictError(f"{flag} {path}: not a video OpenCV can decode")
             first.append(frame)
         shapes = [f.shape for f in first]
         fps = [c.get(cv2.CAP_PROP_FPS) for c in self.captures]
         counts = [int(c.get(cv2.CAP_PROP_FRAME_COUNT)) for c in self.captures]
         if right is None and shapes[0][1] % 2:
-            self.close()
             raise PredictError(f"--video {left}: a side-by-side video has an even width, got {shapes[0][1]}")
         if right is not None and (shapes[0] != shapes[1] or abs(fps[0] - fps[1]) > 1e-3 or counts[0] != counts[1]):
-            self.close()
             raise PredictError(f"--left-video {left} is {shapes[0][1]}x{shapes[0][0]}, {fps[0]:g} fps, {counts[0]} "
                                f"frames but --right-video {right} is {shapes[1][1]}x{shapes[1][0]}, {fps[1]:g} fps, "
                                f"{counts[1]} frames: a stereo pair of videos has one size, rate and length")
@@ -290,9 +295,8 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
             ahead = reader.submit(read, batch_size if rest is None else min(batch_size, rest)) \
                 if rest is None or rest > 0 else None
             pair = prepare(Pair(to_tensor(left), to_tensor(right), calib, rectification))
-            K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None].expand(n, 3, 3)
-            baseline = torch.full((n,), pair.calib.baseline, dtype=torch.float32, device=device)
-            scenes = reconstructor(pair.left.to(device), pair.right.to(device), K, baseline, pair.calib.doffs)
+            left, right, K, baseline = pair.model_inputs(device)
+            scenes = reconstructor(left, right, K, baseline, pair.calib.doffs)
             t_model = now()
             if not report.batches:
                 report.focus = scenes.focus(0)
@@ -304,9 +308,8 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
             rgb = scenes.render(viewmats, K[:, None].contiguous(), w, h)
             frames = to_uint8(rgb[:, 0].permute(0, 2, 3, 1).cpu().numpy())
             t_render = time.perf_counter()
-            for i in range(n):
-                kept, produced = scenes.counts(i)
-                report.kept, report.produced = report.kept + kept, report.produced + produced
+            kept, produced = scenes.counts()
+            report.kept, report.produced = report.kept + kept, report.produced + produced
             if sink.scene_folder is not None:
                 moved = scenes.in_frame(sink.scene_frame)
                 scene_list = [moved.scene(i) for i in range(n)]

@@ -26,12 +26,13 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.gaussians import GaussianScene, save_ply
-from scenesplat_stereo.scene_files import FORMATS, save_scene
+from scenesplat_stereo.scene_files import FORMATS
 from scenesplat_stereo.text import argtype, markdown_table, parse_size
 
 from .. import export
 from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from ..geometry import depth_from_disparity
+from ..layers import amp_autocast
 from ..model import Predictor, create_model, load_predictor
 from ..render import SH_DEGREE, render_views
 from . import describe, report, synced_clock, synthetic_pair
@@ -67,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     with torch.no_grad(), tempfile.TemporaryDirectory() as tmp:
         for i in range(args.warmup + args.repeats):
             t = [now()]
-            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=predictor.amp and device.type == "cuda"):
+            with amp_autocast(left, predictor.amp):
                 disparity, features = model.encode(left, right)
                 z = depth_from_disparity(disparity, K[:, 0, 0], baseline)
                 t.append(now())
@@ -112,7 +113,7 @@ def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) 
             scene.means, scene.quats, scene.scales, scene.opacities, np.concatenate([scene.sh, rest], 1), SH_DEGREE)))
     rows = []
     for label, s in scenes:
-        writers = [(name, lambda p, f=name, s=s: save_scene(s, p, f, durable=False), FORMATS[name].suffix)
+        writers = [(name, lambda p, f=name, s=s: export.write_scene(s, p, f), FORMATS[name].suffix)
                    for name in FORMATS]
         writers.append(("ply, fsync'd", lambda p, s=s: save_ply(s, p, durable=True), ".ply"))
         sizes = {}

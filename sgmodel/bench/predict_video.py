@@ -71,8 +71,7 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
         left, right = source.read(b)
         source.close()
         pair = prepare(Pair(to_tensor(left).to(device), to_tensor(right).to(device), calib))
-        K = torch.as_tensor(pair.calib.K, dtype=torch.float32, device=device)[None].expand(len(left), 3, 3)
-        baseline = torch.full((len(left),), pair.calib.baseline, device=device)
+        _, _, K, baseline = pair.model_inputs(device)
         model_times = []
         for i in range(args.warmup + args.repeats):
             t = now()

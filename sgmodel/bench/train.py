@@ -30,6 +30,7 @@ from scenesplat_stereo.text import markdown_table
 from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from ..data import make_loader
 from ..geometry import depth_from_disparity
+from ..layers import amp_autocast
 from ..losses import Objective, compiles_lpips, create_objective
 from ..lpips import random_lpips, vgg16_missing_message
 from ..model import create_model
@@ -60,13 +61,9 @@ def synthetic_batch(batch: int, targets: int, size: int, device: torch.device, s
                       "keys": [f"synthetic_{i}" for i in range(batch)]}, device)
 
 
-def _autocast(batch: dict, amp: bool):
-    return torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp and batch["left"].is_cuda)
-
-
 def _encoded(model, batch: dict, amp: bool):
     """(depth z, features) of the batch's pairs."""
-    with _autocast(batch, amp):
+    with amp_autocast(batch["left"], amp):
         disparity, features = model.encode(batch["left"], batch["right"])
     return depth_from_disparity(disparity, batch["K"][:, 0, 0], batch["baseline"]), features
 
@@ -77,7 +74,7 @@ def staged_step(model, objective, optimizer, batch: dict, amp: bool, now) -> dic
     optimizer.zero_grad(set_to_none=True)
     z, features = _encoded(model, batch, amp)
     t1 = now()
-    with _autocast(batch, amp):
+    with amp_autocast(batch["left"], amp):
         front, back, dz, c = model.layers(batch["left"], z, features, batch["K"])
     t2 = now()
     gaussians = model.compose(front, back, dz, c, batch["baseline"])
@@ -98,7 +95,7 @@ def staged_step(model, objective, optimizer, batch: dict, amp: bool, now) -> dic
 def _layers_forward_backward(model, batch: dict, encoded, amp: bool) -> None:
     """The decoder + predictor alone: forward, then backward from cotangents of ones."""
     z, features = encoded
-    with _autocast(batch, amp):
+    with amp_autocast(batch["left"], amp):
         outputs = [o for o in model.layers(batch["left"], z, features, batch["K"])[:3] if o is not None]
     torch.autograd.backward(outputs, [torch.ones_like(o) for o in outputs])
 
@@ -107,7 +104,7 @@ def layer_flops(model, batch: dict, amp: bool) -> tuple[float, float]:
     """(forward, forward + backward) FLOPs of the decoder + predictor on ``batch``."""
     encoded = _encoded(model, batch, amp)
     with FlopCounterMode(display=False) as forward:
-        with _autocast(batch, amp):
+        with amp_autocast(batch["left"], amp):
             outputs = [o for o in model.layers(batch["left"], encoded[0], encoded[1], batch["K"])[:3] if o is not None]
     with FlopCounterMode(display=False) as backward:
         torch.autograd.backward(outputs, [torch.ones_like(o) for o in outputs])

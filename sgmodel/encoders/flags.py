@@ -55,8 +55,10 @@ def encoder_params(args: argparse.Namespace, base: EncoderParams | None = None,
                          getattr(args, "encoder_repo", None), checkpoint)
 
 
-def parse_encoder_spec(text: str, flag: str = "--encoders") -> EncoderParams:
-    """``NAME[,weights=PATH][,repo=PATH]`` -> EncoderParams (paths may not contain commas)."""
+def parse_encoder_spec(text: str) -> EncoderParams:
+    """``NAME[,weights=PATH][,repo=PATH]`` (an item of ``--encoders``) -> EncoderParams (paths may not contain
+    commas)."""
+    flag = "--encoders"
     name, *options = text.split(",")
     name = name.strip()
     if not name:
