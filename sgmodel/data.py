@@ -50,7 +50,12 @@ DEPTH_MEMBER = "left_depth.exr"
 
 
 class DataError(ValueError):
-    """A data folder, index, shard or sample that cannot be read into batches; names the file/field."""
+    """A data folder, index, shard or sample that cannot be read into batches; names the file/field.
+    ``flag``: the command-line flag that asked for what the data cannot give (None: the data is at fault)."""
+
+    def __init__(self, message: str, flag: str | None = None) -> None:
+        super().__init__(message)
+        self.flag = flag
 
 
 @dataclass(frozen=True)
@@ -127,12 +132,12 @@ def load_sample(key: str, members: dict[str, bytes], source: str, size: int, tar
         raise DataError(f"{where}.json: field 'key' is {meta.key!r}, the tar member says {key!r}")
     count = meta.num_targets if targets is None else targets
     if count > meta.num_targets:
-        raise DataError(f"{where}.json: field 'targets': {meta.num_targets} stored, {count} asked for")
+        raise DataError(f"{where}.json: field 'targets': {meta.num_targets} stored, {count} asked for", "--targets")
     pick = rng.choice(meta.num_targets, count, replace=False) if rng is not None else np.arange(count)
     try:
         crop = SquareCrop.plan(meta.width, meta.height, size)
     except ImageTooSmall as e:
-        raise DataError(f"{where}.json: fields 'width', 'height': {e}") from None
+        raise DataError(f"{where}.json: fields 'width', 'height': {e}", "--resolution") from None
     hw = (meta.height, meta.width)
 
     def rgb(name: str) -> torch.Tensor:

@@ -438,5 +438,4 @@ def read_split_checked(data: Path, resolution: int, targets: int) -> None:
         try:
             load_sample(key, members, str(first.path), resolution, targets if split == "train" else None)
         except DataError as e:
-            flag = "--targets" if "'targets'" in str(e) else "--resolution" if "'width'" in str(e) else "--data"
-            raise DataError(f"{flag}: {e}") from None
+            raise DataError(f"{e.flag or '--data'}: {e}") from None

@@ -92,22 +92,25 @@ def staged_step(model, objective, optimizer, batch: dict, amp: bool, now) -> dic
             "loss": t5 - t4, "backward": t6 - t5, "optimiser": t7 - t6}
 
 
-def _layers_forward_backward(model, batch: dict, encoded, amp: bool) -> None:
-    """The decoder + predictor alone: forward, then backward from cotangents of ones."""
+def _layer_outputs(model, batch: dict, encoded, amp: bool) -> list[torch.Tensor]:
+    """The decoder + predictor's outputs (front, back, dz; those the model has) from ``encoded`` (z, features)."""
     z, features = encoded
     with amp_autocast(batch["left"], amp):
-        outputs = [o for o in model.layers(batch["left"], z, features, batch["K"])[:3] if o is not None]
+        return [o for o in model.layers(batch["left"], z, features, batch["K"])[:3] if o is not None]
+
+
+def _backward_from_ones(outputs: list[torch.Tensor]) -> None:
     torch.autograd.backward(outputs, [torch.ones_like(o) for o in outputs])
 
 
-def layer_flops(model, batch: dict, amp: bool) -> tuple[float, float]:
-    """(forward, forward + backward) FLOPs of the decoder + predictor on ``batch``."""
-    encoded = _encoded(model, batch, amp)
+def layer_flops(model, batch: dict, amp: bool, encoded=None) -> tuple[float, float]:
+    """(forward, forward + backward) FLOPs of the decoder + predictor on ``batch`` (``encoded``: its
+    ``_encoded`` outputs, computed here when not given)."""
+    encoded = _encoded(model, batch, amp) if encoded is None else encoded
     with FlopCounterMode(display=False) as forward:
-        with amp_autocast(batch["left"], amp):
-            outputs = [o for o in model.layers(batch["left"], encoded[0], encoded[1], batch["K"])[:3] if o is not None]
+        outputs = _layer_outputs(model, batch, encoded, amp)
     with FlopCounterMode(display=False) as backward:
-        torch.autograd.backward(outputs, [torch.ones_like(o) for o in outputs])
+        _backward_from_ones(outputs)
     model.zero_grad(set_to_none=True)
     return float(forward.get_total_flops()), float(forward.get_total_flops() + backward.get_total_flops())
 
@@ -207,13 +210,13 @@ def run(args: argparse.Namespace) -> int:
 
 def layer_rate(model, batch: dict, amp: bool, device: torch.device, forward_ms: float, repeats: int) -> str:
     """The decoder + predictor's FLOPs and their rate, forward (its stage) and forward + backward alone."""
-    forward, total = layer_flops(model, batch, amp)
     encoded = _encoded(model, batch, amp)
+    forward, total = layer_flops(model, batch, amp, encoded)
     now = synced_clock(device)
     times = []
     for i in range(repeats + 2):
         t0 = now()
-        _layers_forward_backward(model, batch, encoded, amp)
+        _backward_from_ones(_layer_outputs(model, batch, encoded, amp))
         if i >= 2:
             times.append(now() - t0)
         model.zero_grad(set_to_none=True)
