@@ -50,6 +50,14 @@ def shard_path(root: Path, split: str, number: int) -> Path:
     return Path(root) / split / SHARD_NAME.format(number)
 
 
+def shard_number(name: str) -> int:
+    """The number of a shard named ``shard-<NNNNNN>.tar``; ValueError for another name."""
+    match = _SHARD_RE.match(name)
+    if match is None:
+        raise ValueError(f"{name!r} is not a shard name ({SHARD_NAME.format(0)}, ...)")
+    return int(match.group(1))
+
+
 def done_path(root: Path, split: str, number: int) -> Path:
     """The done marker of a shard: ``root/<split>/.done/shard-<number:06d>.json``."""
     return Path(root) / split / DONE_DIR / SHARD_NAME.format(number).replace(".tar", ".json")

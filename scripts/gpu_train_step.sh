@@ -17,6 +17,9 @@
 #   big:     512x512 (padding 32): `bench train` at batch 32, then smaller batches until one fits
 #   curve:   a small dataset (demo rooms + the guitar), then short training runs: SEEDS of this code and, with
 #            BASE, of the code before; the validation PSNR of every run side by side ($OUT/curves.md)
+#   cache:   the encoder cache: `sgmodel encode` of the curve's dataset, scripts/gpu_cache_check.py, then
+#            `bench train --data` with the encoder run and with --encoder-cache ($OUT/cache_bench.md)
+#   cachecurve: training runs with the encoder run and read from the cache, SEEDS each ($OUT/cache_curves.md)
 #   lpips:   the step with the LPIPS term's VGG16 eager (--no-compile-lpips; `bench` times the compiled default),
 #            then training runs with the LPIPS term (random VGG16) compiled and eager, SEEDS each
 #            ($OUT/lpips_curves.md)
@@ -26,7 +29,7 @@ set -uo pipefail
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 source "${KIT:-.gpukit/b}/install.sh" >/dev/null || exit 1
 python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site "${WHEELS:-.whl}"/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PYTHONPATH PYTHONUNBUFFERED=1 SGMODEL_CACHE=${SGMODEL_CACHE:-$PWD/.devdata}
+export PYTHONPATH=/tmp/site:$PWD:$PYTHONPATH PYTHONUNBUFFERED=1 SGMODEL_CACHE=${SGMODEL_CACHE:-$PWD/.devdata}
 here=$PWD base=${BASE:-}; [[ -n $base ]] && base=$(cd "$base" && pwd)
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 rc=0
@@ -115,6 +118,32 @@ torch.manual_seed(0); torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.p
     done
   done
   curves "$OUT/lpips_curves.md" "${runs[@]}" ;;
+cache)  # the encoder cache: `sgmodel encode` of the small dataset, its outputs against the encoder run live,
+        # then the step on real batches with the encoder run and read from the cache ($OUT/cache_bench.md)
+  dataset
+  [[ -f /tmp/enc-cache/val/index.json ]] || run python3 -m sgmodel.cli encode --data $data/dataset --out /tmp/enc-cache \
+    --device cuda --workers 8 --no-progress 2>&1 | tee "$OUT/encode.txt"
+  run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --save-live /tmp/live.pt
+  run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --against-live /tmp/live.pt \
+    | tee "$OUT/cache_check.md"
+  for mode in live cache; do
+    flags=(); [[ $mode == cache ]] && flags=(--encoder-cache /tmp/enc-cache)
+    run "${bench[@]}" --data $data/dataset "${flags[@]}" --lpips-random-vgg --out /tmp/bench_$mode.md \
+      && { echo "## real batches, encoder $mode"; cat /tmp/bench_$mode.md; } >> "$OUT/cache_bench.md"
+  done ;;
+cachecurve)  # training runs with the encoder run and read from the cache, SEEDS each ($OUT/cache_curves.md)
+  dataset
+  [[ -f /tmp/enc-cache/val/index.json ]] || run python3 -m sgmodel.cli encode --data $data/dataset --out /tmp/enc-cache \
+    --device cuda --workers 8 --no-progress 2>&1 | tee "$OUT/encode.txt"
+  runs=()
+  for s in ${SEEDS:-0 1}; do
+    for mode in live cache; do
+      flags=(); [[ $mode == cache ]] && flags=(--encoder-cache /tmp/enc-cache)
+      run "${train[@]}" --seed $s "${flags[@]}" --out /tmp/runs/$mode-seed$s > /tmp/runs-$mode-$s.log 2>&1
+      runs+=(/tmp/runs/$mode-seed$s)
+    done
+  done
+  curves "$OUT/cache_curves.md" "${runs[@]}" ;;
 *) echo "unknown phase $what"; rc=2 ;;
 esac; done
 exit $rc

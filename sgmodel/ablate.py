@@ -10,8 +10,10 @@ Padding variants are multiples of the default padding P (paper: 0, 32 and 64 pix
 S = 256, i.e. 0, 2P and 4P), so a smaller preset keeps the paper's proportions.
 
 Before anything is written: the flags, every ``--only`` word (each must match a variant or a baseline),
-the data (both splits' first samples at the run's size), and OUT (a folder that can be written, not inside
-the data, empty or an earlier ablation). One ablation at a time writes OUT (``OUT/.lock``).
+the data (both splits' first samples at the run's size), ``--encoder-cache`` (it must fit the encoder, the
+resolution and the precision; every variant's run reads it, Table 4's blocks A, C and D keep the encoder),
+and OUT (a folder that can be written, not inside the data, empty or an earlier ablation). One ablation at a
+time writes OUT (``OUT/.lock``).
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ from scenesplat_stereo.text import markdown_table
 
 from . import evaluate
 from .config import ConfigurationError, ModelParams, TrainParams
+from .encoder_cache import open_cache, precision_of
+from .encoders.flags import build_encoder
 from .train import read_split_checked, train
 
 
@@ -70,12 +74,17 @@ def _evaluated(folder: Path, make_method, data: Path, device: str, lpips_vgg: st
 
 
 def ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, device: str, lpips_vgg: str | None,
-           only: list[str] | None = None, progress: bool = True) -> str:
-    """Train and evaluate every variant (or those whose names contain one of ``only``); returns table.md."""
+           only: list[str] | None = None, progress: bool = True, encoder_cache: Path | None = None) -> str:
+    """Train and evaluate every variant (or those whose names contain one of ``only``); returns table.md.
+    ``encoder_cache``: the encoder's outputs on ``data`` (``sgmodel encode``), read by every variant's run
+    (they share the encoder and the resolution)."""
     t0 = time.perf_counter()
     check_ablation(base, schedule, data, out, only)
+    if encoder_cache is not None:
+        open_cache(encoder_cache, data, build_encoder(base.encoder, device), base.resolution,
+                   precision_of(device, schedule.amp), ["train", "val"])
     with FolderLock(out, "--out", "sgmodel ablate"):
-        return _ablate(base, schedule, data, out, device, lpips_vgg, only, progress, t0)
+        return _ablate(base, schedule, data, out, device, lpips_vgg, only, progress, t0, encoder_cache)
 
 
 def check_ablation(base: ModelParams, schedule: TrainParams, data: Path, out: Path, only: list[str] | None) -> None:
@@ -100,7 +109,7 @@ def check_ablation(base: ModelParams, schedule: TrainParams, data: Path, out: Pa
 
 
 def _ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, device: str, lpips_vgg: str | None,
-            only: list[str] | None, progress: bool, t0: float) -> str:
+            only: list[str] | None, progress: bool, t0: float, encoder_cache: Path | None) -> str:
     rows = []
     for block, name, params in variants(base):
         if only and not any(o.lower() in name.lower() for o in only):
@@ -108,7 +117,8 @@ def _ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, dev
         folder = out / _slug(name)
         print(f"== {name} ==", flush=True)
         try:
-            train(params, copy.deepcopy(schedule), data, folder / "run", device, lpips_vgg, progress)
+            train(params, copy.deepcopy(schedule), data, folder / "run", device, lpips_vgg, progress,
+                  encoder_cache=encoder_cache)
         except ConfigurationError as e:  # e.g. no RGB-D with an encoder that has no features
             rows.append((block, name, {"not_applicable": str(e)}))
             continue
@@ -153,4 +163,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--only", nargs="+", help="only the variants whose names contain one of these words (the two "
                                              "baselines always run)")
     p.add_argument("--lpips-vgg", help="VGG16 ImageNet weights (default: torch's hub cache, else 1 - SSIM)")
+    p.add_argument("--encoder-cache", type=Path, metavar="CACHE",
+                   help="the encoder's outputs on --data (`sgmodel encode`), read by every variant's run")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")

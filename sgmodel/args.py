@@ -86,9 +86,7 @@ _TRAIN_FLAGS = ("steps", "batch_size", "targets", "lr", "weight_decay", "warmup"
 def params_from_args(args: argparse.Namespace) -> tuple[ModelParams, TrainParams]:
     """Dataclass defaults <- the preset <- flags the user gave; ValueError naming the flag for a model that
     cannot be built or (with ``add_train_arguments``' flags) a schedule that cannot run."""
-    preset = PRESETS[args.preset]
-    model = ModelParams.from_dict(_merge(ModelParams().to_dict(), preset["model"]))
-    train = TrainParams(**_merge(TrainParams().to_dict(), preset["train"]))
+    model, train = preset_params(args.preset)
     model.encoder = encoder_params(args, model.encoder)
     for name in ("resolution", "padding"):
         if getattr(args, name) is not None:
@@ -117,6 +115,13 @@ def params_from_args(args: argparse.Namespace) -> tuple[ModelParams, TrainParams
     if train.lpips_weight == 0:
         log.warning("--lpips-weight 0: the loss is the MSE alone (no LPIPS or 1 - SSIM term)")
     return model, train
+
+
+def preset_params(name: str) -> tuple[ModelParams, TrainParams]:
+    """The dataclass defaults with the preset ``name`` over them."""
+    preset = PRESETS[name]
+    return (ModelParams.from_dict(_merge(ModelParams().to_dict(), preset["model"])),
+            TrainParams(**_merge(TrainParams().to_dict(), preset["train"])))
 
 
 def _merge(base: dict, over: dict) -> dict:

@@ -1,6 +1,6 @@
 """``sgmodel`` command line: parse, call, print. Each command's work lives in its room.
 
-Commands: ``train``, ``eval``, ``predict``, ``rectify``, ``ablate``, ``weights fetch``, ``bench train``,
+Commands: ``train``, ``eval``, ``predict``, ``rectify``, ``ablate``, ``encode``, ``weights fetch``, ``bench train``,
 ``bench encoders``, ``bench predict``. Every command checks all its inputs before it writes anything; its
 errors end in ``scenesplat_stereo.commandline.run_command``: exit 2 with one line naming the flag or file
 for bad arguments and input (a bad flag value, a missing or corrupt file, weights that are not there, a
@@ -36,6 +36,9 @@ def _add_train(sub) -> None:
     p.add_argument("--init-from", type=Path, metavar="CKPT",
                    help="start a new run from this checkpoint's weights (not its optimiser or step), e.g. the "
                         "last.pt of a diverged run, with other settings")
+    p.add_argument("--encoder-cache", type=Path, metavar="CACHE",
+                   help="read the frozen encoder's outputs from this cache of --data (`sgmodel encode`) instead of "
+                        "running the encoder every step; the same numbers, a faster step")
     add_device_argument(p)
     p.add_argument("--lpips-vgg", help="torchvision VGG16 ImageNet weights vgg16-397923af.pth (default: torch's hub "
                                        "cache); without them the LPIPS term becomes 1 - SSIM")
@@ -47,7 +50,7 @@ def _add_train(sub) -> None:
         model, tp = params_from_args(args)
         try:
             train.train(model, tp, args.data, args.out, device=device_from_flag(args.device), vgg_path=args.lpips_vgg,
-                        progress=not args.no_progress, init_from=args.init_from)
+                        progress=not args.no_progress, init_from=args.init_from, encoder_cache=args.encoder_cache)
         except train.TrainingDiverged as e:
             raise train.TrainingDiverged(f"{e}; the command: {restart_command(args.command_argv, e, args.out)}",
                                          e.step, e.checkpoint, e.checkpoint_step, e.lr) from None
@@ -119,23 +122,12 @@ def _add_eval(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _add_predict(sub) -> None:
-    from . import predict
-
-    p = sub.add_parser("predict", help="a stereo pair or video (rectified, or raw with --rig) -> 3DGS scenes, viewer "
-                                       "files, novel views",
-                       description=predict.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    predict.add_arguments(p)
-    p.set_defaults(func=predict.run)
-
-
-def _add_rectify(sub) -> None:
-    from . import rectify
-
-    p = sub.add_parser("rectify", help="a raw stereo rig's pair -> the rectified pair and its K.txt (for other tools)",
-                       description=rectify.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    rectify.add_arguments(p)
-    p.set_defaults(func=rectify.run)
+def _add_module(sub, name: str, help: str, module) -> None:
+    """A command whose module holds its work: ``module.add_arguments(parser)`` and ``module.run(args)``."""
+    p = sub.add_parser(name, help=help, description=module.__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    module.add_arguments(p)
+    p.set_defaults(func=module.run)
 
 
 def _add_ablate(sub) -> None:
@@ -151,7 +143,7 @@ def _add_ablate(sub) -> None:
     def run(args) -> int:
         model, tp = params_from_args(args)
         print(ablate.ablate(model, tp, args.data, args.out, device_from_flag(args.device), args.lpips_vgg, args.only,
-                            not args.no_progress))
+                            not args.no_progress, args.encoder_cache))
         return 0
 
     p.set_defaults(func=run)
@@ -166,21 +158,24 @@ def _add_bench(sub) -> None:
                                      "prediction by stage, or a stereo video's pairs/s and latency")
     bsub = p.add_subparsers(dest="bench_command", required=True)
     for name, module in (("train", bench_train), ("encoders", bench_encoders), ("predict", bench_predict)):
-        b = bsub.add_parser(name, help=module.__doc__.splitlines()[0], description=module.__doc__,
-                            formatter_class=argparse.RawDescriptionHelpFormatter)
-        module.add_arguments(b)
-        b.set_defaults(func=module.run)
+        _add_module(bsub, name, module.__doc__.splitlines()[0], module)
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import encode, predict, rectify
+
     parser = Parser(prog="sgmodel", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version="sgmodel 0.1.0")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_train(sub)
     _add_eval(sub)
-    _add_predict(sub)
-    _add_rectify(sub)
+    _add_module(sub, "predict", "a stereo pair or video (rectified, or raw with --rig) -> 3DGS scenes, viewer files, "
+                                "novel views", predict)
+    _add_module(sub, "rectify", "a raw stereo rig's pair -> the rectified pair and its K.txt (for other tools)",
+                rectify)
     _add_ablate(sub)
+    _add_module(sub, "encode", "run the frozen encoder once over a dataset: a cache that training reads instead "
+                               "of running it every step", encode)
     _add_weights(sub)
     _add_bench(sub)
     return parser

@@ -113,14 +113,8 @@ def _chw(image: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))
 
 
-def load_sample(key: str, members: dict[str, bytes], source: str, size: int, targets: int | None = None,
-                rng: np.random.Generator | None = None) -> dict:
-    """One sample as tensors at ``size`` x ``size`` (the Batch fields without the batch axis).
-
-    ``source`` names the shard (errors say ``<source>:<key>.<member>``). Targets: with ``rng``,
-    ``targets`` of the stored ones drawn uniformly without replacement (``rng.choice``); without, the
-    first ``targets`` in stored order (None: all).
-    """
+def read_meta(key: str, members: dict[str, bytes], source: str) -> SampleMeta:
+    """The sample's ``<key>.json`` record; DataError naming ``<source>:<key>.json`` (and the field)."""
     where = f"{source}:{key}"
     if "json" not in members:
         raise DataError(f"{where}.json: member missing")
@@ -130,27 +124,58 @@ def load_sample(key: str, members: dict[str, bytes], source: str, size: int, tar
         raise DataError(str(e)) from None
     if meta.key != key:
         raise DataError(f"{where}.json: field 'key' is {meta.key!r}, the tar member says {key!r}")
+    return meta
+
+
+def _crop(meta: SampleMeta, where: str, size: int) -> SquareCrop:
+    try:
+        return SquareCrop.plan(meta.width, meta.height, size)
+    except ImageTooSmall as e:
+        raise DataError(f"{where}.json: fields 'width', 'height': {e}", "--resolution") from None
+
+
+def _rgb(members: dict[str, bytes], name: str, where: str, meta: SampleMeta, crop: SquareCrop) -> torch.Tensor:
+    image = _decode(members, name, where, (meta.height, meta.width, 3))
+    return _chw(crop.image(image.astype(np.float32) / 255.0))
+
+
+def _pair(members: dict[str, bytes], where: str, meta: SampleMeta, crop: SquareCrop
+          ) -> tuple[torch.Tensor, torch.Tensor]:
+    return _rgb(members, "left.jpg", where, meta, crop), _rgb(members, "right.jpg", where, meta, crop)
+
+
+def load_pair(key: str, members: dict[str, bytes], source: str, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The sample's (left, right) [3,S,S] in [0,1], exactly as ``load_sample`` gives them (the encoder's input)."""
+    where, meta = f"{source}:{key}", read_meta(key, members, source)
+    return _pair(members, where, meta, _crop(meta, where, size))
+
+
+def load_sample(key: str, members: dict[str, bytes], source: str, size: int, targets: int | None = None,
+                rng: np.random.Generator | None = None, encoded: tuple | None = None) -> dict:
+    """One sample as tensors at ``size`` x ``size`` (the Batch fields without the batch axis).
+
+    ``source`` names the shard (errors say ``<source>:<key>.<member>``). Targets: with ``rng``,
+    ``targets`` of the stored ones drawn uniformly without replacement (``rng.choice``); without, the
+    first ``targets`` in stored order (None: all). ``encoded``: the sample's frozen-encoder outputs read
+    from an encoder cache, (disparity [1,S,S], [feature maps]), kept as ``encoder_disparity`` and
+    ``encoder_features``.
+    """
+    where, meta = f"{source}:{key}", read_meta(key, members, source)
     count = meta.num_targets if targets is None else targets
     if count > meta.num_targets:
         raise DataError(f"{where}.json: field 'targets': {meta.num_targets} stored, {count} asked for", "--targets")
     pick = rng.choice(meta.num_targets, count, replace=False) if rng is not None else np.arange(count)
-    try:
-        crop = SquareCrop.plan(meta.width, meta.height, size)
-    except ImageTooSmall as e:
-        raise DataError(f"{where}.json: fields 'width', 'height': {e}", "--resolution") from None
+    crop = _crop(meta, where, size)
     hw = (meta.height, meta.width)
-
-    def rgb(name: str) -> torch.Tensor:
-        return _chw(crop.image(_decode(members, name, where, hw + (3,)).astype(np.float32) / 255.0))
-
     ids = [meta.target_ids[i] for i in pick]
-    targets = torch.stack([rgb(f"target_{j:02d}.jpg") for j in ids])
+    targets = torch.stack([_rgb(members, f"target_{j:02d}.jpg", where, meta, crop) for j in ids])
     masks = torch.stack([_chw(crop.nearest(_decode(members, f"mask_{j:02d}.png", where, hw + (1,))) >= 128)
                          for j in ids])
     K = crop.intrinsics(meta.K)
     viewmats = np.linalg.inv(meta.targets[pick]) @ meta.c2w_left
+    left, right = _pair(members, where, meta, crop)
     out = {
-        "left": rgb("left.jpg"), "right": rgb("right.jpg"),
+        "left": left, "right": right,
         "K": torch.from_numpy(K).float(), "baseline": torch.tensor(meta.baseline, dtype=torch.float32),
         "targets": targets, "masks": masks,
         "target_viewmats": torch.from_numpy(viewmats).float(),
@@ -162,12 +187,15 @@ def load_sample(key: str, members: dict[str, bytes], source: str, size: int, tar
         if not (np.isfinite(depth).all() and (depth >= 0).all()):
             raise DataError(f"{where}.{DEPTH_MEMBER}: non-finite or negative depth")
         out["depth"] = _chw(crop.nearest(depth))
+    if encoded is not None:
+        out["encoder_disparity"], out["encoder_features"] = encoded
     return out
 
 
 def collate(samples: list[dict]) -> dict:
     """Stack samples into the Batch dict (``keys``/``scenes`` as lists; ``depth`` only when every sample
-    has it). DataError when the samples disagree in target count or in having depth."""
+    has it; ``encoder_disparity`` [B,1,S,S] and ``encoder_features`` (a list, one [B,C_s,..] per scale) when
+    they come from an encoder cache). DataError when the samples disagree in target count or in having depth."""
     if not samples:
         raise DataError("collate: no samples")
     keys = [s["key"] for s in samples]
@@ -180,6 +208,9 @@ def collate(samples: list[dict]) -> dict:
         raise DataError(f"samples {keys}: {DEPTH_MEMBER} in some but not all")
     tensors = ["left", "right", "K", "baseline", "targets", "masks", "target_viewmats", "target_Ks", "target_ids"]
     batch = {name: torch.stack([s[name] for s in samples]) for name in tensors + (["depth"] if all(with_depth) else [])}
+    if any("encoder_disparity" in s for s in samples):
+        batch["encoder_disparity"] = torch.stack([s["encoder_disparity"] for s in samples])
+        batch["encoder_features"] = [torch.stack(maps) for maps in zip(*(s["encoder_features"] for s in samples))]
     batch["keys"], batch["scenes"] = keys, [s["scene"] for s in samples]
     return batch
 
@@ -210,12 +241,14 @@ class ShardStream(IterableDataset):
 
     ``train``: endless, shuffled, ``targets`` (int) drawn per sample; else finite, deterministic, all
     stored targets (``targets`` None) or the first ``targets``. ``batch_size`` must be the DataLoader's
-    (it numbers the steps that seed the target draws); ``start_step`` resumes a training run.
+    (it numbers the steps that seed the target draws); ``start_step`` resumes a training run. ``cache``: an
+    ``encoder_cache.EncoderCache`` of this data; each sample then carries its frozen-encoder outputs, read
+    from the cache's shard of the same name in step with the data's.
     """
 
     def __init__(self, root: Path, split: str, resolution: int = RESOLUTION, targets: int | None = TRAIN_TARGETS,
                  seed: int = 0, train: bool = True, batch_size: int = 1, rank: int = 0, world_size: int = 1,
-                 shuffle_buffer: int = SHUFFLE_BUFFER, start_step: int = 0) -> None:
+                 shuffle_buffer: int = SHUFFLE_BUFFER, start_step: int = 0, cache=None) -> None:
         super().__init__()
         if not 0 <= rank < world_size:
             raise ValueError(f"rank {rank} not in 0..{world_size - 1}")
@@ -223,7 +256,7 @@ class ShardStream(IterableDataset):
             raise ValueError(f"training needs a number of targets >= 1, got {targets}")
         if batch_size < 1 or resolution < 1 or start_step < 0:
             raise ValueError(f"batch_size {batch_size}, resolution {resolution}, start_step {start_step}")
-        self.shards = read_split(root, split)
+        self.shards, self.split, self.cache = read_split(root, split), split, cache
         self.counts = [len(s.keys) for s in self.shards]
         self.resolution, self.targets, self.seed, self.train = resolution, targets, seed, train
         self.batch_size, self.rank, self.world_size = batch_size, rank, world_size
@@ -244,8 +277,8 @@ class ShardStream(IterableDataset):
         worker, workers = self._worker()
         if not self.train:
             items = sample_order.validation_items(self.counts, self.rank * workers + worker, self.world_size * workers)
-            for key, members, source in self._read(items, list(range(len(items)))):
-                yield load_sample(key, members, source, self.resolution, self.targets)
+            for key, members, source, encoded in self._read(items, list(range(len(items)))):
+                yield load_sample(key, members, source, self.resolution, self.targets, encoded=encoded)
             return
         yield from self._training(worker, workers)
 
@@ -272,14 +305,15 @@ class ShardStream(IterableDataset):
                 pending = next(slots)
             items, emit = sample_order.train_walk(self.counts, self.seed, epoch, self.shuffle_buffer)
             picks = [emit[position % total] for *_, position in wanted]
-            for (key, members, source), (step, slot, _) in zip(self._read(items, picks), wanted):
+            for (key, members, source, encoded), (step, slot, _) in zip(self._read(items, picks), wanted):
                 rng = np.random.default_rng([self.seed, step, slot])
-                yield load_sample(key, members, source, self.resolution, self.targets, rng)
+                yield load_sample(key, members, source, self.resolution, self.targets, rng, encoded)
 
-    def _read(self, items: list[sample_order.Item], emit: list[int]) -> Iterator[tuple[str, dict[str, bytes], str]]:
-        """Yield (key, members, shard name) for ``items[emit[j]]``, j in order (distinct indices), reading
-        shards in item order, the bytes of wanted samples only, and holding only what the emission order has
-        not reached yet."""
+    def _read(self, items: list[sample_order.Item], emit: list[int]
+              ) -> Iterator[tuple[str, dict[str, bytes], str, tuple | None]]:
+        """Yield (key, members, shard name, encoder outputs or None) for ``items[emit[j]]``, j in order
+        (distinct indices), reading shards in item order, the bytes of wanted samples only, and holding only
+        what the emission order has not reached yet."""
         wanted = {items[q]: j for j, q in enumerate(emit)}
         held: dict[int, tuple] = {}
         nxt = 0
@@ -290,13 +324,16 @@ class ShardStream(IterableDataset):
             if not any((s, i) in wanted for i in indices):
                 continue
             shard, i = self.shards[s], -1
-            for i, (key, members) in enumerate(iter_shard(shard.path, want=lambda i, s=s: (s, i) in wanted)):
+            want = lambda i, s=s: (s, i) in wanted  # noqa: E731
+            cached = self.cache.samples(self.split, shard, want) if self.cache is not None else None
+            for i, (key, members) in enumerate(iter_shard(shard.path, want=want)):
                 if i >= len(shard.keys) or key != shard.keys[i]:
                     listed = shard.keys[i] if i < len(shard.keys) else "nothing more"
                     raise DataError(f"{shard.path}: sample {i} is {key!r}, index.json lists {listed!r}")
+                encoded = next(cached) if cached is not None else None
                 j = wanted.get((s, i))
                 if j is not None:
-                    held[j] = (key, members, str(shard.path))
+                    held[j] = (key, members, str(shard.path), encoded)
                 while nxt in held:
                     yield held.pop(nxt)
                     nxt += 1
@@ -306,21 +343,24 @@ class ShardStream(IterableDataset):
             raise DataError(f"{self.shards[0].path.parent}: samples listed in index.json were not found")
 
 
-def _init_worker(_: int) -> None:
+def init_loader_worker(_: int) -> None:
     cv2.setNumThreads(1)  # one resize thread per loader worker; the workers are the parallelism
 
 
 def make_loader(root: Path, split: str, batch_size: int, resolution: int = RESOLUTION,
                 targets: int | None = TRAIN_TARGETS, seed: int = 0, num_workers: int = 0, rank: int = 0,
                 world_size: int = 1, train: bool = True, start_step: int = 0,
-                shuffle_buffer: int = SHUFFLE_BUFFER) -> DataLoader:
+                shuffle_buffer: int = SHUFFLE_BUFFER, cache=None, pin_memory: bool = False) -> DataLoader:
     """A DataLoader of Batch dicts over ``root/<split>`` for one rank: endless and reproducible from
     (seed, step) when ``train``, else one pass over this rank's share of the samples (validation: pass
-    ``targets=None`` for all stored targets)."""
+    ``targets=None`` for all stored targets). ``cache``: an ``encoder_cache.EncoderCache`` of ``root``,
+    whose encoder outputs then come with every sample. ``pin_memory``: batches in page-locked memory (for
+    a CUDA consumer: its copies to the GPU then run asynchronously)."""
     dataset = ShardStream(root, split, resolution, targets, seed, train, batch_size, rank, world_size,
-                          shuffle_buffer, start_step)
+                          shuffle_buffer, start_step, cache)
     # Workers are spawned, not forked: a fork after the parent has used OpenImageIO (contact sheets) or
     # CUDA inherits their locked thread pools, and the workers hang at their first decode.
-    workers = dict(worker_init_fn=_init_worker, multiprocessing_context="spawn",
+    workers = dict(worker_init_fn=init_loader_worker, multiprocessing_context="spawn",
                    persistent_workers=not train) if num_workers > 0 else {}
-    return DataLoader(dataset, batch_size=batch_size, collate_fn=collate, num_workers=num_workers, **workers)
+    return DataLoader(dataset, batch_size=batch_size, collate_fn=collate, num_workers=num_workers,
+                      pin_memory=pin_memory, **workers)

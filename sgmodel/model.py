@@ -61,6 +61,22 @@ def check_inputs(left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, basel
         raise ValueError(f"baseline must be [B] finite and > 0 metres, got {baseline.tolist()}")
 
 
+@torch.no_grad()
+def encode_pair(encoder: StereoEncoder, left: torch.Tensor, right: torch.Tensor
+                ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """The frozen encoder on a pair: disparity [B,1,H,W] float32 and features (as the encoder gives them),
+    under bf16 autocast when the caller enabled it on CUDA. ValueError naming the batch items whose disparity
+    is not finite. One function for the model and the encoder cache, so both compute the same outputs."""
+    enabled = left.is_cuda and torch.is_autocast_enabled("cuda")
+    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=enabled):
+        out = encoder(left, right)
+    disparity = out.disparity.float()
+    if not torch.isfinite(disparity).all():
+        bad = (~torch.isfinite(disparity)).flatten(1).any(1).nonzero().flatten().tolist()
+        raise ValueError(f"encoder {encoder.name!r} returned non-finite disparity for batch items {bad}")
+    return disparity, [f.detach() for f in out.features]
+
+
 class StereoGaussians(nn.Module):
     """The trainable decoder and predictor around a frozen encoder (attribute ``encoder``)."""
 
@@ -79,17 +95,9 @@ class StereoGaussians(nn.Module):
         self.encoder._apply(fn)
         return super()._apply(fn, recurse)
 
-    @torch.no_grad()
     def encode(self, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """Frozen encoder: disparity [B,1,H,W] float32 and features; bf16 autocast on CUDA when enabled."""
-        enabled = left.is_cuda and torch.is_autocast_enabled("cuda")
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=enabled):
-            out = self.encoder(left, right)
-        disparity = out.disparity.float()
-        if not torch.isfinite(disparity).all():
-            bad = (~torch.isfinite(disparity)).flatten(1).any(1).nonzero().flatten().tolist()
-            raise ValueError(f"encoder {self.encoder.name!r} returned non-finite disparity for batch items {bad}")
-        return disparity, [f.detach() for f in out.features]
+        """Frozen encoder (``encode_pair``): disparity [B,1,H,W] float32 and features."""
+        return encode_pair(self.encoder, left, right)
 
     def layers(self, left: torch.Tensor, z: torch.Tensor, features: list[torch.Tensor], K: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, canvas.Canvas]:
@@ -109,11 +117,19 @@ class StereoGaussians(nn.Module):
                        back_layer=p.back_layer, edge_mask=p.edge_mask, composer=p.composer)
 
     def forward(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor,
-                doffs: float = 0.0) -> Prediction:
+                doffs: float = 0.0, encoded: tuple[torch.Tensor, list[torch.Tensor]] | None = None) -> Prediction:
         """left/right [B,3,H,W] in [0,1], K [B,3,3] pixels, baseline [B] metres -> Prediction. ``doffs``:
-        the pair's principal-point disparity offset in pixels (Middlebury), added to the encoder's."""
+        the pair's principal-point disparity offset in pixels (Middlebury), added to the encoder's.
+        ``encoded``: the encoder's (disparity [B,1,H,W], features) for this pair, read from an encoder cache
+        (``sgmodel.encoder_cache``); the encoder does not run."""
         check_inputs(left, right, K, baseline)
-        disparity, features = self.encode(left, right)
+        if encoded is None:
+            disparity, features = self.encode(left, right)
+        else:
+            disparity, features = encoded
+            if disparity.shape != (left.shape[0], 1) + left.shape[-2:]:
+                raise ValueError(f"encoded disparity has shape {tuple(disparity.shape)}, the pair "
+                                 f"{tuple(left.shape)}")
         z = depth_from_disparity(disparity, K[:, 0, 0], baseline, doffs=doffs)
         front, back, dz, c = self.layers(left, z, features, K)
         return Prediction(self.compose(front, back, dz, c, baseline), z, disparity, c.K, front, back, dz)

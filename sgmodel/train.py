@@ -16,7 +16,8 @@ a torn last line of ``metrics.jsonl`` is dropped with a warning.
 
 Nothing is written before every input is checked: the flags, ``--out`` (a folder that can be written, not
 inside ``--data``, empty, or a run of the same settings), both splits (their first samples decoded at
-the run's size), the encoder and LPIPS weights, ``--init-from``. A RUN that holds an earlier attempt of
+the run's size), the encoder and LPIPS weights, ``--init-from``, ``--encoder-cache`` (``sgmodel.encoder_cache``:
+it must fit the encoder, the resolution, the precision and the data). A RUN that holds an earlier attempt of
 other settings without any checkpoint is started afresh (nothing of value is lost).
 
 Divergence: the loss is checked every step (``train_step``; its ``.item()`` syncs anyway); the gradients
@@ -48,6 +49,7 @@ from .checkpoint import CheckpointError, load_checkpoint, load_weights, save_che
 from .config import ModelParams, TrainParams
 from .data import DataError, load_sample, make_loader, read_split
 from .distributed import World, all_sum, broadcast_flag, close_world, init_world
+from .encoder_cache import EncoderCache, open_cache, precision_of
 from .layers import amp_autocast
 from .losses import compiles_lpips, create_objective
 from .model import StereoGaussians, create_model
@@ -99,7 +101,7 @@ def render_targets(model: StereoGaussians | DistributedDataParallel, batch: dict
     The convolutions run under bf16 autocast on CUDA when ``amp``; the composer and rasteriser in float32."""
     left = batch["left"]
     with amp_autocast(left, amp):
-        pred = model(left, batch["right"], batch["K"], batch["baseline"])
+        pred = model(left, batch["right"], batch["K"], batch["baseline"], encoded=cached_encoding(batch))
     S = batch["targets"].shape[-1]
     rgb, alpha = render_views(pred.gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)
     return rgb, alpha, pred
@@ -163,8 +165,18 @@ def mean_over_ranks(world: World, stats: dict) -> dict:
     return {**stats, **dict(zip(keys, (v / world.size for v in all_sum(world, [stats[k] for k in keys]))))}
 
 
+def cached_encoding(batch: dict) -> tuple[torch.Tensor, list[torch.Tensor]] | None:
+    """The batch's frozen-encoder outputs read from an encoder cache (disparity, features), or None."""
+    return (batch["encoder_disparity"], batch["encoder_features"]) if "encoder_disparity" in batch else None
+
+
 def to_device(batch: dict, device: torch.device) -> dict:
-    return {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v for k, v in batch.items()}
+    """The batch's tensors (and lists of tensors) on ``device``; other values as they are."""
+    def move(v):
+        if torch.is_tensor(v):
+            return v.to(device, non_blocking=True)
+        return [move(x) for x in v] if isinstance(v, list) and v and torch.is_tensor(v[0]) else v
+    return {k: move(v) for k, v in batch.items()}
 
 
 def all_finite(tensors: list[torch.Tensor]) -> torch.Tensor:
@@ -254,22 +266,24 @@ def _init_from(path: Path | None, model: StereoGaussians) -> dict | None:
 
 
 def train(model_params: ModelParams, train_params: TrainParams, data: Path, out: Path, device: str = "cpu",
-          vgg_path: str | None = None, progress: bool = True, init_from: Path | None = None) -> dict:
+          vgg_path: str | None = None, progress: bool = True, init_from: Path | None = None,
+          encoder_cache: Path | None = None) -> dict:
     """Train (or resume) a run in ``out``; returns the summary (steps, best validation PSNR, wall time).
     ``init_from``: a checkpoint whose weights start a new run (its optimiser, schedule and step are not
-    taken)."""
+    taken). ``encoder_cache``: a cache of the encoder's outputs on ``data`` (``sgmodel encode``), read in
+    place of running the encoder (the same numbers; it may be given or left out when a run resumes)."""
     model_params.validate()
     train_params.validate()
     world = init_world(device)
     try:
         return _train(model_params, train_params, Path(data), RunPaths(Path(out)), world, vgg_path, progress,
-                      init_from)
+                      init_from, encoder_cache)
     finally:
         close_world(world)
 
 
 def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPaths, world: World,
-           vgg_path: str | None, progress: bool, init_from: Path | None) -> dict:
+           vgg_path: str | None, progress: bool, init_from: Path | None, encoder_cache: Path | None) -> dict:
     if tp.batch_size % world.size:
         raise ValueError(f"--batch-size {tp.batch_size} must be divisible by the {world.size} ranks")
     check_run_folder(paths, data)
@@ -280,12 +294,15 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
     model = create_model(model_params, world.device)
     objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp,
                                  compile_trunk=compiles_lpips(world.device, tp.compile_lpips))
+    cache = open_cache(encoder_cache, data, model.encoder, model_params.resolution,
+                       precision_of(world.device, tp.amp), ["train", "val"]) if encoder_cache is not None else None
     config = run_config(model_params, tp, data, model.encoder, objective, _init_from(init_from, model))
+    config["encoder_cache"] = str(Path(encoder_cache).resolve()) if cache is not None else None
     lock = FolderLock(paths.root, "--out", "sgmodel train")
     if world.main:
         lock.acquire()  # the first write: RUN and its .lock (both undone if what follows refuses the run)
     try:
-        return _run(model, objective, config, model_params, tp, data, paths, world, progress)
+        return _run(model, objective, config, model_params, tp, data, paths, world, progress, cache)
     finally:
         lock.release()
 
@@ -310,7 +327,7 @@ def _resume_state(paths: RunPaths, config: dict, model, optimizer, scheduler, wo
 
 
 def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPaths,
-         world: World, progress: bool) -> dict:
+         world: World, progress: bool, cache: EncoderCache | None) -> dict:
     local_batch, S = tp.batch_size // world.size, model_params.resolution
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = create_optimizer(params, world.device, lr=tp.lr, betas=tp.betas, weight_decay=tp.weight_decay)
@@ -318,13 +335,15 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
                                                     pct_start=tp.warmup, div_factor=tp.div_factor,
                                                     final_div_factor=tp.final_div_factor)
     step, best, best_step, resume = _resume_state(paths, config, model, optimizer, scheduler, world)
+    pinned = world.device.type == "cuda"  # page-locked batches: the copy to the GPU does not block the host
     train_loader = make_loader(data, "train", local_batch, S, tp.targets, tp.seed, tp.workers, world.rank,
-                               world.size, train=True, start_step=step)
+                               world.size, train=True, start_step=step, cache=cache, pin_memory=pinned)
     val_loader = make_loader(data, "val", local_batch, S, None, tp.seed, tp.workers, world.rank, world.size,
-                             train=False)
+                             train=False, cache=cache, pin_memory=pinned)
     if world.main:
         print(f"sgmodel train: {'resuming at step ' + str(step) if resume else 'new run'} in {paths.root}; "
-              f"loss {objective.description}; encoder {model.encoder.name}; {world.size} rank(s) on "
+              f"loss {objective.description}; encoder {model.encoder.name}"
+              f"{' (its outputs from ' + str(cache.root) + ')' if cache is not None else ''}; {world.size} rank(s) on "
               f"{world.device}; batch {tp.batch_size} ({local_batch} per rank) at {S}x{S}", flush=True)
         remove_temp_files(paths.root)  # of a killed run's unfinished writes (we hold the lock)
         atomic_write_bytes(paths.config, (json.dumps(config, indent=2) + "\n").encode())

@@ -29,13 +29,14 @@ from scenesplat_stereo.text import markdown_table
 
 from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from ..data import make_loader
+from ..encoder_cache import open_cache, precision_of
 from ..geometry import depth_from_disparity
 from ..layers import amp_autocast
 from ..losses import Objective, compiles_lpips, create_objective
 from ..lpips import random_lpips, vgg16_missing_message
 from ..model import create_model
 from ..render import render_views
-from ..train import create_optimizer, to_device, train_step
+from ..train import cached_encoding, create_optimizer, to_device, train_step
 from . import report, synced_clock
 
 STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation forward", "loss", "backward",
@@ -62,9 +63,10 @@ def synthetic_batch(batch: int, targets: int, size: int, device: torch.device, s
 
 
 def _encoded(model, batch: dict, amp: bool):
-    """(depth z, features) of the batch's pairs."""
+    """(depth z, features) of the batch's pairs: the encoder's, or the encoder cache's when the batch has them."""
+    cached = cached_encoding(batch)
     with amp_autocast(batch["left"], amp):
-        disparity, features = model.encode(batch["left"], batch["right"])
+        disparity, features = model.encode(batch["left"], batch["right"]) if cached is None else cached
     return depth_from_disparity(disparity, batch["K"][:, 0, 0], batch["baseline"]), features
 
 
@@ -173,8 +175,12 @@ def run(args: argparse.Namespace) -> int:
         objectives.append(Objective(net.compile_trunk() if compiled else net, amp=amp))
     elif args.lpips_vgg:
         objectives.append(create_objective(args.lpips_vgg, device=device, amp=amp, compile_trunk=compiled))
+    if args.encoder_cache is not None and args.data is None:
+        raise ValueError("--encoder-cache: give the --data it caches")
+    cache = open_cache(args.encoder_cache, args.data, model.encoder, S, precision_of(device, amp), ["train"]) \
+        if args.encoder_cache is not None else None
     loader = iter(make_loader(args.data, "train", args.batch_size, S, args.targets, 0, args.workers, 0, 1,
-                              train=True)) if args.data else None
+                              train=True, cache=cache, pin_memory=device.type == "cuda")) if args.data else None
     now = synced_clock(device)
 
     def batches(i: int) -> tuple[dict, float]:
@@ -198,7 +204,8 @@ def run(args: argparse.Namespace) -> int:
     report(f"One training step: {S}x{S}, batch {args.batch_size}, {args.targets} targets, encoder "
            f"{model_params.encoder.name}, {'bf16 autocast' if amp else 'float32'}, on {name}; medians of "
            f"{args.repeats} steps after {args.warmup} warm-up "
-           f"({'real shards: ' + str(args.data) if args.data else 'synthetic batches'}). Losses: "
+           f"({'real shards: ' + str(args.data) if args.data else 'synthetic batches'}"
+           f"{'; the encoder outputs read from the cache ' + str(args.encoder_cache) if cache else ''}). Losses: "
            + "; ".join(f"{o.name} = {o.description}" for o in objectives)
            + (f"; the LPIPS term's VGG16 {'through torch.compile' if compiled else 'eager'}" if len(objectives) > 1
               else "") + ".\n\n"
@@ -244,6 +251,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-size", type=int, default=32, help="pairs per step (default 32)")
     p.add_argument("--targets", type=int, default=4, help="targets per pair (default 4)")
     p.add_argument("--workers", type=int, default=8, help="DataLoader workers with --data (default 8)")
+    p.add_argument("--encoder-cache", type=Path, metavar="CACHE",
+                   help="with --data: read the encoder's outputs from this cache (`sgmodel encode`), as `sgmodel "
+                        "train --encoder-cache` does (the encoder stage is then the depth from the disparity)")
     p.add_argument("--warmup", type=int, default=3, help="untimed steps first (default 3)")
     p.add_argument("--repeats", type=int, default=10, help="timed steps (default 10)")
     lpips = p.add_mutually_exclusive_group()

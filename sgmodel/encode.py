@@ -1,0 +1,208 @@
+"""``sgmodel encode``: run the frozen encoder once over a dataset and keep its outputs in an encoder cache
+(``sgmodel.encoder_cache``), so ``sgmodel train --encoder-cache CACHE`` (and ``ablate``, ``bench train``) skip
+the encoder at every step.
+
+The encoder is frozen and every sample's input pair is the same each epoch, so this computes once what a
+run would compute at every epoch: a step without the encoder (51 ms of 243 with PSMNet on an H100;
+FoundationStereo costs far more), and one cache serves every run and every ablation variant on the same
+data, encoder and resolution. Give the flags of the training runs it serves: ``--preset``, ``--encoder``
+(``--encoder-weights``, ``--encoder-repo``), ``--resolution``, and ``--no-amp`` / ``--device cpu`` when the
+runs use them (a run checks the cache's precision: bf16 autocast on CUDA, else float32). Size: about 2 MB a
+pair for psmnet-kitti at 256x256 (its features at 1/2 and 1/4 in bf16).
+
+Before anything is written: the flags, the data (each split's index and first pair at ``--resolution``),
+the encoder and its weights, and ``--out`` (writable, apart from ``--data``, empty or a cache of the same
+encoder, resolution and precision made from the same data). Shards are written whole (temp file, then
+rename) with done markers; an interrupted or killed run resumes at the first unfinished shard, and
+``CACHE/<split>/index.json`` marks a split complete. One process at a time writes ``--out`` (``.lock``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+from scenesplat_stereo.commandline import Interrupted
+from scenesplat_stereo.files import LOCK_FILE, TMP_PREFIX, FolderLock, atomic_write_json, check_apart, check_writable
+from scenesplat_stereo.shards import PlannedShards, iter_shard, read_done, remove_unplanned, shard_number, write_index
+from scenesplat_stereo.text import format_table, whole_number
+
+from . import encoder_cache as cache_format
+from .args import add_device_argument, device_from_flag, preset_params
+from .config import PRESETS
+from .data import DataError, Shard, init_loader_worker, load_pair, read_split
+from .encoders.flags import add_encoder_arguments, build_encoder, encoder_params
+from .layers import amp_autocast
+from .model import encode_pair
+
+SPLITS = ("train", "val")
+
+
+class PairChunks(Dataset):
+    """Item j: up to ``batch`` consecutive pairs of one shard, ``(shard number, keys, left [n,3,S,S], right)``,
+    decoded exactly as training decodes them (``data.load_pair``)."""
+
+    def __init__(self, chunks: list[tuple[Shard, int, int]], size: int) -> None:
+        self.chunks, self.size = chunks, size
+
+    def __len__(self) -> int:
+        return len(self.chunks)
+
+    def __getitem__(self, j: int) -> tuple[int, list[str], torch.Tensor, torch.Tensor]:
+        shard, first, end = self.chunks[j]
+        keys, lefts, rights = [], [], []
+        for i, (key, members) in enumerate(iter_shard(shard.path, want=lambda i: first <= i < end)):
+            if members is None:
+                continue
+            if key != shard.keys[i]:
+                raise DataError(f"{shard.path}: sample {i} is {key!r}, index.json lists {shard.keys[i]!r}")
+            left, right = load_pair(key, members, str(shard.path), self.size)
+            keys.append(key)
+            lefts.append(left)
+            rights.append(right)
+        if len(keys) != end - first:
+            raise DataError(f"{shard.path}: {len(keys)} of samples {first}..{end - 1} found, index.json lists "
+                            f"{len(shard.keys)}")
+        return shard_number(shard.path.name), keys, torch.stack(lefts), torch.stack(rights)
+
+
+def check_data(data: Path, splits: list[str], size: int) -> dict[str, list[Shard]]:
+    """Each split's shards (``data.read_split``), its shard names ours, and its first pair decoded at ``size``."""
+    out = {}
+    for split in splits:
+        shards = read_split(data, split)
+        for shard in shards:
+            try:
+                shard_number(shard.path.name)
+            except ValueError as e:
+                raise DataError(f"{shard.path}: {e}") from None
+        key, members = next(iter_shard(shards[0].path), (None, None))
+        if key is None:
+            raise DataError(f"{shards[0].path}: no samples, index.json lists {len(shards[0].keys)}")
+        try:
+            load_pair(key, members, str(shards[0].path), size)
+        except DataError as e:
+            raise DataError(f"{e.flag or '--data'}: {e}", e.flag) from None
+        out[split] = shards
+    return out
+
+
+def check_out(out: Path, data: Path, wanted: dict) -> dict:
+    """``--out`` can take this cache (see the module docstring); the cache.json to write: ``wanted`` with the
+    splits of an earlier cache kept. Reads only."""
+    check_writable(out, "--out", create=False)
+    check_apart(out, "--out", {"--data": data})
+    present = [p for p in out.iterdir() if p.name != LOCK_FILE and not p.name.startswith(TMP_PREFIX)] \
+        if out.is_dir() else []
+    if not present:
+        return wanted
+    if not (out / cache_format.MANIFEST).is_file():
+        raise ValueError(f"--out {out}: holds {sorted(p.name for p in present)[0]!r} and is not an encoder cache; "
+                         f"choose a new or empty --out")
+    try:
+        found = cache_format.read_manifest(out)
+    except DataError as e:
+        raise ValueError(f"--out {out}: {e}") from None
+    shared = [s for s in wanted["splits"] if s in found["splits"]]
+    problems = cache_format.differences(found, wanted, shared)
+    if problems:
+        raise ValueError(f"--out {out}: holds an encoder cache of other settings ({'; '.join(problems)}); choose a "
+                         f"new --out (or remove that one)")
+    return {**wanted, "splits": {**found["splits"], **wanted["splits"]}}
+
+
+def encode_dataset(data: Path, out: Path, encoder, size: int, precision: str, splits: list[str], device: str,
+                   batch_size: int, workers: int, progress: bool = True) -> list[dict]:
+    """Write (or complete) the cache of ``encoder`` on ``data``'s ``splits`` in ``out``; one summary row per split."""
+    data, out = Path(data), Path(out)
+    shards = check_data(data, splits, size)
+    info = check_out(out, data, cache_format.manifest(encoder, size, precision, data, splits))
+    with FolderLock(out, "--out", "sgmodel encode"):
+        atomic_write_json(out / cache_format.MANIFEST, info)
+        return [_encode_split(data, out, encoder, size, precision, split, shards[split], device, batch_size,
+                              workers, progress) for split in splits]
+
+
+def _encode_split(data: Path, out: Path, encoder, size: int, precision: str, split: str, shards: list[Shard],
+                  device: str, batch_size: int, workers: int, progress: bool) -> dict:
+    t0 = time.perf_counter()
+    numbers = [shard_number(s.path.name) for s in shards]
+    remove_unplanned(out, split, set(numbers))  # temp files of a killed run; shards the data no longer has
+    todo = [(n, s) for n, s in zip(numbers, shards)
+            if (read_done(out, split, n) or {}).get("keys") != list(s.keys)]
+    chunks = [(s, i, min(i + batch_size, len(s.keys))) for _, s in todo for i in range(0, len(s.keys), batch_size)]
+    sink = PlannedShards(out, split, [(n, list(s.keys)) for n, s in todo])
+    loader = DataLoader(PairChunks(chunks, size), batch_size=None, num_workers=workers,
+                        **(dict(worker_init_fn=init_loader_worker, multiprocessing_context="spawn") if workers else {}))
+    pairs = sum(len(s.keys) for _, s in todo)
+    bar = tqdm(total=pairs, disable=not progress, unit="pair", desc=split, dynamic_ncols=True)
+    try:
+        for _, keys, left, right in loader:
+            left, right = left.to(device, non_blocking=True), right.to(device, non_blocking=True)
+            with amp_autocast(left, precision == cache_format.BF16):
+                disparity, features = encode_pair(encoder, left, right)
+            for b, key in enumerate(keys):
+                sink(key, cache_format.sample_members(disparity[b], [f[b] for f in features], precision))
+            bar.update(len(keys))
+            bar.set_postfix(shards=f"{sink.done}/{len(todo)}")
+    except KeyboardInterrupt:
+        sink.discard()
+        bar.close()
+        raise Interrupted(f"{sink.done} of {len(todo)} {split} shards written this run; rerun the same command "
+                          f"to resume") from None
+    except BaseException:
+        sink.discard()
+        raise
+    bar.close()
+    index = write_index(out, split)
+    seconds = time.perf_counter() - t0
+    return {"split": split, "shards": len(shards), "made": len(todo), "pairs": index["num_samples"],
+            "encoded": pairs, "MB": sum(s["bytes"] for s in index["shards"]) / 1e6, "s": seconds,
+            "pairs/s": pairs / seconds if pairs else float("nan")}
+
+
+def summary(rows: list[dict], out: Path) -> str:
+    table = format_table([["split", "shards", "made now", "pairs", "encoded now", "MB", "s", "pairs/s"]] +
+                         [[r["split"], r["shards"], r["made"], r["pairs"], r["encoded"], f"{r['MB']:.1f}",
+                           f"{r['s']:.1f}", f"{r['pairs/s']:.1f}"] for r in rows], rule=True)
+    return f"{table}\nencoder cache in {out}: sgmodel train (or ablate) --encoder-cache {out} with the same flags"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=Path, required=True, help="dataset folder written by `scenesplat-stereo build`")
+    p.add_argument("--out", type=Path, required=True, help="cache folder (created; an unfinished cache resumes)")
+    p.add_argument("--splits", nargs="+", default=list(SPLITS), help="splits to cache (default: train val)")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="paper",
+                   help="the training runs' preset: its encoder and resolution are the defaults")
+    add_encoder_arguments(p, "the preset's: psmnet-kitti, or sgbm with cpu-small")
+    p.add_argument("--resolution", type=whole_number("--resolution", 16),
+                   help="S of the training runs (default: the preset's, 256)")
+    p.add_argument("--batch-size", type=whole_number("--batch-size"), default=32,
+                   help="pairs per encoder call (default 32; the outputs do not depend on it)")
+    p.add_argument("--workers", type=whole_number("--workers", 0), default=4,
+                   help="processes decoding the pairs (default 4)")
+    p.add_argument("--no-amp", action="store_true",
+                   help="run the encoder in float32 on CUDA, for runs trained with --no-amp (default: bf16 autocast)")
+    add_device_argument(p)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    model, _ = preset_params(args.preset)
+    params = encoder_params(args, model.encoder)
+    size = args.resolution or model.resolution
+    splits = list(dict.fromkeys(args.splits))
+    device = device_from_flag(args.device)
+    # cuDNN's default algorithm choice, not `train`'s timed search: the same cache bytes on every run and resume
+    torch.backends.cudnn.benchmark = False
+    encoder = build_encoder(params, device)
+    precision = cache_format.precision_of(device, not args.no_amp)
+    rows = encode_dataset(args.data, args.out, encoder, size, precision, splits, device, args.batch_size,
+                          args.workers, not args.no_progress)
+    print(summary(rows, args.out))
+    return 0
