@@ -68,7 +68,8 @@ def test_flags_over_a_preset_or_a_checkpoint():
 @pytest.mark.parametrize("command", [["train", "--data", "d", "--out", "o"], ["ablate", "--data", "d", "--out", "o"],
                                      ["eval", "--data", "d", "--out", "o", "--method", "naive-gs"],
                                      ["predict", "--left", "l", "--right", "r", "--out", "o", "--method", "naive-gs"],
-                                     ["bench", "train"], ["bench", "predict"]])
+                                     ["bench", "train"], ["bench", "predict"],
+                                     ["encode", "--data", "d", "--out", "o"]])
 def test_every_command_that_makes_an_encoder_has_the_three_flags(command):
     args = build_parser().parse_args(command + ["--encoder", "e", "--encoder-weights", "w", "--encoder-repo", "r"])
     assert (args.encoder, args.encoder_weights, args.encoder_repo) == ("e", "w", "r")
@@ -119,6 +120,25 @@ def test_train_eval_predict_ablate_with_foundation_encoders(demo_dataset, releas
                 *SCHEDULE]) == 0
     table = (tmp_path / "ablate" / "table.md").read_text()
     assert "encoder foundation-stereo" in table and "| naive-gs |" in table and "| forward-splat |" in table
+
+
+def test_foundation_stereo_outputs_cached_once_then_trained_and_ablated_from(demo_dataset, releases, tmp_path, capsys):
+    """The paper's setting (FoundationStereo frozen) through the encoder cache: `encode`, then `train` and
+    `ablate` read it; the other release's encoder is refused that cache before anything is written."""
+    ffs, fs = releases["fast-foundation-stereo"], releases["foundation-stereo"]
+    cache = tmp_path / "cache"
+    assert sgmodel_status(["encode", "--data", demo_dataset, "--out", cache, *fs, "--resolution", 32, "--device", "cpu",
+                           "--workers", 0, "--no-progress"]) == 0
+    info = json.loads((cache / "cache.json").read_text())
+    assert info["encoder"]["name"] == "foundation-stereo" and len(info["encoder"]["weights_sha256"]) == 64
+    assert sgmodel_status(["train", "--data", demo_dataset, "--out", tmp_path / "run", *fs, *TINY, *SCHEDULE,
+                           "--encoder-cache", cache]) == 0
+    assert sgmodel_status(["ablate", "--data", demo_dataset, "--out", tmp_path / "ablate", "--only", "default", *fs,
+                           *TINY, *SCHEDULE, "--encoder-cache", cache]) == 0
+    capsys.readouterr()
+    assert sgmodel_status(["train", "--data", demo_dataset, "--out", tmp_path / "other", *ffs, *TINY, *SCHEDULE,
+                           "--encoder-cache", cache]) == 2
+    assert "field 'encoder'" in capsys.readouterr().err and not (tmp_path / "other").exists()
 
 
 @pytest.mark.parametrize("argv,message", [
