@@ -5,8 +5,8 @@
 #   scripts/foundation_releases.py (FS 23-51-11 configuration, FFS serialised, FFS pruned)
 #   scripts/foundation_parity.py (both encoders in one process, both orders, outputs = the upstream modules')
 #   sgmodel predict and eval (baselines and checkpoints), bench encoders (all in one process), ablate (train,
-#   eval of the checkpoint and both baselines) with each encoder, train with the pruned one, and failures that
-#   must be one line with exit status 2. On 2 busy CPU cores this takes hours (FoundationStereo: about a minute
+#   eval of the checkpoint and both baselines) with each encoder, train with the pruned one, encode (the encoder
+#   cache) then train and ablate from it with each encoder, and failures that must be one line with exit status 2. On 2 busy CPU cores this takes hours (FoundationStereo: about a minute
 #   per 32x32 forward); on a larger machine far less.
 #
 # Usage: scripts/check_foundation_upstream.sh FOUNDATIONSTEREO_CHECKOUT FAST_FOUNDATIONSTEREO_CHECKOUT [WORK]
@@ -105,6 +105,18 @@ echo "== ablate (train, eval of the checkpoint and both baselines) with each enc
 sg ablate --data "$WORK/data" --out "$WORK/ablate-fs" --only default "${FSF[@]}" "${TINY[@]}"
 sg ablate --data "$WORK/data" --out "$WORK/ablate-ffs" --only default "${FFSF[@]}" "${TINY[@]}"
 sg train --data "$WORK/data" --out "$WORK/run-pruned" "${PRF[@]}" "${TINY[@]}"
+
+echo "== the encoder cache: each encoder's outputs cached once, then train and ablate from them"
+for enc in fs ffs; do
+    if [ $enc = fs ]; then F=("${FSF[@]}"); else F=("${FFSF[@]}"); fi
+    sg encode --data "$WORK/data" --out "$WORK/cache-$enc" "${F[@]}" --preset cpu-small --resolution 32 --device cpu \
+        --workers 0 --no-progress
+    sg train --data "$WORK/data" --out "$WORK/run-cache-$enc" "${F[@]}" "${TINY[@]}" --encoder-cache "$WORK/cache-$enc"
+    sg ablate --data "$WORK/data" --out "$WORK/ablate-cache-$enc" --only default "${F[@]}" "${TINY[@]}" \
+        --encoder-cache "$WORK/cache-$enc"
+done
+expect_error "field 'encoder'" train --data "$WORK/data" --out "$WORK/x" "${PRF[@]}" "${TINY[@]}" \
+    --encoder-cache "$WORK/cache-ffs"  # the pruned release's encoder: not the one the cache was made with
 
 echo "== eval and predict the checkpoints"
 sg eval --data "$WORK/data" --checkpoint "$WORK/ablate-ffs/shared-default/run/checkpoints/best.pt" \
