@@ -3,10 +3,11 @@ docs/benchmarks.md, "The encoder cache"). On the GPU, in bf16 autocast, with cuD
 on as ``sgmodel train`` runs the encoder, each process may pick other algorithms, so a live encoder's
 outputs differ between processes in their last bits; this measures the cache against the live encoder, and
 (``--save-live`` in one process, ``--against-live`` in another) the live encoder against itself in another
-process. Prints a markdown table: per output, the largest and mean absolute difference, the largest
-relative to the output's largest magnitude, and the share of elements that differ at all.
+process; ``--no-search`` runs the live encoder with cuDNN's default choice, as ``sgmodel encode`` does.
+Prints a markdown table: per output, the largest and mean absolute difference, the largest relative to the
+output's largest magnitude, and the share of elements that differ at all.
 
-    python3 scripts/gpu_cache_check.py --data DATA --cache CACHE [--batches 4] [--batch-size 32]
+    python3 scripts/gpu_cache_check.py --data DATA --cache CACHE [--batches 4] [--batch-size 32] [--no-search]
         [--save-live FILE | --against-live FILE]
 """
 
@@ -45,9 +46,12 @@ def main() -> None:
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--save-live", help="save this process's live outputs here")
     p.add_argument("--against-live", help="also compare with the live outputs another process saved here")
+    p.add_argument("--no-search", action="store_true",
+                   help="cuDNN's default algorithm choice, as `sgmodel encode` runs (default: its timed search, as "
+                        "`sgmodel train` runs the encoder)")
     args = p.parse_args()
     device = torch.device("cuda")
-    torch.backends.cudnn.benchmark = True  # as `sgmodel train` runs the encoder
+    torch.backends.cudnn.benchmark = not args.no_search
     encoder = build_encoder(EncoderParams(name=args.encoder), device)
     cache = open_cache(args.cache, args.data, encoder, args.resolution, precision_of(device, True), ["train"])
     loader = make_loader(args.data, "train", args.batch_size, args.resolution, 4, num_workers=8, cache=cache,
@@ -72,7 +76,7 @@ def main() -> None:
     if args.save_live:
         torch.save(saved, args.save_live)
     print(f"{args.batches} training batches of {args.batch_size} pairs, {args.encoder} at {args.resolution}, "
-          f"bf16 autocast, cuDNN benchmark on, on {torch.cuda.get_device_name(device)}\n")
+          f"bf16 autocast, cuDNN search {'off' if args.no_search else 'on'}, on {torch.cuda.get_device_name(device)}\n")
     print("| compared | max abs difference | mean abs difference | max / largest magnitude | elements that differ |")
     print("|---|---:|---:|---:|---:|")
     for name, (largest, total, differ, count, magnitude) in stats.items():

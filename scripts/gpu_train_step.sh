@@ -17,7 +17,8 @@
 #   big:     512x512 (padding 32): `bench train` at batch 32, then smaller batches until one fits
 #   curve:   a small dataset (demo rooms + the guitar), then short training runs: SEEDS of this code and, with
 #            BASE, of the code before; the validation PSNR of every run side by side ($OUT/curves.md)
-#   cache:   the encoder cache: `sgmodel encode` of the curve's dataset, scripts/gpu_cache_check.py, then
+#   cache:   the encoder cache: `sgmodel encode` of the curve's dataset, scripts/gpu_cache_check.py (cuDNN's
+#            search off, then on in two processes), then
 #            `bench train --data` with the encoder run and with --encoder-cache ($OUT/cache_bench.md)
 #   cachecurve: training runs with the encoder run and read from the cache, SEEDS each ($OUT/cache_curves.md)
 #   lpips:   the step with the LPIPS term's VGG16 eager (--no-compile-lpips; `bench` times the compiled default),
@@ -123,6 +124,8 @@ cache)  # the encoder cache: `sgmodel encode` of the small dataset, its outputs 
   dataset
   [[ -f /tmp/enc-cache/val/index.json ]] || run python3 -m sgmodel.cli encode --data $data/dataset --out /tmp/enc-cache \
     --device cuda --workers 8 --no-progress 2>&1 | tee "$OUT/encode.txt"
+  run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --no-search \
+    | tee "$OUT/cache_check_no_search.md"
   run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --save-live /tmp/live.pt
   run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --against-live /tmp/live.pt \
     | tee "$OUT/cache_check.md"

@@ -1,7 +1,7 @@
 """``sgmodel`` command line: parse, call, print. Each command's work lives in its room.
 
-Commands: ``train``, ``eval``, ``predict``, ``rectify``, ``ablate``, ``encode``, ``weights fetch``, ``bench train``,
-``bench encoders``, ``bench predict``. Every command checks all its inputs before it writes anything; its
+Commands: ``train``, ``eval``, ``predict``, ``rectify``, ``ablate``, ``encode``, ``weights fetch``,
+``bench train``, ``bench encoders``, ``bench predict``. Every command checks all its inputs before it writes anything; its
 errors end in ``scenesplat_stereo.commandline.run_command``: exit 2 with one line naming the flag or file
 for bad arguments and input (a bad flag value, a missing or corrupt file, weights that are not there, a
 diverged run, a full disk, running out of memory), 130 for Ctrl-C (what was kept is said), 1 with one line
@@ -122,9 +122,9 @@ def _add_eval(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _add_module(sub, name: str, help: str, module) -> None:
+def _add_module(sub, name: str, summary: str, module) -> None:
     """A command whose module holds its work: ``module.add_arguments(parser)`` and ``module.run(args)``."""
-    p = sub.add_parser(name, help=help, description=module.__doc__,
+    p = sub.add_parser(name, help=summary, description=module.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     module.add_arguments(p)
     p.set_defaults(func=module.run)

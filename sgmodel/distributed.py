@@ -55,6 +55,12 @@ def all_sum(world: World, values: list[float]) -> list[float]:
     return t.tolist()
 
 
+def barrier(world: World) -> None:
+    """Wait until every rank gets here (nothing in a world of one)."""
+    if world.size > 1:
+        dist.barrier()
+
+
 def broadcast_flag(world: World, flag: bool) -> bool:
     """Rank 0's ``flag`` on every rank (a decision only rank 0 can make, e.g. a new best checkpoint)."""
     if world.size == 1:

@@ -15,6 +15,9 @@ the encoder and its weights, and ``--out`` (writable, apart from ``--data``, emp
 encoder, resolution and precision made from the same data). Shards are written whole (temp file, then
 rename) with done markers; an interrupted or killed run resumes at the first unfinished shard, and
 ``CACHE/<split>/index.json`` marks a split complete. One process at a time writes ``--out`` (``.lock``).
+Several GPUs: ``torchrun --nproc_per_node=N -m sgmodel.cli encode ...`` with the same flags; rank r encodes
+every N-th shard of what is left (the same cache bytes as one process), rank 0 holds the lock and writes
+``cache.json`` and the indexes.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from . import encoder_cache as cache_format
 from .args import add_device_argument, device_from_flag, preset_params
 from .config import PRESETS
 from .data import DataError, Shard, init_loader_worker, load_pair, read_split
+from .distributed import World, all_sum, barrier, close_world, init_world
 from .encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from .layers import amp_autocast
 from .model import encode_pair
@@ -117,35 +121,62 @@ def check_out(out: Path, data: Path, wanted: dict) -> dict:
 
 
 def encode_dataset(data: Path, out: Path, encoder, size: int, precision: str, splits: list[str], device: str,
-                   batch_size: int, workers: int, progress: bool = True) -> list[dict]:
-    """Write (or complete) the cache of ``encoder`` on ``data``'s ``splits`` in ``out``; one summary row per split."""
+                   batch_size: int, workers: int, progress: bool = True, world: World | None = None) -> list[dict]:
+    """Write (or complete) the cache of ``encoder`` on ``data``'s ``splits`` in ``out``; one summary row per split
+    (counts summed over ranks; rank 0's rows also say the split's pairs and size). Under ``torchrun`` (``world``) rank r encodes shards r, r + W, ... of what is
+    left; rank 0 alone holds the lock and writes ``cache.json`` and the indexes."""
     data, out = Path(data), Path(out)
+    world = world or World(0, 1, torch.device(device))
     shards = check_data(data, splits, size)
     info = check_out(out, data, cache_format.manifest(encoder, size, precision, data, splits))
-    with FolderLock(out, "--out", "sgmodel encode"):
-        atomic_write_json(out / cache_format.MANIFEST, info)
-        return [_encode_split(data, out, encoder, size, precision, split, shards[split], device, batch_size,
-                              workers, progress) for split in splits]
+    lock = FolderLock(out, "--out", "sgmodel encode")
+    if world.main:
+        lock.acquire()
+    try:
+        if world.main:
+            atomic_write_json(out / cache_format.MANIFEST, info)
+            for split in splits:
+                remove_unplanned(out, split, {shard_number(s.path.name) for s in shards[split]})  # temp files
+        barrier(world)
+        # every rank plans before any writes, so all ranks see the same work left
+        todo = {split: [s for s in shards[split] if (read_done(out, split, shard_number(s.path.name)) or {})
+                        .get("keys") != list(s.keys)] for split in splits}
+        rows = []
+        for split in splits:
+            t0 = time.perf_counter()
+            mine = todo[split][world.rank::world.size]
+            encoded = _encode_shards(out, encoder, size, precision, split, mine, device, batch_size, workers,
+                                     progress and world.main)
+            made, encoded = all_sum(world, [float(len(mine)), float(encoded)])
+            rows.append({"split": split, "shards": len(shards[split]), "made": int(made), "encoded": int(encoded),
+                         "s": time.perf_counter() - t0})
+        barrier(world)
+        for row in rows if world.main else []:  # rank 0 writes the indexes and reports
+            index = write_index(out, row["split"])
+            row.update(pairs=index["num_samples"], MB=sum(s["bytes"] for s in index["shards"]) / 1e6,
+                       **{"pairs/s": row["encoded"] / row["s"] if row["encoded"] else float("nan")})
+        return rows
+    finally:
+        lock.release()
 
 
-def _encode_split(data: Path, out: Path, encoder, size: int, precision: str, split: str, shards: list[Shard],
-                  device: str, batch_size: int, workers: int, progress: bool) -> dict:
-    t0 = time.perf_counter()
-    numbers = [shard_number(s.path.name) for s in shards]
-    remove_unplanned(out, split, set(numbers))  # temp files of a killed run; shards the data no longer has
-    todo = [(n, s) for n, s in zip(numbers, shards)
-            if (read_done(out, split, n) or {}).get("keys") != list(s.keys)]
-    chunks = [(s, i, min(i + batch_size, len(s.keys))) for _, s in todo for i in range(0, len(s.keys), batch_size)]
-    sink = PlannedShards(out, split, [(n, list(s.keys)) for n, s in todo])
+def _encode_shards(out: Path, encoder, size: int, precision: str, split: str, todo: list[Shard], device: str,
+                   batch_size: int, workers: int, progress: bool) -> int:
+    """Encode the shards ``todo`` of ``split`` into ``out``; the number of pairs encoded."""
+    chunks = [(s, i, min(i + batch_size, len(s.keys))) for s in todo for i in range(0, len(s.keys), batch_size)]
+    sink = PlannedShards(out, split, [(shard_number(s.path.name), list(s.keys)) for s in todo])
     loader = DataLoader(PairChunks(chunks, size), batch_size=None, num_workers=workers,
                         **(dict(worker_init_fn=init_loader_worker, multiprocessing_context="spawn") if workers else {}))
-    pairs = sum(len(s.keys) for _, s in todo)
+    pairs = sum(len(s.keys) for s in todo)
     bar = tqdm(total=pairs, disable=not progress, unit="pair", desc=split, dynamic_ncols=True)
     try:
         for _, keys, left, right in loader:
             left, right = left.to(device, non_blocking=True), right.to(device, non_blocking=True)
             with amp_autocast(left, precision == cache_format.BF16):
                 disparity, features = encode_pair(encoder, left, right)
+            # to the host once per batch, in the stored dtypes (not one copy per sample and map)
+            disparity = disparity.cpu()
+            features = [f.to(cache_format.feature_dtype(precision)).cpu() for f in features]
             for b, key in enumerate(keys):
                 sink(key, cache_format.sample_members(disparity[b], [f[b] for f in features], precision))
             bar.update(len(keys))
@@ -159,18 +190,15 @@ def _encode_split(data: Path, out: Path, encoder, size: int, precision: str, spl
         sink.discard()
         raise
     bar.close()
-    index = write_index(out, split)
-    seconds = time.perf_counter() - t0
-    return {"split": split, "shards": len(shards), "made": len(todo), "pairs": index["num_samples"],
-            "encoded": pairs, "MB": sum(s["bytes"] for s in index["shards"]) / 1e6, "s": seconds,
-            "pairs/s": pairs / seconds if pairs else float("nan")}
+    return pairs
 
 
-def summary(rows: list[dict], out: Path) -> str:
+def summary(rows: list[dict], out: Path, ranks: int = 1) -> str:
     table = format_table([["split", "shards", "made now", "pairs", "encoded now", "MB", "s", "pairs/s"]] +
                          [[r["split"], r["shards"], r["made"], r["pairs"], r["encoded"], f"{r['MB']:.1f}",
                            f"{r['s']:.1f}", f"{r['pairs/s']:.1f}"] for r in rows], rule=True)
-    return f"{table}\nencoder cache in {out}: sgmodel train (or ablate) --encoder-cache {out} with the same flags"
+    return (f"{table}\n{ranks} rank(s); encoder cache in {out}: sgmodel train (or ablate) --encoder-cache {out} "
+            f"with the same flags")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -197,12 +225,16 @@ def run(args: argparse.Namespace) -> int:
     params = encoder_params(args, model.encoder)
     size = args.resolution or model.resolution
     splits = list(dict.fromkeys(args.splits))
-    device = device_from_flag(args.device)
-    # cuDNN's default algorithm choice, not `train`'s timed search: the same cache bytes on every run and resume
-    torch.backends.cudnn.benchmark = False
-    encoder = build_encoder(params, device)
-    precision = cache_format.precision_of(device, not args.no_amp)
-    rows = encode_dataset(args.data, args.out, encoder, size, precision, splits, device, args.batch_size,
-                          args.workers, not args.no_progress)
-    print(summary(rows, args.out))
-    return 0
+    world = init_world(device_from_flag(args.device))
+    try:
+        # cuDNN's default algorithm choice, not `train`'s timed search: the same cache bytes on every run and resume
+        torch.backends.cudnn.benchmark = False
+        encoder = build_encoder(params, world.device)
+        precision = cache_format.precision_of(world.device, not args.no_amp)
+        rows = encode_dataset(args.data, args.out, encoder, size, precision, splits, str(world.device),
+                              args.batch_size, args.workers, not args.no_progress, world)
+        if world.main:
+            print(summary(rows, args.out, world.size))
+        return 0
+    finally:
+        close_world(world)

@@ -56,6 +56,11 @@ def precision_of(device: torch.device | str, amp: bool) -> str:
     return BF16 if amp and torch.device(device).type == "cuda" else "float32"
 
 
+def feature_dtype(precision: str) -> torch.dtype:
+    """The dtype features are stored in: bfloat16 for "bf16-autocast" (what the decoder casts them to), else float32."""
+    return torch.bfloat16 if precision == BF16 else torch.float32
+
+
 def feature_member(i: int) -> str:
     return f"feature_{i}.npy"
 
@@ -86,9 +91,8 @@ def sample_members(disparity: torch.Tensor, features: list[torch.Tensor], precis
     stored (float32 disparity; features float32, or bfloat16 bits as uint16 for "bf16-autocast")."""
     members = {DISPARITY: _npy(disparity.detach().float().cpu().numpy())}
     for i, f in enumerate(features):
-        f = f.detach()
-        stored = f.to(torch.bfloat16).cpu().view(torch.uint16) if precision == BF16 else f.float().cpu()
-        members[feature_member(i)] = _npy(stored.numpy())
+        f = f.detach().to(feature_dtype(precision)).cpu()
+        members[feature_member(i)] = _npy((f.view(torch.uint16) if precision == BF16 else f).numpy())
     return members
 
 

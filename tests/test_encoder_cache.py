@@ -275,3 +275,25 @@ def test_ablate_refuses_a_cache_that_does_not_fit_before_writing(demo_dataset, c
     assert sgmodel_status(["ablate", "--data", demo_dataset, "--out", out, "--preset", "cpu-small", "--device", "cpu",
                            "--no-progress", "--encoder-cache", cache]) == 2
     assert "field 'encoder'" in capsys.readouterr().err and not out.exists()
+
+
+def test_torchrun_two_ranks_write_the_cache_one_process_writes(demo_dataset, tmp_path, capsys):
+    """`torchrun --nproc_per_node=2 -m sgmodel.cli encode` on the CPU (gloo): each rank encodes every other
+    shard; the cache has the same bytes as one process's, and rank 0 alone prints the summary."""
+    import subprocess
+    import sys
+
+    flags = ["--data", str(demo_dataset), "--preset", "cpu-small", "--device", "cpu", "--workers", "0",
+             "--no-progress", "--batch-size", "3"]
+    assert sgmodel_status(["encode", *flags, "--out", tmp_path / "one"]) == 0
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone", "-m", "sgmodel.cli",
+           "encode", *flags, "--out", str(tmp_path / "two")]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("2 rank(s); encoder cache in") == 1
+    assert _digests(tmp_path / "two") == _digests(tmp_path / "one") and len(_digests(tmp_path / "one")) == 6
+    for name in ("cache.json", "train/index.json", "val/index.json"):
+        one, two = (json.loads((tmp_path / r / name).read_text()) for r in ("one", "two"))
+        one.pop("data", None), two.pop("data", None)
+        assert one == two, name
+    assert not (tmp_path / "two" / ".lock").exists()
