@@ -48,7 +48,7 @@ SPLITS = ("train", "val")
 
 
 class PairChunks(Dataset):
-    """Item j: up to ``batch`` consecutive pairs of one shard, ``(shard number, keys, left [n,3,S,S], right)``,
+    """Item j: up to a batch of consecutive pairs of one shard, ``(shard number, keys, left [n,3,S,S], right)``,
     decoded exactly as training decodes them (``data.load_pair``)."""
 
     def __init__(self, chunks: list[tuple[Shard, int, int]], size: int) -> None:
@@ -123,8 +123,9 @@ def check_out(out: Path, data: Path, wanted: dict) -> dict:
 def encode_dataset(data: Path, out: Path, encoder, size: int, precision: str, splits: list[str], device: str,
                    batch_size: int, workers: int, progress: bool = True, world: World | None = None) -> list[dict]:
     """Write (or complete) the cache of ``encoder`` on ``data``'s ``splits`` in ``out``; one summary row per split
-    (counts summed over ranks; rank 0's rows also say the split's pairs and size). Under ``torchrun`` (``world``) rank r encodes shards r, r + W, ... of what is
-    left; rank 0 alone holds the lock and writes ``cache.json`` and the indexes."""
+    (counts summed over ranks; rank 0's rows also say the split's pairs and size). Under ``torchrun``
+    (``world``) rank r encodes shards r, r + W, ... of what is left; rank 0 alone holds the lock and writes
+    ``cache.json`` and the indexes."""
     data, out = Path(data), Path(out)
     world = world or World(0, 1, torch.device(device))
     shards = check_data(data, splits, size)
