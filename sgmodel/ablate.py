@@ -29,9 +29,8 @@ from scenesplat_stereo.text import markdown_table
 
 from . import evaluate
 from .config import ConfigurationError, ModelParams, TrainParams
-from .encoder_cache import open_cache, precision_of
 from .encoders.flags import build_encoder
-from .train import read_split_checked, train
+from .train import open_run_cache, read_split_checked, train
 
 
 def variants(base: ModelParams) -> list[tuple[str, str, ModelParams]]:
@@ -81,8 +80,8 @@ def ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, devi
     t0 = time.perf_counter()
     check_ablation(base, schedule, data, out, only)
     if encoder_cache is not None:
-        open_cache(encoder_cache, data, build_encoder(base.encoder, device), base.resolution,
-                   precision_of(device, schedule.amp), ["train", "val"])
+        open_run_cache(encoder_cache, data, build_encoder(base.encoder, device), base.resolution, device,
+                       schedule.amp)
     with FolderLock(out, "--out", "sgmodel ablate"):
         return _ablate(base, schedule, data, out, device, lpips_vgg, only, progress, t0, encoder_cache)
 

@@ -47,6 +47,7 @@ TRAIN_TARGETS = 4  # targets drawn per pair in training (paper section 4, SPEC s
 RESOLUTION = 256  # S (paper section 4, SPEC section 7)
 SHUFFLE_BUFFER = 64  # samples held by each training stream's shuffle buffer (not from the paper)
 DEPTH_MEMBER = "left_depth.exr"
+RUN_SPLITS = ("train", "val")  # the splits a training run reads (and an encoder cache holds by default)
 
 
 class DataError(ValueError):
@@ -341,6 +342,20 @@ class ShardStream(IterableDataset):
                 raise DataError(f"{shard.path}: {i + 1} samples, index.json lists {len(shard.keys)}")
         if nxt != len(emit):
             raise DataError(f"{self.shards[0].path.parent}: samples listed in index.json were not found")
+
+
+def check_first_sample(shards: list[Shard], load) -> None:
+    """``load(key, members, source)`` on the first sample of a split's ``shards`` (a check before a command
+    writes anything); DataError naming the file, prefixed with the flag that asked for what the data cannot
+    give (``--data`` when the data is at fault)."""
+    first = shards[0]
+    key, members = next(iter_shard(first.path), (None, None))
+    if key is None:
+        raise DataError(f"{first.path}: no samples, index.json lists {len(first.keys)}")
+    try:
+        load(key, members, str(first.path))
+    except DataError as e:
+        raise DataError(f"{e.flag or '--data'}: {e}", e.flag) from None
 
 
 def init_loader_worker(_: int) -> None:

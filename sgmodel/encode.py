@@ -38,14 +38,11 @@ from scenesplat_stereo.text import format_table, whole_number
 from . import encoder_cache as cache_format
 from .args import add_device_argument, device_from_flag, preset_params
 from .config import PRESETS
-from .data import DataError, Shard, init_loader_worker, load_pair, read_split
+from .data import RUN_SPLITS, DataError, Shard, check_first_sample, init_loader_worker, load_pair, read_split
 from .distributed import World, all_sum, barrier, close_world, init_world
 from .encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from .layers import amp_autocast
 from .model import encode_pair
-
-SPLITS = ("train", "val")
-
 
 class PairChunks(Dataset):
     """Item j: up to a batch of consecutive pairs of one shard, ``(shard number, keys, left [n,3,S,S], right)``,
@@ -85,13 +82,7 @@ def check_data(data: Path, splits: list[str], size: int) -> dict[str, list[Shard
                 shard_number(shard.path.name)
             except ValueError as e:
                 raise DataError(f"{shard.path}: {e}") from None
-        key, members = next(iter_shard(shards[0].path), (None, None))
-        if key is None:
-            raise DataError(f"{shards[0].path}: no samples, index.json lists {len(shards[0].keys)}")
-        try:
-            load_pair(key, members, str(shards[0].path), size)
-        except DataError as e:
-            raise DataError(f"{e.flag or '--data'}: {e}", e.flag) from None
+        check_first_sample(shards, lambda key, members, source: load_pair(key, members, source, size))
         out[split] = shards
     return out
 
@@ -205,7 +196,7 @@ def summary(rows: list[dict], out: Path, ranks: int = 1) -> str:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, required=True, help="dataset folder written by `scenesplat-stereo build`")
     p.add_argument("--out", type=Path, required=True, help="cache folder (created; an unfinished cache resumes)")
-    p.add_argument("--splits", nargs="+", default=list(SPLITS), help="splits to cache (default: train val)")
+    p.add_argument("--splits", nargs="+", default=list(RUN_SPLITS), help="splits to cache (default: train val)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="paper",
                    help="the training runs' preset: its encoder and resolution are the defaults")
     add_encoder_arguments(p, "the preset's: psmnet-kitti, or sgbm with cpu-small")

@@ -41,13 +41,12 @@ from tqdm import tqdm
 from scenesplat_stereo.commandline import Interrupted
 from scenesplat_stereo.files import (LOCK_FILE, TMP_PREFIX, FolderLock, append_line, atomic_write_bytes, check_apart,
                                      check_writable, read_json, read_json_lines, remove_temp_files)
-from scenesplat_stereo.shards import iter_shard
 from scenesplat_stereo.text import format_table
 
 from . import metrics
 from .checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from .config import ModelParams, TrainParams
-from .data import DataError, load_sample, make_loader, read_split
+from .data import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
 from .distributed import World, all_sum, broadcast_flag, close_world, init_world
 from .encoder_cache import EncoderCache, open_cache, precision_of
 from .layers import amp_autocast
@@ -201,11 +200,20 @@ def _trim_metrics(path: Path, step: int | None) -> None:
 
 
 def run_config(model_params: ModelParams, train_params: TrainParams, data: Path, encoder, objective,
-               init_from: dict | None = None) -> dict:
-    """The record written to RUN/config.json; a resumed run must match it (except the worker count)."""
+               init_from: dict | None = None, cache: EncoderCache | None = None) -> dict:
+    """The record written to RUN/config.json; a resumed run must match it (except the worker count and the
+    encoder cache, which changes no number)."""
     return {"model": model_params.to_dict(), "train": train_params.to_dict(), "data": str(Path(data).resolve()),
             "encoder": {"name": encoder.name, "weights_sha256": encoder.weights_sha256},
-            "loss": objective.to_config(), "init_from": init_from}
+            "loss": objective.to_config(), "init_from": init_from,
+            "encoder_cache": str(cache.root.resolve()) if cache is not None else None}
+
+
+def open_run_cache(path: Path, data: Path, encoder, resolution: int, device: str | torch.device, amp: bool
+                   ) -> EncoderCache:
+    """The encoder cache at ``path`` checked for a training run (both splits, the run's encoder, resolution
+    and precision): ``encoder_cache.open_cache``."""
+    return open_cache(path, data, encoder, resolution, precision_of(device, amp), list(RUN_SPLITS))
 
 
 def _run_files(root: Path) -> list[Path]:
@@ -294,10 +302,9 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
     model = create_model(model_params, world.device)
     objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp,
                                  compile_trunk=compiles_lpips(world.device, tp.compile_lpips))
-    cache = open_cache(encoder_cache, data, model.encoder, model_params.resolution,
-                       precision_of(world.device, tp.amp), ["train", "val"]) if encoder_cache is not None else None
-    config = run_config(model_params, tp, data, model.encoder, objective, _init_from(init_from, model))
-    config["encoder_cache"] = str(Path(encoder_cache).resolve()) if cache is not None else None
+    cache = open_run_cache(encoder_cache, data, model.encoder, model_params.resolution, world.device, tp.amp) \
+        if encoder_cache is not None else None
+    config = run_config(model_params, tp, data, model.encoder, objective, _init_from(init_from, model), cache)
     lock = FolderLock(paths.root, "--out", "sgmodel train")
     if world.main:
         lock.acquire()  # the first write: RUN and its .lock (both undone if what follows refuses the run)
@@ -448,13 +455,6 @@ def read_split_checked(data: Path, resolution: int, targets: int) -> None:
     """Both splits a run needs exist, list readable shards, and their first samples decode at
     ``resolution`` with ``targets`` training targets. DataError naming the file (and the flag) otherwise.
     Reads only."""
-    for split in ("train", "val"):
-        shards = read_split(Path(data), split)
-        first = shards[0]
-        key, members = next(iter_shard(first.path), (None, None))
-        if key is None:
-            raise DataError(f"{first.path}: no samples, index.json lists {len(first.keys)}")
-        try:
-            load_sample(key, members, str(first.path), resolution, targets if split == "train" else None)
-        except DataError as e:
-            raise DataError(f"{e.flag or '--data'}: {e}") from None
+    for split in RUN_SPLITS:
+        check_first_sample(read_split(Path(data), split), lambda key, members, source, split=split: load_sample(
+            key, members, source, resolution, targets if split == "train" else None))
