@@ -45,6 +45,11 @@ dataset() {  # the demo rooms and the guitar (orbit), 180 training and 10 valida
   run python3 -m scenesplat_stereo.cli build --teachers $data/teachers --out $data/dataset --device cuda \
     --val-scenes 1 --min-psnr none --orbit "radius=6,frames=60" --resolution 340x256 --no-progress
 }
+encoder_cache() {  # the dataset and its encoder cache (/tmp/enc-cache), each made once per machine
+  dataset
+  [[ -f /tmp/enc-cache/val/index.json ]] || run python3 -m sgmodel.cli encode --data $data/dataset --out /tmp/enc-cache \
+    --device cuda --workers 8 --no-progress 2>&1 | tee "$OUT/encode.txt"
+}
 curves() {  # curves FILE RUN...: the validation PSNR of every run side by side, and its logged median step
   local file=$1; shift
   run python3 - "$@" > "$file" <<'EOF'
@@ -121,9 +126,7 @@ torch.manual_seed(0); torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.p
   curves "$OUT/lpips_curves.md" "${runs[@]}" ;;
 cache)  # the encoder cache: `sgmodel encode` of the small dataset, its outputs against the encoder run live,
         # then the step on real batches with the encoder run and read from the cache ($OUT/cache_bench.md)
-  dataset
-  [[ -f /tmp/enc-cache/val/index.json ]] || run python3 -m sgmodel.cli encode --data $data/dataset --out /tmp/enc-cache \
-    --device cuda --workers 8 --no-progress 2>&1 | tee "$OUT/encode.txt"
+  encoder_cache
   run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --no-search \
     | tee "$OUT/cache_check_no_search.md"
   run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --save-live /tmp/live.pt
@@ -135,9 +138,7 @@ cache)  # the encoder cache: `sgmodel encode` of the small dataset, its outputs 
       && { echo "## real batches, encoder $mode"; cat /tmp/bench_$mode.md; } >> "$OUT/cache_bench.md"
   done ;;
 cachecurve)  # training runs with the encoder run and read from the cache, SEEDS each ($OUT/cache_curves.md)
-  dataset
-  [[ -f /tmp/enc-cache/val/index.json ]] || run python3 -m sgmodel.cli encode --data $data/dataset --out /tmp/enc-cache \
-    --device cuda --workers 8 --no-progress 2>&1 | tee "$OUT/encode.txt"
+  encoder_cache
   runs=()
   for s in ${SEEDS:-0 1}; do
     for mode in live cache; do
