@@ -35,6 +35,7 @@ KINDS = (("convolution (cuDNN)", ("xmma", "cutlass", "implicit_gemm", "conv2d_c1
          ("rasteriser (Warp)", ("cuda_kernel_forward",)),
          ("GroupNorm + GELU (Triton)", ("_stats_kernel", "_apply_kernel", "_backward_sums_kernel",
                                         "_backward_dx_kernel")),
+         ("bilinear upsampling (Triton)", ("_upsample_forward_kernel", "_upsample_backward_kernel")),
          ("GroupNorm (PyTorch)", ("RowwiseMoments", "ComputeFusedParams", "GroupNorm", "ComputeInternalGradients",
                                   "Compute1dBackward", "ComputeBackwardFused", "GammaBeta")),
          ("GELU", ("Gelu",)),

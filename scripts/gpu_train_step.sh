@@ -10,7 +10,7 @@
 # Device call 2 (carry .devdata):                  mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
 # Device call 3 (carry .gpukit/b, .whl; one call carries at most 64 MiB, each within 30 s of the one before):
 #   SGMODEL_CACHE=/root/sgcache bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
-#   tests:   the CUDA tests of the model's layers (Triton GroupNorm kernels), LPIPS and the soft-argmin
+#   tests:   the CUDA tests of the model's layers (Triton kernels), LPIPS, the soft-argmin and the rasteriser
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
 #            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
 #   profile: scripts/gpu_train_profile.py with each term
@@ -20,6 +20,8 @@
 #   cache:   the encoder cache: `sgmodel encode` of the curve's dataset, scripts/gpu_cache_check.py (cuDNN's
 #            search off, then on in two processes), then
 #            `bench train --data` with the encoder run and with --encoder-cache ($OUT/cache_bench.md)
+#   cachestep: the step from the cache (real batches, both loss terms); with BASE the code before too,
+#            interleaved, twice ($OUT/cache_step.md)
 #   cachecurve: training runs with the encoder run and read from the cache, SEEDS each ($OUT/cache_curves.md)
 #   lpips:   the step with the LPIPS term's VGG16 eager (--no-compile-lpips; `bench` times the compiled default),
 #            then training runs with the LPIPS term (random VGG16) compiled and eager, SEEDS each
@@ -73,7 +75,8 @@ train=(python3 -m sgmodel.cli train --data $data/dataset --device cuda --steps $
 for what in "$@"; do case $what in
 tests)
   run python3 -m pytest -q -p no:cacheprovider tests/test_layers.py tests/test_lpips.py tests/test_soft_argmin.py \
-    -k "cuda" 2>&1 | tee "$OUT/tests.txt" | tail -5 ;;
+    tests/test_raster_backward.py tests/test_raster_forward.py tests/test_raster_variants.py tests/test_raster_batch.py \
+    tests/test_raster_stability.py -k "cuda" 2>&1 | tee "$OUT/tests.txt" | tail -5 ;;
 bench)
   run "${bench[@]}" --lpips-random-vgg --out /tmp/bench_new.md && cat /tmp/bench_new.md >> "$OUT/bench.md"
   if [[ -n $base ]]; then  # the code before: its bench times one loss per call; random VGG16 in torchvision's format
@@ -136,6 +139,17 @@ cache)  # the encoder cache: `sgmodel encode` of the small dataset, its outputs 
     flags=(); [[ $mode == cache ]] && flags=(--encoder-cache /tmp/enc-cache)
     run "${bench[@]}" --data $data/dataset "${flags[@]}" --lpips-random-vgg --out /tmp/bench_$mode.md \
       && { echo "## real batches, encoder $mode"; cat /tmp/bench_$mode.md; } >> "$OUT/cache_bench.md"
+  done ;;
+cachestep)  # the step from the encoder cache on real batches, both loss terms; with BASE the code before too,
+            # interleaved, twice ($OUT/cache_step.md)
+  encoder_cache
+  for r in 1 2; do
+    run "${bench[@]}" --data $data/dataset --encoder-cache /tmp/enc-cache --lpips-random-vgg --out /tmp/step.md \
+      && { echo "## this code ($r)"; cat /tmp/step.md; } >> "$OUT/cache_step.md"
+    if [[ -n $base ]]; then
+      run in_base "${bench[@]}" --data $data/dataset --encoder-cache /tmp/enc-cache --lpips-random-vgg \
+        --out /tmp/step.md && { echo "## before ($r)"; cat /tmp/step.md; } >> "$OUT/cache_step.md"
+    fi
   done ;;
 cachecurve)  # training runs with the encoder run and read from the cache, SEEDS each ($OUT/cache_curves.md)
   encoder_cache

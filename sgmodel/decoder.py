@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import ConfigurationError
-from .layers import GroupNorm, activation_format, cat_channels, compute_dtype
+from .layers import GroupNorm, activation_format, cat_channels, compute_dtype, upsample_bilinear
 
 
 class ResidualConvUnit(nn.Module):
@@ -104,5 +104,4 @@ class DPTDecoder(nn.Module):
                 parts += [F.interpolate(rgb, size=size, mode="bilinear", align_corners=False, antialias=True),
                           F.interpolate(z, size=size, mode="nearest")]
             fused = self.fuse[i](self.project[i](cat_channels(parts)), fused)
-        fused = F.interpolate(fused, size=(H, W), mode="bilinear", align_corners=False)
-        return self.head(fused)
+        return self.head(upsample_bilinear(fused, (H, W), dtype))  # in the head's dtype

@@ -16,6 +16,11 @@ cache lines run together):
   one pass for the sums (per tile, added up here), one for dx. a is recomputed from x, never stored.
 
 act is the exact (erf) GELU, 0.5 a (1 + erf(a / sqrt 2)), or the identity.
+
+``parts`` > 1 (at most 3: the predictor's branches) splits the channels into equal blocks, each of which
+is read by its own consumer: y is written, and dL/dy read, as ``parts`` separate channels-last tensors
+[B, C / parts, H, W] (one buffer [parts, B, H, W, C / parts] forward), so that no consumer copies its
+channel slice out of y and no concatenation assembles dL/dy from theirs. Groups never straddle two parts.
 """
 
 from __future__ import annotations
@@ -35,6 +40,18 @@ def _tile(b, t, g, P, C, GS: tl.constexpr, GS_P2: tl.constexpr, BLOCK: tl.conste
     mask = (p < P)[:, None] & (tl.arange(0, GS_P2) < GS)[None, :]
     offs = (b.to(tl.int64) * P + p[:, None]) * C + c[None, :]
     return offs, mask, c
+
+
+@triton.jit
+def _part(b, t, g, P, CP, G: tl.constexpr, GS: tl.constexpr, GS_P2: tl.constexpr, BLOCK: tl.constexpr,
+          PARTS: tl.constexpr):
+    """(part k holding the group, offsets of one group's tile in that part [B, P, CP]): the same elements
+    as ``_tile``'s, for tensors held in parts of CP = C / PARTS channels (an argument, not computed here,
+    so that Triton knows its divisibility and vectorises the accesses)."""
+    k = g // (G // PARTS)
+    p = t * BLOCK + tl.arange(0, BLOCK)
+    c = (g - k * (G // PARTS)) * GS + tl.arange(0, GS_P2)
+    return k, (b.to(tl.int64) * P + p[:, None]) * CP + c[None, :]
 
 
 @triton.jit
@@ -59,10 +76,14 @@ def _gelu_and_slope(a):
 
 
 @triton.jit
-def _apply_kernel(x_ptr, y_ptr, mean_ptr, rstd_ptr, w_ptr, bias_ptr, P, C, G: tl.constexpr, GS: tl.constexpr,
-                  GS_P2: tl.constexpr, BLOCK: tl.constexpr, GELU: tl.constexpr):
+def _apply_kernel(x_ptr, y_ptr, mean_ptr, rstd_ptr, w_ptr, bias_ptr, P, C, CP, PART_SIZE, G: tl.constexpr,
+                  GS: tl.constexpr, GS_P2: tl.constexpr, BLOCK: tl.constexpr, GELU: tl.constexpr, PARTS: tl.constexpr):
     g, t, b = tl.program_id(0), tl.program_id(1), tl.program_id(2)
     offs, mask, c = _tile(b, t, g, P, C, GS, GS_P2, BLOCK)
+    y_offs = offs
+    if PARTS > 1:  # y is one buffer [PARTS, B, P, CP] of parts of PART_SIZE elements
+        k, part_offs = _part(b, t, g, P, CP, G, GS, GS_P2, BLOCK, PARTS)
+        y_offs = k.to(tl.int64) * PART_SIZE + part_offs
     cm = tl.arange(0, GS_P2) < GS
     x = tl.load(x_ptr + offs, mask=mask, other=0.0).to(tl.float32)
     mean = tl.load(mean_ptr + b * G + g)
@@ -72,16 +93,32 @@ def _apply_kernel(x_ptr, y_ptr, mean_ptr, rstd_ptr, w_ptr, bias_ptr, P, C, G: tl
     a = (x - mean) * rstd * w[None, :] + bias[None, :]
     if GELU:
         a, _ = _gelu_and_slope(a)
-    tl.store(y_ptr + offs, a.to(y_ptr.dtype.element_ty), mask=mask)
+    tl.store(y_ptr + y_offs, a.to(y_ptr.dtype.element_ty), mask=mask)
 
 
 @triton.jit
-def _grad_a(x_ptr, dy_ptr, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS: tl.constexpr, GS_P2: tl.constexpr,
+def _load_dy(dy0_ptr, dy1_ptr, dy2_ptr, offs, mask, b, t, g, P, CP, G: tl.constexpr, GS: tl.constexpr,
+             GS_P2: tl.constexpr, BLOCK: tl.constexpr, PARTS: tl.constexpr):
+    """dL/dy of one group's tile, float32: from the one tensor, or from the part holding the group."""
+    if PARTS == 1:
+        dy = tl.load(dy0_ptr + offs, mask=mask, other=0.0)
+    else:
+        k, part_offs = _part(b, t, g, P, CP, G, GS, GS_P2, BLOCK, PARTS)
+        if k == 0:
+            dy = tl.load(dy0_ptr + part_offs, mask=mask, other=0.0)
+        elif k == 1:
+            dy = tl.load(dy1_ptr + part_offs, mask=mask, other=0.0)
+        else:
+            dy = tl.load(dy2_ptr + part_offs, mask=mask, other=0.0)
+    return dy.to(tl.float32)
+
+
+@triton.jit
+def _grad_a(x_ptr, dy, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS: tl.constexpr, GS_P2: tl.constexpr,
             GELU: tl.constexpr):
-    """(x^, dL/da, gamma) of a tile; zero where masked."""
+    """(x^, dL/da, gamma) of a tile from dL/dy ``dy``; zero where masked."""
     cm = tl.arange(0, GS_P2) < GS
     x = tl.load(x_ptr + offs, mask=mask, other=0.0).to(tl.float32)
-    dy = tl.load(dy_ptr + offs, mask=mask, other=0.0).to(tl.float32)
     w = tl.load(w_ptr + c, mask=cm, other=0.0).to(tl.float32)
     xhat = tl.where(mask, (x - mean) * rstd, 0.0)
     if GELU:
@@ -92,14 +129,15 @@ def _grad_a(x_ptr, dy_ptr, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS: tl.co
 
 
 @triton.jit
-def _backward_sums_kernel(x_ptr, dy_ptr, mean_ptr, rstd_ptr, w_ptr, bias_ptr, s1_ptr, s2_ptr, dw_ptr, db_ptr,
-                          P, C, T, G: tl.constexpr, GS: tl.constexpr, GS_P2: tl.constexpr, BLOCK: tl.constexpr,
-                          GELU: tl.constexpr):
+def _backward_sums_kernel(x_ptr, dy0_ptr, dy1_ptr, dy2_ptr, mean_ptr, rstd_ptr, w_ptr, bias_ptr, s1_ptr, s2_ptr,
+                          dw_ptr, db_ptr, P, C, CP, T, G: tl.constexpr, GS: tl.constexpr, GS_P2: tl.constexpr,
+                          BLOCK: tl.constexpr, GELU: tl.constexpr, PARTS: tl.constexpr):
     g, t, b = tl.program_id(0), tl.program_id(1), tl.program_id(2)
     offs, mask, c = _tile(b, t, g, P, C, GS, GS_P2, BLOCK)
     mean = tl.load(mean_ptr + b * G + g)
     rstd = tl.load(rstd_ptr + b * G + g)
-    xhat, da, w = _grad_a(x_ptr, dy_ptr, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS, GS_P2, GELU)
+    dy = _load_dy(dy0_ptr, dy1_ptr, dy2_ptr, offs, mask, b, t, g, P, CP, G, GS, GS_P2, BLOCK, PARTS)
+    xhat, da, w = _grad_a(x_ptr, dy, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS, GS_P2, GELU)
     gx = da * w[None, :]
     out = (b * T + t) * G + g
     tl.store(s1_ptr + out, tl.sum(gx))
@@ -111,14 +149,15 @@ def _backward_sums_kernel(x_ptr, dy_ptr, mean_ptr, rstd_ptr, w_ptr, bias_ptr, s1
 
 
 @triton.jit
-def _backward_dx_kernel(x_ptr, dy_ptr, dx_ptr, mean_ptr, rstd_ptr, w_ptr, bias_ptr, s1_ptr, s2_ptr, P, C,
-                        inv_n, G: tl.constexpr, GS: tl.constexpr, GS_P2: tl.constexpr, BLOCK: tl.constexpr,
-                        GELU: tl.constexpr):
+def _backward_dx_kernel(x_ptr, dy0_ptr, dy1_ptr, dy2_ptr, dx_ptr, mean_ptr, rstd_ptr, w_ptr, bias_ptr, s1_ptr,
+                        s2_ptr, P, C, CP, inv_n, G: tl.constexpr, GS: tl.constexpr, GS_P2: tl.constexpr,
+                        BLOCK: tl.constexpr, GELU: tl.constexpr, PARTS: tl.constexpr):
     g, t, b = tl.program_id(0), tl.program_id(1), tl.program_id(2)
     offs, mask, c = _tile(b, t, g, P, C, GS, GS_P2, BLOCK)
     mean = tl.load(mean_ptr + b * G + g)
     rstd = tl.load(rstd_ptr + b * G + g)
-    xhat, da, w = _grad_a(x_ptr, dy_ptr, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS, GS_P2, GELU)
+    dy = _load_dy(dy0_ptr, dy1_ptr, dy2_ptr, offs, mask, b, t, g, P, CP, G, GS, GS_P2, BLOCK, PARTS)
+    xhat, da, w = _grad_a(x_ptr, dy, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS, GS_P2, GELU)
     s1 = tl.load(s1_ptr + b * G + g) * inv_n
     s2 = tl.load(s2_ptr + b * G + g) * inv_n
     dx = rstd * (da * w[None, :] - s1 - xhat * s2)
@@ -144,10 +183,17 @@ def _combine(tile_mean: torch.Tensor, tile_m2: torch.Tensor, counts: torch.Tenso
     return mean, var
 
 
-def forward(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.Tensor, eps: float, gelu: bool
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(y, mean [B, G] float32, rstd [B, G] float32) of a channels-last x."""
+def _check_parts(C: int, groups: int, parts: int) -> None:
+    if not 1 <= parts <= 3 or groups % parts or C % parts:
+        raise ValueError(f"GroupNorm kernels: {parts} parts of {C} channels in {groups} groups")
+
+
+def forward(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.Tensor, eps: float, gelu: bool,
+            parts: int = 1) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]:
+    """([y] or y's ``parts`` channel blocks, each channels-last [B, C / parts, H, W]; mean [B, G] float32,
+    rstd [B, G] float32) of a channels-last x."""
     B, C, P, gs, gs_p2, block, T = _launch_shape(x, groups)
+    _check_parts(C, groups, parts)
     tile_mean = torch.empty(B, T, groups, device=x.device, dtype=torch.float32)
     tile_m2 = torch.empty_like(tile_mean)
     grid = (groups, T, B)
@@ -156,27 +202,33 @@ def forward(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.Tens
     mean, var = _combine(tile_mean, tile_m2, counts)
     rstd = torch.rsqrt(var + eps).float()
     mean = mean.float()
-    y = torch.empty_like(x, memory_format=torch.channels_last)
-    _apply_kernel[grid](x, y, mean, rstd, weight, bias, P, C, G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu)
-    return y, mean, rstd
+    H, W = x.shape[2:]
+    y = torch.empty(parts, B, H, W, C // parts, device=x.device, dtype=x.dtype)
+    _apply_kernel[grid](x, y, mean, rstd, weight, bias, P, C, C // parts, y[0].numel(), G=groups, GS=gs,
+                        GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts)
+    return [part.permute(0, 3, 1, 2) for part in y], mean, rstd
 
 
-def backward(dy: torch.Tensor, x: torch.Tensor, mean: torch.Tensor, rstd: torch.Tensor, groups: int,
+def backward(dys: list[torch.Tensor], x: torch.Tensor, mean: torch.Tensor, rstd: torch.Tensor, groups: int,
              weight: torch.Tensor, bias: torch.Tensor, gelu: bool, need_x: bool
              ) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
-    """(dx or None, dgamma, dbeta) in x's, the weight's and the bias's dtypes."""
+    """(dx or None, dgamma, dbeta) in x's, the weight's and the bias's dtypes, from dL/dy as ``forward``
+    gave y: one tensor or its parts."""
     B, C, P, gs, gs_p2, block, T = _launch_shape(x, groups)
-    dy = dy.contiguous(memory_format=torch.channels_last)
+    parts = len(dys)
+    _check_parts(C, groups, parts)
+    dys = [dy.contiguous(memory_format=torch.channels_last) for dy in dys]
+    dys += [dys[-1]] * (3 - parts)  # the kernels take three pointers; the unused ones are never read
     s1 = torch.empty(B, T, groups, device=x.device, dtype=torch.float32)
     s2 = torch.empty_like(s1)
     dw = torch.empty(B, T, C, device=x.device, dtype=torch.float32)
     db = torch.empty_like(dw)
     grid = (groups, T, B)
-    _backward_sums_kernel[grid](x, dy, mean, rstd, weight, bias, s1, s2, dw, db, P, C, T, G=groups, GS=gs,
-                                GS_P2=gs_p2, BLOCK=block, GELU=gelu)
+    _backward_sums_kernel[grid](x, *dys, mean, rstd, weight, bias, s1, s2, dw, db, P, C, C // parts, T, G=groups,
+                                GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts)
     dx = None
     if need_x:
         dx = torch.empty_like(x, memory_format=torch.channels_last)
-        _backward_dx_kernel[grid](x, dy, dx, mean, rstd, weight, bias, s1.sum(1), s2.sum(1), P, C, 1.0 / (P * gs),
-                                  G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu)
+        _backward_dx_kernel[grid](x, *dys, dx, mean, rstd, weight, bias, s1.sum(1), s2.sum(1), P, C, C // parts,
+                                  1.0 / (P * gs), G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts)
     return dx, dw.sum((0, 1)).to(weight.dtype), db.sum((0, 1)).to(bias.dtype)

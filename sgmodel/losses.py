@@ -18,7 +18,7 @@ from torch import Tensor
 
 from sgmodel.layers import amp_autocast, triton_installed
 from sgmodel.lpips import LPIPS, create_lpips, vgg16_missing_message
-from sgmodel.metrics import SSIM_RADIUS, ssim_map
+from sgmodel.metrics import ssim_map
 
 #: weight of the perceptual term (paper section 4, "Training objective").
 PERCEPTUAL_WEIGHT = 0.05
@@ -57,8 +57,7 @@ class Objective:
                 perceptual = self.lpips_net(target, render).float().mean()
             parts = {"mse": mse.detach(), "lpips": perceptual.detach()}
         else:
-            r = SSIM_RADIUS
-            s = ssim_map(target, render)[..., r:-r, r:-r].mean()
+            s = ssim_map(target, render, border=False).mean()
             perceptual = 1 - s
             parts = {"mse": mse.detach(), "ssim": s.detach()}
         return mse + self.weight * perceptual, parts

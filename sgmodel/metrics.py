@@ -77,19 +77,80 @@ def _symmetric_index(n: int, r: int, device: torch.device) -> Tensor:
     return torch.where(i < 0, -i - 1, torch.where(i >= n, 2 * n - 1 - i, i))
 
 
-def _gaussian_filter(x: Tensor) -> Tensor:
+def _gaussian_filter(x: Tensor, border: bool = True) -> Tensor:
     """scipy.ndimage.gaussian_filter(sigma 1.5, truncate 3.5, mode 'reflect') over the last two axes of
-    [N, C, H, W], separable, per channel."""
+    [N, C, H, W], separable, per channel; ``border=False``: only the outputs whose window lies inside the
+    image, [N, C, H - 2r, W - 2r], which read no padding (none is made)."""
     n, c, h, w = x.shape
     r = SSIM_RADIUS
     k = _gaussian_window(x.dtype, x.device)
-    x = x.index_select(-2, _symmetric_index(h, r, x.device)).index_select(-1, _symmetric_index(w, r, x.device))
+    if border:
+        x = x.index_select(-2, _symmetric_index(h, r, x.device)).index_select(-1, _symmetric_index(w, r, x.device))
     x = F.conv2d(x, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
     return F.conv2d(x, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
 
 
-def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
-    """SSIM map [..., 3, H, W] (skimage's ``full=True`` map per channel); no clipping, differentiable."""
+def _ssim_terms(f: Tensor) -> tuple[Tensor, ...]:
+    """(S, A, B, C, D) of the filtered moments f = [ux, uy, E[xx], E[yy], E[xy]] ([N, 15, h, w], three
+    channels each): S = A B / (C D), A = 2 ux uy + c1, B = 2 cov + c2, C = ux^2 + uy^2 + c1, D = var_x +
+    var_y + c2 (data range 1)."""
+    ux, uy, uxx, uyy, uxy = f.split(3, dim=1)
+    c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2
+    a, b = 2 * ux * uy + c1, 2 * (uxy - ux * uy) + c2
+    c, d = ux * ux + uy * uy + c1, (uxx - ux * ux) + (uyy - uy * uy) + c2
+    return a * b / (c * d), a, b, c, d
+
+
+class _InteriorSSIM(torch.autograd.Function):
+    """The interior SSIM map of x, y [N, 3, H, W] with a hand-written backward: with the five filtered
+    moments of the forward kept, dS/d(ux, E[xx], E[xy]) per pixel in closed form (no division by A or B,
+    which may vanish: dS/dux = 2 uy (B - A) / (C D) - 2 ux S (1/C - 1/D), dS/dE[xx] = -S/D,
+    dS/dE[xy] = 2 A / (C D)), filtered back through the (symmetric) window into x: dx = G'(dS/dux) +
+    2 x G'(dS/dE[xx]) + y G'(dS/dE[xy]), G' the window zero-padded to the full image; y's the same with
+    the roles swapped. Autograd through the forward instead keeps a dozen maps and filters the gradient of
+    all five moments, y's too (1.6 ms of a training step on an H100)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, y: Tensor) -> Tensor:
+        f = _gaussian_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), border=False)
+        ctx.save_for_backward(x, y, f)
+        return _ssim_terms(f)[0]
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        x, y, f = ctx.saved_tensors
+        need_x, need_y = ctx.needs_input_grad
+        ux, uy = f[:, 0:3], f[:, 3:6]
+        s, a, b, c, d = _ssim_terms(f)
+        cd = c * d
+        gs = grad * s
+        shift = 1 / c - 1 / d
+        maps = [grad * 2 * a / cd, -gs / d]  # dS/dE[xy], dS/dE[xx] (= dS/dE[yy]) times the incoming gradient
+        if need_x:
+            maps.append(grad * 2 * uy * (b - a) / cd - 2 * ux * gs * shift)
+        if need_y:
+            maps.append(grad * 2 * ux * (b - a) / cd - 2 * uy * gs * shift)
+        back = _full_filter(torch.cat(maps, dim=1)).split(3, dim=1)
+        dx = back[2] + 2 * x * back[1] + y * back[0] if need_x else None
+        dy = back[-1] + 2 * y * back[1] + x * back[0] if need_y else None
+        return dx, dy
+
+
+def _full_filter(g: Tensor) -> Tensor:
+    """The transpose of ``_gaussian_filter(..., border=False)``: [N, C, h, w] -> [N, C, h + 2r, w + 2r], the
+    (symmetric) window over the zero-padded maps."""
+    c, r = g.shape[1], SSIM_RADIUS
+    k = _gaussian_window(g.dtype, g.device)
+    g = F.conv2d(g, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), padding=(2 * r, 0), groups=c)
+    return F.conv2d(g, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), padding=(0, 2 * r), groups=c)
+
+
+def ssim_map(pred: Tensor, target: Tensor, border: bool = True) -> Tensor:
+    """SSIM map [..., 3, H, W] (skimage's ``full=True`` map per channel); no clipping, differentiable.
+    ``border=False``: only its interior [..., 3, H - 2r, W - 2r] (pixels at least r = ``SSIM_RADIUS`` from
+    the border, what the SSIM value averages without a mask), the same numbers without filtering the
+    reflect-padded border, with a hand-written backward (``_InteriorSSIM``; the training loss's SSIM
+    term)."""
     _check(pred, target, None)
     h, w = pred.shape[-2:]
     if h < SSIM_WINDOW or w < SSIM_WINDOW:
@@ -98,12 +159,11 @@ def ssim_map(pred: Tensor, target: Tensor) -> Tensor:
     lead = pred.shape[:-3]
     x = pred.reshape(-1, 3, h, w)
     y = target.reshape(-1, 3, h, w)
-    f = _gaussian_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1))
-    ux, uy, uxx, uyy, uxy = f.split(3, dim=1)
-    vx, vy, vxy = uxx - ux * ux, uyy - uy * uy, uxy - ux * uy
-    c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2  # data range 1
-    s = (2 * ux * uy + c1) * (2 * vxy + c2) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
-    return s.reshape(*lead, 3, h, w)
+    if border:
+        s = _ssim_terms(_gaussian_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1)))[0]
+    else:
+        s = _InteriorSSIM.apply(x, y)
+    return s.reshape(*lead, *s.shape[-3:])
 
 
 def ssim(pred: Tensor, target: Tensor, mask: Tensor | None = None, clip: bool = True) -> Tensor:
@@ -111,11 +171,9 @@ def ssim(pred: Tensor, target: Tensor, mask: Tensor | None = None, clip: bool = 
     _check(pred, target, mask)
     if clip:
         pred, target = pred.clamp(0, 1), target.clamp(0, 1)
-    s = ssim_map(pred, target)
     if mask is None:
-        r = SSIM_RADIUS
-        return s[..., r:-r, r:-r].mean(dim=(-3, -2, -1))
-    return _masked_mean(s, mask)
+        return ssim_map(pred, target, border=False).mean(dim=(-3, -2, -1))
+    return _masked_mean(ssim_map(pred, target), mask)
 
 
 def lpips(net: LPIPS, pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:

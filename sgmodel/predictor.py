@@ -7,8 +7,10 @@ dz (1). All convolutions pad by replication. Ablations drop inputs: ``descriptor
 
 The branches read the same input, so their first layers run as one: the shared input is convolved once
 with the branches' first-conv weights stacked (3C outputs) and normalised by one GroupNorm of 3x the
-groups (groups are contiguous channel blocks, so this is exactly each branch's own GroupNorm). The parameters stay per branch (``front``, ``back``, ``dz``): the same state_dict and the
-same function as three separate branches, with one read of the wide input instead of three.
+groups (groups are contiguous channel blocks, so this is exactly each branch's own GroupNorm), whose output
+comes as one tensor per branch (``layers.group_norm_gelu_parts``) for the branch's final conv. The
+parameters stay per branch (``front``, ``back``, ``dz``): the same state_dict and the same function as
+three separate branches, with one read of the wide input instead of three.
 
 Output channels of the front/back branches (SPEC section 7), named in ``composer.CHANNELS``; the final convs
 start at exactly zero for scale, SH and the whole dz branch, and small and non-zero for opacity, offset
@@ -23,7 +25,7 @@ from torch import nn
 from .composer import CHANNELS, LAYER_CHANNELS
 from .config import ConfigurationError, PredictorParams
 from .layers import (GroupNorm, ReplicateConv2d, activation_format, cat_channels, channel_multiple, compute_dtype,
-                     group_norm_gelu, replicate_conv3x3)
+                     group_norm_gelu_parts, replicate_conv3x3)
 
 ZERO_INIT = ("scale", "sh")  # exactly zero at initialisation (appendix A)
 
@@ -58,12 +60,14 @@ def fused_branches(branches: list[Branch], x: torch.Tensor) -> list[torch.Tensor
     """Every branch applied to the same input ``x`` [B,Cin',H,W] (Cin' >= Cin: zero channels beyond the
     branches' inputs, ``layers.cat_channels``), first layers as one (module docstring)."""
     firsts, norms = [b.first for b in branches], [b.norm for b in branches]
+    if len({(c.out_channels, n.num_groups) for c, n in zip(firsts, norms)}) != 1:
+        raise ValueError("fused branches need the same hidden width and groups")
     multiple = channel_multiple(x)
     hidden = replicate_conv3x3(x, torch.cat([c.weight for c in firsts]), torch.cat([c.bias for c in firsts]),
                                multiple)
-    hidden = group_norm_gelu(hidden, sum(n.num_groups for n in norms), torch.cat([n.weight for n in norms]),
-                             torch.cat([n.bias for n in norms]), norms[0].eps)
-    return [b.final(h) for b, h in zip(branches, hidden.split([c.out_channels for c in firsts], dim=1))]
+    hidden = group_norm_gelu_parts(hidden, sum(n.num_groups for n in norms), torch.cat([n.weight for n in norms]),
+                                   torch.cat([n.bias for n in norms]), norms[0].eps, parts=len(branches))
+    return [b.final(h) for b, h in zip(branches, hidden)]
 
 
 class GaussianPredictor(nn.Module):

@@ -11,7 +11,8 @@ from torch import nn
 from sgmodel import decoder, layers, predictor
 from sgmodel.config import ModelParams, PredictorParams
 from sgmodel.layers import (GroupNorm, ReplicateConv2d, cat_channels, compute_dtype, fused_group_norm_available,
-                            group_norm_gelu, replicate_conv3x3, replicate_pad)
+                            group_norm_gelu, group_norm_gelu_parts, replicate_conv3x3, replicate_pad,
+                            triton_installed, upsample_bilinear)
 from sgmodel.model import StereoGaussians
 from sgmodel.predictor import GaussianPredictor, fused_branches
 from tests.model_helpers import StandInEncoder
@@ -89,15 +90,18 @@ def test_replicate_conv_backward_gradcheck_and_partial_needs(size):
     (5, 3, 37, 8, (6, 7), CL), (5, 0, 4, 8, (1, 3), CL), (3, 5, 9, 4, (4, 1), torch.contiguous_format),
     (4, 4, 8, 8, (3, 3), CL), (2, 6, 1, 8, (2, 2), torch.contiguous_format)])
 def test_replicate_conv_with_padded_channels_matches_torch(cin, extra, cout, multiple, size, layout):
-    """Zero input channels beyond the weight's and outputs computed padded to ``multiple``: the same values
-    and gradients as PyTorch's replicate-padded convolution of the real channels (float64)."""
+    """Input channels beyond the weight's (``cat_channels``: the bias channel of ones, then zeros) and outputs
+    computed padded to ``multiple``: the same values and gradients as PyTorch's replicate-padded
+    convolution of the real channels (float64), with the bias carried by the ones channel, also when only
+    the bias needs a gradient."""
     torch.manual_seed(2)
     x = torch.randn(2, cin, *size, dtype=torch.float64)
     w = torch.randn(cout, cin, 3, 3, dtype=torch.float64, requires_grad=True)
     b = torch.randn(cout, dtype=torch.float64, requires_grad=True)
     xr = x.clone().requires_grad_(True)
     ref = F.conv2d(F.pad(xr, (1, 1, 1, 1), mode="replicate"), w, b)
-    xp = cat_channels([x.contiguous(memory_format=layout), torch.zeros(2, extra, *size, dtype=torch.float64)])
+    xp = cat_channels([x.contiguous(memory_format=layout)], cin + extra)
+    assert xp.shape[1] == cin + extra
     xp.requires_grad_(True)
     ours = replicate_conv3x3(xp, w, b, multiple)
     assert ours.shape == ref.shape
@@ -108,17 +112,20 @@ def test_replicate_conv_with_padded_channels_matches_torch(cin, extra, cout, mul
     torch.testing.assert_close(got[0][:, :cin], want[0], rtol=1e-11, atol=1e-11)
     for u, v in zip(got[1:], want[1:]):
         torch.testing.assert_close(u, v, rtol=1e-11, atol=1e-11)
+    (gb,) = torch.autograd.grad(replicate_conv3x3(xp.detach(), w.detach(), b, multiple), [b], g)
+    torch.testing.assert_close(gb, want[2], rtol=1e-11, atol=1e-11)
     with pytest.raises(ValueError, match="channels"):
         replicate_conv3x3(x[:, :cin - 1], w, b)
 
 
 @pytest.mark.parametrize("layout", [torch.contiguous_format, CL])
-def test_cat_channels_pads_with_zeros_in_the_first_layout(layout):
+def test_cat_channels_pads_with_ones_then_zeros_in_the_first_layout(layout):
     a = torch.randn(2, 3, 4, 5).contiguous(memory_format=layout)
     b = torch.randn(2, 6, 4, 5)
     out = cat_channels([a, b], 8)
     assert out.shape == (2, 16, 4, 5)
-    assert torch.equal(out[:, :3], a) and torch.equal(out[:, 3:9], b) and not out[:, 9:].any()
+    assert torch.equal(out[:, :3], a) and torch.equal(out[:, 3:9], b)
+    assert (out[:, 9] == 1).all() and not out[:, 10:].any()
     assert cat_channels([a, b]).shape[1] == 9 and cat_channels([a, b, a[:, :1]], 5).shape[1] == 10
 
 
@@ -234,13 +241,17 @@ def test_cuda_layout_computes_the_same_model_on_the_cpu(monkeypatch):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the Triton GroupNorm kernels)")
-@pytest.mark.parametrize("shape,groups,gelu,dtype", [
-    ((2, 384, 37, 41), 24, True, torch.float32), ((3, 128, 16, 16), 8, False, torch.float32),
-    ((2, 12, 5, 7), 3, True, torch.float32), ((1, 24, 1, 1), 2, True, torch.float32),
-    ((2, 10, 300, 7), 5, True, torch.float32), ((4, 384, 64, 64), 24, True, torch.bfloat16)])
-def test_fused_group_norm_gelu_matches_pytorch_float64_on_cuda(shape, groups, gelu, dtype):
+@pytest.mark.parametrize("shape,groups,gelu,dtype,parts", [
+    ((2, 384, 37, 41), 24, True, torch.float32, 1), ((3, 128, 16, 16), 8, False, torch.float32, 1),
+    ((2, 12, 5, 7), 3, True, torch.float32, 1), ((1, 24, 1, 1), 2, True, torch.float32, 1),
+    ((2, 10, 300, 7), 5, True, torch.float32, 1), ((4, 384, 64, 64), 24, True, torch.bfloat16, 1),
+    ((2, 384, 37, 41), 24, True, torch.float32, 3), ((2, 12, 5, 7), 4, False, torch.float32, 2),
+    ((4, 384, 64, 64), 24, True, torch.bfloat16, 3)])
+def test_fused_group_norm_gelu_matches_pytorch_float64_on_cuda(shape, groups, gelu, dtype, parts):
     """Values and the three gradients of the Triton kernels against float64 PyTorch on the same inputs;
-    channel blocks of 16, 4, 12 (not a power of two) and 2, one-pixel images, a mean far from zero."""
+    channel blocks of 16, 4, 12 (not a power of two) and 2, one-pixel images, a mean far from zero; and
+    the output in parts (the predictor's branches), each its own channels-last tensor, with one cotangent
+    per part, against the float64 whole split."""
     if not fused_group_norm_available(torch.zeros(1, 8, 1, 1, device="cuda").contiguous(memory_format=CL)):
         pytest.skip("Triton is not installed")
     torch.manual_seed(0)
@@ -248,15 +259,68 @@ def test_fused_group_norm_gelu_matches_pytorch_float64_on_cuda(shape, groups, ge
     x = (torch.randn(shape, device="cuda") * 3 + 20).to(dtype).contiguous(memory_format=CL).requires_grad_(True)
     w = torch.randn(C, device="cuda", requires_grad=True)
     b = torch.randn(C, device="cuda", requires_grad=True)
-    y = group_norm_gelu(x, groups, w, b, 1e-5, gelu)
-    assert y.dtype == dtype and y.is_contiguous(memory_format=CL)
+    ys = group_norm_gelu_parts(x, groups, w, b, 1e-5, gelu, parts) if parts > 1 else [
+        group_norm_gelu(x, groups, w, b, 1e-5, gelu)]
+    assert all(y.dtype == dtype and y.shape == (shape[0], C // parts, *shape[2:]) and y.is_contiguous(memory_format=CL)
+               for y in ys)
     xd, wd, bd = (t.detach().double().requires_grad_(True) for t in (x, w, b))
     ref = F.group_norm(xd, groups, wd, bd, 1e-5)
-    ref = F.gelu(ref) if gelu else ref
-    dy = torch.randn(shape, device="cuda").to(dtype).contiguous(memory_format=CL)
-    got = torch.autograd.grad(y, [x, w, b], dy)
-    want = torch.autograd.grad(ref, [xd, wd, bd], dy.double())
+    refs = (F.gelu(ref) if gelu else ref).split(C // parts, dim=1)
+    dys = [torch.randn(r.shape, device="cuda").to(dtype).contiguous(memory_format=CL) for r in refs]
+    got = torch.autograd.grad(ys, [x, w, b], dys)
+    want = torch.autograd.grad(refs, [xd, wd, bd], [d.double() for d in dys])
     tol = 1e-5 if dtype == torch.float32 else 1e-2  # relative to the largest magnitude; bf16 rounds y and dx
-    for name, u, v in zip(("y", "dx", "dgamma", "dbeta"), (y, *got), (ref, *want)):
+    for name, u, v in [*(("y", u, v) for u, v in zip(ys, refs)), *zip(("dx", "dgamma", "dbeta"), got, want)]:
         err = ((u.double() - v).abs().max() / v.abs().max()).item()
         assert err < (1e-5 if name in ("dgamma", "dbeta") else tol), (name, err)
+
+
+def test_group_norm_gelu_in_parts_splits_the_whole_on_the_cpu():
+    torch.manual_seed(0)
+    x = torch.randn(2, 12, 5, 6, dtype=torch.float64)
+    w, b = torch.randn(12, dtype=torch.float64), torch.randn(12, dtype=torch.float64)
+    whole = group_norm_gelu(x, 6, w, b, 1e-5)
+    parts = group_norm_gelu_parts(x, 6, w, b, 1e-5, True, 3)
+    assert [p.shape[1] for p in parts] == [4, 4, 4]
+    torch.testing.assert_close(torch.cat(parts, 1), whole, rtol=0, atol=0)
+
+
+def test_upsample_bilinear_is_interpolate_in_the_consumers_dtype():
+    """Off the Triton path: ``F.interpolate`` (align_corners=False), cast to the dtype asked for; sizes that are
+    not an exact 2x go this way everywhere."""
+    torch.manual_seed(0)
+    x = torch.randn(2, 5, 6, 7, dtype=torch.float64)
+    for size in ((12, 14), (11, 13), (6, 7)):
+        want = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+        torch.testing.assert_close(upsample_bilinear(x, size, torch.float64), want, rtol=0, atol=0)
+        assert upsample_bilinear(x, size, torch.float32).dtype == torch.float32
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the Triton upsampling kernels)")
+@pytest.mark.parametrize("shape,dtype,out_dtype", [
+    ((2, 70, 5, 7), torch.float32, torch.float32), ((1, 8, 1, 1), torch.float32, torch.float32),
+    ((3, 128, 16, 9), torch.float32, torch.bfloat16), ((32, 128, 128, 128), torch.float32, torch.bfloat16),
+    ((2, 64, 9, 4), torch.bfloat16, torch.bfloat16)])
+def test_upsample_bilinear_2x_matches_pytorch_float64_on_cuda(shape, dtype, out_dtype):
+    """The Triton 2x kernels (values in the consumer's dtype; the gradient gathered, not scattered) against
+    float64 ``F.interpolate`` and its gradient, including one-pixel images and odd sizes; and, written in
+    bf16, PyTorch's float32 resize rounded to bf16 bit for bit in all but a few elements."""
+    if not triton_installed():
+        pytest.skip("Triton is not installed")
+    torch.manual_seed(0)
+    B, C, h, w = shape
+    x = torch.randn(shape, device="cuda").to(dtype).contiguous(memory_format=CL).requires_grad_(True)
+    y = upsample_bilinear(x, (2 * h, 2 * w), out_dtype)
+    assert y.dtype == out_dtype and y.is_contiguous(memory_format=CL)
+    xd = x.detach().double().requires_grad_(True)
+    ref = F.interpolate(xd, size=(2 * h, 2 * w), mode="bilinear", align_corners=False)
+    g = torch.randn(ref.shape, device="cuda").to(out_dtype).contiguous(memory_format=CL)
+    (gx,) = torch.autograd.grad(y, x, g)
+    (gr,) = torch.autograd.grad(ref, xd, g.double())
+    assert gx.dtype == dtype
+    tol = 1e-6 if out_dtype == torch.float32 else 1e-2
+    assert ((y.double() - ref).abs().max() / ref.abs().max()).item() < tol
+    assert ((gx.double() - gr).abs().max() / gr.abs().max()).item() < (1e-6 if dtype == torch.float32 else 1e-2)
+    if dtype == torch.float32 and out_dtype == torch.bfloat16:  # float32 results may differ in the last ulp (FMA)
+        torch_fp32 = F.interpolate(x.detach(), size=(2 * h, 2 * w), mode="bilinear", align_corners=False)
+        assert (y != torch_fp32.to(out_dtype)).float().mean().item() < 1e-3

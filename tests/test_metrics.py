@@ -110,3 +110,45 @@ def test_ssim_is_differentiable():
     with torch.no_grad():
         fd = (ssim(x + h * v, y, clip=False) - ssim(x - h * v, y, clip=False)).sum() / (2 * h)
     assert abs((x.grad * v).sum().item() - fd.item()) < 1e-7 * max(1.0, abs(fd.item()))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_ssim_map_without_border_is_the_full_maps_interior(dtype):
+    """The training loss's SSIM term filters no padded border (``border=False``): the interior of the full
+    map, the same values and gradients up to the convolution's summation order, for images of 11 px (one
+    interior pixel) and larger."""
+    from sgmodel.metrics import SSIM_RADIUS as r
+    for shape in ((2, 3, 11, 11), (1, 2, 3, 20, 17)):
+        a, b = (torch.from_numpy(x).to(dtype).requires_grad_(True) for x in pair(shape, seed=shape[-1]))
+        inner = ssim_map(a, b, border=False)
+        full = ssim_map(a, b)[..., r:-r, r:-r]
+        assert inner.shape == full.shape
+        tol = 1e-13 if dtype == torch.float64 else 1e-5
+        torch.testing.assert_close(inner, full, rtol=tol, atol=tol)
+        g = torch.randn(inner.shape, dtype=dtype, generator=torch.Generator().manual_seed(0))
+        for u, v in zip(torch.autograd.grad(inner, [a, b], g), torch.autograd.grad(full, [a, b], g)):
+            torch.testing.assert_close(u, v, rtol=tol, atol=tol)
+
+
+@pytest.mark.parametrize("case", ["constant", "outside_unit_range", "one_image_constant"])
+def test_interior_ssim_backward_is_finite_and_right_on_hard_images(case):
+    """The hand-written backward of the loss's SSIM term where its terms degenerate: zero variances
+    (D = c2), means of opposite signs (A near 0, which it never divides by), renders outside [0, 1];
+    against autograd through the full map (float64)."""
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(2, 3, 16, 14, generator=g, dtype=torch.float64)
+    y = torch.rand(2, 3, 16, 14, generator=g, dtype=torch.float64)
+    if case == "constant":
+        x, y = torch.full_like(x, 0.3), torch.full_like(y, 0.7)
+    elif case == "outside_unit_range":
+        x, y = x * 3 - 1.5, -y * 0.01
+    else:
+        y = torch.zeros_like(y)
+    from sgmodel.metrics import SSIM_RADIUS as r
+    xa, ya = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
+    xb, yb = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
+    ssim_map(xa, ya, border=False).mean().backward()
+    ssim_map(xb, yb)[..., r:-r, r:-r].mean().backward()
+    for got, want in ((xa.grad, xb.grad), (ya.grad, yb.grad)):
+        assert torch.isfinite(got).all()
+        torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)

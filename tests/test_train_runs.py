@@ -21,7 +21,7 @@ from scenesplat_stereo.files import LOCK_FILE, read_json_lines
 from sgmodel import train as train_mod
 from sgmodel.cli import main
 
-STEPS = 10
+STEPS = 30  # long enough that a run is still going when the test signals it after its first checkpoint
 TINY = ["--preset", "cpu-small", "--resolution", "32", "--padding", "2", "--val-every", "2", "--val-samples", "1",
         "--device", "cpu", "--no-progress"]
 

@@ -6,7 +6,11 @@ mean2d, conic, effective opacity and D colours. Two compiled variants of the sam
   entry per thread at a time, the block gathers the entries' splats through their ids from the per-pair
   tensors [C * N, ...] into shared memory (``splat_batch_func``, one id lookup per splat per block,
   nothing written to global memory first; the cooperative backward kernels gather the same way) and every
-  thread walks the batch there; the block stops when all its pixels are done;
+  thread walks the batch there; the block stops when all its pixels are done. A tile's list holds every
+  splat that reaches the tile, and a warp's pixels (a few rows of it) miss most of them: each warp
+  bounds the batch's entries against its pixels (``may_touch``, conservative, one entry per lane) and
+  votes, and its threads walk only the entries left (an entry ruled out touches none of them: the same
+  image);
 - per pixel (default on the CPU, where Warp runs threads serially and shared memory buys nothing): one
   thread per pixel walks its tile's list in depth-sorted splat rows [M, 6 + D] gathered once
   (``gather_splats``, which the per-pixel backward reads too; on the CPU contiguous rows beat an id
@@ -26,7 +30,7 @@ import warp as wp
 
 from ._warp import ALPHA_MIN, T_MIN, launch, to_wp, vector_type
 from .binning import Bins
-from .lanes import block_all
+from .lanes import LANES, block_all, lanes_ballot, lowest_bit
 
 # CUDA compile options of the compositing kernels (forward and backward alike, so both make the same
 # touch / stop decisions): fast math turns exp into the hardware approximation gsplat uses (__expf);
@@ -65,6 +69,51 @@ def touch_alpha(xy: wp.vec2, conic: wp.vec3, opacity: float, fx: float, fy: floa
     if not (alpha >= ALPHA_MIN):
         return 0.0
     return alpha
+
+
+# ``may_touch`` bounds only conics with (a + c)^2 <= NEAR_CONDITION * (a c - b^2) (condition number up to about
+# 1e4): for them float32's sigma is within 0.6% of the exact one (its rounding error is at most a few ulp of
+# 0.5 (a dx^2 + c dy^2) + |b dx dy|, which is at most 2 (a + c)^2 / det times sigma), far inside the bound's
+# 1% margin in radius (2% in sigma). More elongated conics are never ruled out.
+NEAR_CONDITION = 1.0e4
+
+
+@wp.func
+def may_touch(xy: wp.vec2, conic: wp.vec3, opacity: float, x0: float, x1: float, y0: float, y1: float) -> int:
+    """0 only when the splat certainly touches no pixel centre in [x0, x1] x [y0, y1] (pixels), else 1.
+
+    A splat touches a pixel where sigma <= ln(255 o) (``touch_alpha``), an ellipse whose bounding box has
+    half-widths sqrt(2 t c / det) and sqrt(2 t a / det) (t = ln(255 o), det = a c - b^2: the diagonal of the
+    inverse conic). The box is widened by 1% plus 0.01 px and t by 1e-3 for float32 rounding and the fast
+    exp and log; conics that are not positive definite or too elongated (``NEAR_CONDITION``), and NaNs, are
+    never ruled out. A splat with o < 1/255 touches nothing (o exp(-sigma) <= o for sigma >= 0)."""
+    if not (opacity >= ALPHA_MIN * 0.999):
+        return 0
+    a = conic[0]
+    b = conic[1]
+    c = conic[2]
+    det = a * c - b * b
+    if not (a > 0.0 and c > 0.0 and det > 0.0 and (a + c) * (a + c) <= NEAR_CONDITION * det):
+        return 1
+    t = 2.0 * (wp.max(wp.log(opacity / ALPHA_MIN), 0.0) + 1.0e-3)
+    rx = wp.sqrt(t * c / det) * 1.01 + 0.01
+    ry = wp.sqrt(t * a / det) * 1.01 + 0.01
+    if xy[0] + rx < x0 or xy[0] - rx > x1 or xy[1] + ry < y0 or xy[1] - ry > y1:
+        return 0
+    return 1
+
+
+@wp.func
+def lanes_box(tile: int, first: int, count: int, tile_size: int, tiles_x: int, tiles_per_camera: int):
+    """Pixel-centre bounds (x0, x1, y0, y1) of pixels ``first`` .. ``first + count - 1`` (row-major) of
+    ``tile``; may reach past the image edge (a wider box only rules out less)."""
+    c, x0, y0 = tile_pixel(tile, first, tile_size, tiles_x, tiles_per_camera)
+    c1, x1, y1 = tile_pixel(tile, wp.min(first + count, tile_size * tile_size) - 1, tile_size, tiles_x,
+                            tiles_per_camera)
+    if y1 != y0:  # more than one row: whole rows of the tile
+        x0 = x0 - first % tile_size
+        x1 = x0 + tile_size - 1
+    return float(x0) + 0.5, float(x1) + 0.5, float(y0) + 0.5, float(y1) + 0.5
 
 
 @functools.cache
@@ -153,6 +202,26 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
     vecD = vector_type(channels)
     splat_batch = splat_batch_func(block, channels)
 
+    # Blocks of whole warps vote per warp on the batch's entries (``may_touch`` against the warp's pixels)
+    # and walk only those left; smaller blocks walk every entry.
+    warps = block // LANES if block % LANES == 0 else 0
+
+    @wp.func
+    def front_step(xy: wp.vec2, con: wp.vec3, opa: float, col: vecD, fx: float, fy: float, max_alpha: float,
+                   T: float, acc: vecD, last: int, i: int):
+        """Composite list entry ``i`` at pixel centre (fx, fy): (T, acc, last, 1 if compositing stops here)."""
+        vis = touch_alpha(xy, con, opa, fx, fy)
+        if vis == 0.0:
+            return T, acc, last, 0
+        alpha = wp.min(max_alpha, vis)
+        next_T = T * (1.0 - alpha)
+        if next_T <= T_MIN:
+            return T, acc, last, 1
+        w = alpha * T
+        for k in range(channels):
+            acc[k] = acc[k] + w * col[k]
+        return next_T, acc, i, 0
+
     @wp.kernel(enable_backward=False, module="unique", module_options=COMPOSITE_OPTIONS)
     def composite_per_pixel(
         splats: wp.array2d(dtype=float),
@@ -177,19 +246,14 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
         acc = vecD()
         last = int(-1)
         for i in range(tile_ranges[tile, 0], tile_ranges[tile, 1]):
-            vis = touch_alpha(wp.vec2(splats[i, 0], splats[i, 1]), wp.vec3(splats[i, 2], splats[i, 3], splats[i, 4]),
-                              splats[i, 5], fx, fy)
-            if vis == 0.0:
-                continue
-            alpha = wp.min(max_alpha, vis)
-            next_T = T * (1.0 - alpha)
-            if next_T <= T_MIN:
-                break
-            w = alpha * T
+            col = vecD()
             for k in range(channels):
-                acc[k] = acc[k] + w * splats[i, SPLAT_SLOTS + k]
-            T = next_T
-            last = i
+                col[k] = splats[i, SPLAT_SLOTS + k]
+            T, acc, last, stop = front_step(wp.vec2(splats[i, 0], splats[i, 1]),
+                                            wp.vec3(splats[i, 2], splats[i, 3], splats[i, 4]), splats[i, 5], col, fx,
+                                            fy, max_alpha, T, acc, last, i)
+            if stop != 0:
+                break
         pix = (c * height + py) * width + px
         out_render[pix] = acc
         out_alphas[pix] = 1.0 - T
@@ -224,27 +288,29 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
         last = int(-1)
         b = tile_ranges[tile, 0]
         end = tile_ranges[tile, 1]
+        wl = lane % LANES
+        x0, x1, y0, y1 = lanes_box(tile, lane - wl, LANES, tile_size, tiles_x, tiles_per_camera)
         while b < end:
             # Every thread reaches the cooperative calls; the block stops once all its pixels are done.
             if block_all(done) != 0:
                 break
             xy, con, opa, col = splat_batch(flatten_ids, b, means2d, conics, opacities, colors)
-            if done == 0:
-                for j in range(wp.min(block, end - b)):
-                    vis = touch_alpha(xy[j], con[j], opa[j], fx, fy)
-                    if vis == 0.0:
-                        continue
-                    alpha = wp.min(max_alpha, vis)
-                    next_T = T * (1.0 - alpha)
-                    if next_T <= T_MIN:
-                        done = 1
+            n = wp.min(block, end - b)
+            for w in range(warps):  # entries w * LANES + r, r in the warp's vote (every lane votes)
+                k = w * LANES + wl
+                near = lanes_ballot(may_touch(xy[k], con[k], opa[k], x0, x1, y0, y1), wl)
+                r = lowest_bit(near, 0)
+                while done == 0 and r >= 0 and w * LANES + r < n:
+                    j = w * LANES + r
+                    T, acc, last, done = front_step(xy[j], con[j], opa[j], col[j], fx, fy, max_alpha, T, acc, last,
+                                                    b + j)
+                    r = lowest_bit(near, r + 1)
+            if warps == 0 and done == 0:
+                for j in range(n):
+                    T, acc, last, done = front_step(xy[j], con[j], opa[j], col[j], fx, fy, max_alpha, T, acc, last,
+                                                    b + j)
+                    if done != 0:
                         break
-                    w = alpha * T
-                    c_j = col[j]
-                    for k in range(channels):
-                        acc[k] = acc[k] + w * c_j[k]
-                    T = next_T
-                    last = b + j
             b += block
         if px < width and py < height:
             pix = (c * height + py) * width + px

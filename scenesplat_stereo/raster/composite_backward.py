@@ -23,10 +23,14 @@ Three reductions over pixels (``reduction``), one source for CPU and CUDA:
   CPU launches are one serial loop, so there this is contention-free and bit-reproducible;
 - "warp" (default on CUDA): blocks of one warp (``lanes.LANES`` pixels of a tile) walk the list in lock
   step from the warp's largest ``last_ids``, batches of 32 splats gathered through their ids into shared
-  memory (``composite.splat_batch_func``, no depth-sorted rows written first); one warp vote
-  skips an entry that none of the warp's pixels composited, and an entry that some pixel did is summed
-  over the warp with register shuffles (a reduce-scatter, ``lanes.lanes_sum_add``) and added with one
-  atomic instruction per warp (lane 2k adds component k) instead of one per pixel (float atomics add in
+  memory (``composite.splat_batch_func``, no depth-sorted rows written first). A tile's list holds every
+  splat that reaches the tile, most of which miss a given warp's rows of it: per batch, each lane bounds
+  one entry's ellipse against the warp's pixels (``composite.may_touch``, conservative) and one vote
+  (``lanes.lanes_ballot``) leaves the entries the walk visits (``lanes.highest_bit``); an entry ruled out
+  touches none of the warp's pixels, so skipping it changes no T, S or gradient. Of the entries
+  visited, one more warp vote skips those that none of the warp's pixels composited, and one that some
+  pixel did is summed over the warp with register shuffles (a reduce-scatter, ``lanes.lanes_sum_add``)
+  and added with one atomic instruction per warp (lane 2k adds component k) instead of one per pixel (float atomics add in
   a run-dependent order, so the last bits of the gradients can change between runs). No shared-memory
   reduction or block barrier per entry (the CPU runs the same kernel on fibers through Warp's tile sums);
 - "rows" (``deterministic=True``): one block per tile (or per group of at most ``DETERMINISTIC_BLOCK`` pixels of a tile)
@@ -49,9 +53,9 @@ import warp as wp
 
 from ._warp import ALPHA_MIN, launch, to_wp, vector_type
 from .binning import Bins
-from .composite import (COMPOSITE_OPTIONS, SPLAT_SLOTS, conic_sigma, gather_splats, splat_batch_func,
-                        tile_pixel)
-from .lanes import LANES, lanes_any, lanes_max, lanes_sum_add
+from .composite import (COMPOSITE_OPTIONS, SPLAT_SLOTS, conic_sigma, gather_splats, lanes_box, may_touch,
+                        splat_batch_func, tile_pixel)
+from .lanes import LANES, highest_bit, lanes_any, lanes_ballot, lanes_max, lanes_sum_add
 
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
 # tiles are split into groups of this many pixels, each with its own row per list entry).
@@ -276,21 +280,27 @@ def _kernels(channels: int):
         v_rgb = v_render[pix]
         v_alpha = v_alphas[pix]
         start = tile_ranges[tile, 0]
+        x0, x1, y0, y1 = lanes_box(tile, local - lane, LANES, tile_size, tiles_x, tiles_per_camera)
         i = lanes_max(last)
         while i >= start:
             base = wp.max(start, i - (LANES - 1))
             xy, con, opa, col = splat_batch(flatten_ids, base, means2d, conics, opacities, colors)
-            while i >= base:
+            # Lane k bounds entry base + k against the warp's pixels; the entries it rules out touch none of
+            # them (no T, S or gradient change), so the walk skips them (module docstring).
+            near = lanes_ballot(may_touch(xy[lane], con[lane], opa[lane], x0, x1, y0, y1), lane)
+            r = highest_bit(near, i - base)
+            while r >= 0:
+                i = base + r
                 grad = vecF()
                 touched = int(0)
                 if i <= last:
-                    r = i - base
                     T, S, grad, touched = reverse_step(xy[r], con[r], opa[r], col[r], fx, fy, max_alpha, T, T_final,
                                                        S, v_rgb, v_alpha)
-                # Most entries touch none of a warp's pixels: one vote skips their reduction and atomics.
+                # Many entries still touch none of a warp's pixels: one vote skips their reduction and atomics.
                 if lanes_any(touched) != 0:
                     sum_add(grad, out_grads, flatten_ids[i], lane)
-                i -= 1
+                r = highest_bit(near, r - 1)
+            i = base - 1
 
     @wp.kernel(enable_backward=False, module="unique")
     def gather_rows(

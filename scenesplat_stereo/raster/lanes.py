@@ -1,6 +1,7 @@
 """Cross-thread votes and sums of cooperative compositing blocks (``wp.launch_tiled``): ``block_all`` for
 any block, the ``lanes_*`` functions for blocks of exactly one warp (``LANES`` = 32 threads,
-``block_dim=LANES``), the compositing backward's per-warp reductions.
+``block_dim=LANES``; ``lanes_ballot`` also in larger blocks on CUDA, see there), the compositing kernels'
+per-warp reductions and votes; ``highest_bit`` and ``lowest_bit`` walk a vote's bit mask.
 
 On CUDA they are bare warp intrinsics (a vote, register shuffles), with no shared memory and no block
 barrier; Warp's tile reductions, by contrast, go through a shared-memory tile and ``__syncthreads`` per
@@ -55,6 +56,46 @@ return wp::tile_max(t).data[0];
 #endif
 """
 
+_BALLOT = """
+#if defined(__CUDA_ARCH__)
+return (int)__ballot_sync(0xffffffffu, flag != 0);
+#elif WP_TILE_BLOCK_DIM == 32
+auto t = wp::tile<wp::uint32>(flag != 0 ? (1u << lane) : 0u);
+return (int)wp::tile_sum(t).data[0];
+#else
+auto t = wp::tile<wp::int32>(flag != 0 ? 1 : 0);
+return wp::tile_max(t).data[0] != 0 ? -1 : 0;
+#endif
+"""
+
+_HIGHEST = """
+if (r < 0)
+    return -1;
+const unsigned m = ((unsigned)mask) & (0xffffffffu >> (31 - (r > 31 ? 31 : r)));
+#if defined(__CUDA_ARCH__)
+return m != 0u ? 31 - __clz(m) : -1;
+#else
+for (int k = 31; k >= 0; --k)
+    if ((m >> k) & 1u)
+        return k;
+return -1;
+#endif
+"""
+
+_LOWEST = """
+if (r > 31)
+    return -1;
+const unsigned m = ((unsigned)mask) & (0xffffffffu << (r < 0 ? 0 : r));
+#if defined(__CUDA_ARCH__)
+return m != 0u ? __ffs(m) - 1 : -1;
+#else
+for (int k = 0; k < 32; ++k)
+    if ((m >> k) & 1u)
+        return k;
+return -1;
+#endif
+"""
+
 # Per chunk of 16 components: 4 halving steps (partner lane = lane ^ off, off = 16, 8, 4, 2; the lane with
 # bit ``off`` set keeps the upper half), then one plain step (off = 1). Component of lane l: (l >> 1) & 15.
 _SUM_ADD = r"""
@@ -90,6 +131,29 @@ if (lane == 0)
 @wp.func_native(_ANY)
 def lanes_any(flag: int) -> int:
     """1 when ``flag`` is non-zero in any lane of the warp, else 0 (in every lane)."""
+    ...
+
+
+@wp.func_native(_BALLOT)
+def lanes_ballot(flag: int, lane: int) -> int:
+    """The warp's vote as a 32-bit mask (an int32; bit k set when ``flag`` is non-zero in lane k), in every
+    lane; ``lane`` is this thread's lane 0..31. In a block of several warps each warp votes on its own on
+    CUDA; on the CPU such a block gets every bit set when any of its threads votes (a superset of each
+    warp's vote: callers use it only to rule entries out)."""
+    ...
+
+
+@wp.func_native(_HIGHEST)
+def highest_bit(mask: int, r: int) -> int:
+    """The highest set bit of ``mask`` (as 32 bits) at position ``r`` or below, or -1 when there is none (or
+    ``r`` < 0)."""
+    ...
+
+
+@wp.func_native(_LOWEST)
+def lowest_bit(mask: int, r: int) -> int:
+    """The lowest set bit of ``mask`` (as 32 bits) at position ``r`` or above, or -1 when there is none (or
+    ``r`` > 31)."""
     ...
 
 
