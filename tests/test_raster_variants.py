@@ -24,7 +24,7 @@ def _scene(n: int, seed: int):
     return means, quats, scales, opacities
 
 
-@pytest.mark.parametrize("tile_size", [8, 16])
+@pytest.mark.parametrize("tile_size", [8, 12, 16])
 @pytest.mark.parametrize("channels", [1, 3, 4])
 def test_cooperative_and_per_pixel_agree_exactly(tile_size: int, channels: int) -> None:
     width, height = 45, 37  # not multiples of the tile size
@@ -45,7 +45,7 @@ def test_cooperative_and_per_pixel_agree_exactly(tile_size: int, channels: int) 
     assert float(per_pixel[1].max()) > 0.5  # the scene really covers the image
 
 
-@pytest.mark.parametrize("tile_size", [8, 16])
+@pytest.mark.parametrize("tile_size", [8, 12, 16])
 def test_backward_reductions_agree(tile_size: int) -> None:
     """The three pixel reductions of the compositing backward (per-pixel atomics: the CPU default; warp
     sums + atomics: the CUDA default; deterministic rows) give the same gradients up to summation order."""
