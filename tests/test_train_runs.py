@@ -31,6 +31,13 @@ def command(data: Path, out: Path) -> list[str]:
             "--steps", str(STEPS), "--log-every", "1"]
 
 
+def as_from_a_shell() -> None:
+    """``preexec_fn`` of the runs this file signals: SIGINT at its default disposition and not blocked, as a
+    shell starts a command, whatever this test process's own signal state (which a child inherits)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def wait_for(condition, what: str, timeout: float = 600) -> None:
     end = time.monotonic() + timeout
     while not condition():
@@ -60,13 +67,14 @@ def test_interrupted_killed_and_refused_runs_keep_their_checkpoint(demo_dataset,
     for attempt in range(3):
         run = tmp_path / f"run{attempt}"
         cmd = command(demo_dataset, run)
-        first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                 preexec_fn=as_from_a_shell)
         wait_for(lambda: saved_step(run) >= 2, "the first checkpoint")
         first.send_signal(signal.SIGINT)
-        _, err = first.communicate(timeout=300)
+        out, err = first.communicate(timeout=300)
         if not (first.returncode == 0 and saved_step(run) == STEPS):
             break
-    assert first.returncode == 130, err
+    assert first.returncode == 130, f"attempt {attempt}, last.pt at step {saved_step(run)}: {err} {out[-600:]}"
     step = assert_whole_and_finite(run)
     assert "sgmodel train: interrupted: at step" in err, err
     assert f"last.pt holds step {step}: rerun the same command to resume" in err, err
@@ -74,7 +82,8 @@ def test_interrupted_killed_and_refused_runs_keep_their_checkpoint(demo_dataset,
 
     # 2. resume; a second process on the same run folder is refused while it runs (stopped with SIGSTOP, so
     # that it cannot finish meanwhile); then SIGKILL after its next checkpoint
-    second = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    second = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              preexec_fn=as_from_a_shell)
     wait_for(lambda: (run / LOCK_FILE).exists() and (run / LOCK_FILE).read_text().strip() == str(second.pid),
              "the resumed run's lock")
     second.send_signal(signal.SIGSTOP)
