@@ -90,6 +90,12 @@ def _gaussian_filter(x: Tensor, border: bool = True) -> Tensor:
     return F.conv2d(x, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
 
 
+def _moments(x: Tensor, y: Tensor, border: bool) -> Tensor:
+    """The filtered moments [ux, uy, E[xx], E[yy], E[xy]] of x, y [N, 3, H, W] ([N, 15, ...], three channels
+    each; ``border`` as ``_gaussian_filter``)."""
+    return _gaussian_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), border)
+
+
 def _ssim_terms(f: Tensor) -> tuple[Tensor, ...]:
     """(S, A, B, C, D) of the filtered moments f = [ux, uy, E[xx], E[yy], E[xy]] ([N, 15, h, w], three
     channels each): S = A B / (C D), A = 2 ux uy + c1, B = 2 cov + c2, C = ux^2 + uy^2 + c1, D = var_x +
@@ -112,7 +118,7 @@ class _InteriorSSIM(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, y: Tensor) -> Tensor:
-        f = _gaussian_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1), border=False)
+        f = _moments(x, y, border=False)
         ctx.save_for_backward(x, y, f)
         return _ssim_terms(f)[0]
 
@@ -160,7 +166,7 @@ def ssim_map(pred: Tensor, target: Tensor, border: bool = True) -> Tensor:
     x = pred.reshape(-1, 3, h, w)
     y = target.reshape(-1, 3, h, w)
     if border:
-        s = _ssim_terms(_gaussian_filter(torch.cat([x, y, x * x, y * y, x * y], dim=1)))[0]
+        s = _ssim_terms(_moments(x, y, border=True))[0]
     else:
         s = _InteriorSSIM.apply(x, y)
     return s.reshape(*lead, *s.shape[-3:])

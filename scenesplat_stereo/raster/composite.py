@@ -107,8 +107,8 @@ def may_touch(xy: wp.vec2, conic: wp.vec3, opacity: float, x0: float, x1: float,
 def lanes_box(tile: int, first: int, count: int, tile_size: int, tiles_x: int, tiles_per_camera: int):
     """Pixel-centre bounds (x0, x1, y0, y1) of pixels ``first`` .. ``first + count - 1`` (row-major) of
     ``tile``; may reach past the image edge (a wider box only rules out less)."""
-    c, x0, y0 = tile_pixel(tile, first, tile_size, tiles_x, tiles_per_camera)
-    c1, x1, y1 = tile_pixel(tile, wp.min(first + count, tile_size * tile_size) - 1, tile_size, tiles_x,
+    _c0, x0, y0 = tile_pixel(tile, first, tile_size, tiles_x, tiles_per_camera)
+    _c1, x1, y1 = tile_pixel(tile, wp.min(first + count, tile_size * tile_size) - 1, tile_size, tiles_x,
                             tiles_per_camera)
     if y1 != y0:  # more than one row: whole rows of the tile
         x0 = x0 - first % tile_size
