@@ -36,6 +36,8 @@ KINDS = (("convolution (cuDNN)", ("xmma", "cutlass", "implicit_gemm", "conv2d_c1
          ("GroupNorm + GELU (Triton)", ("_stats_kernel", "_apply_kernel", "_backward_sums_kernel",
                                         "_backward_dx_kernel")),
          ("bilinear upsampling (Triton)", ("_upsample_forward_kernel", "_upsample_backward_kernel")),
+         ("SSIM term (Triton)", ("_ssim_forward_kernel", "_ssim_backward_kernel")),
+         ("bias + GELU (Triton)", ("_bias_gelu_forward_kernel", "_bias_gelu_backward_kernel")),
          ("GroupNorm (PyTorch)", ("RowwiseMoments", "ComputeFusedParams", "GroupNorm", "ComputeInternalGradients",
                                   "Compute1dBackward", "ComputeBackwardFused", "GammaBeta")),
          ("GELU", ("Gelu",)),

@@ -18,11 +18,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from .config import ConfigurationError
-from .layers import GroupNorm, activation_format, cat_channels, compute_dtype, upsample_bilinear
+from .layers import GroupNorm, activation_format, cat_channels, compute_dtype, conv_gelu, upsample_bilinear
 
 
 class ResidualConvUnit(nn.Module):
-    """x + conv3x3(GELU(conv3x3(GELU(x)))), DPT's refinement unit."""
+    """x + conv3x3(GELU(conv3x3(GELU(x)))), DPT's refinement unit (the first conv's bias added with the GELU
+    after it, ``layers.conv_gelu``)."""
 
     def __init__(self, channels: int) -> None:
         super().__init__()
@@ -30,7 +31,7 @@ class ResidualConvUnit(nn.Module):
         self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x + self.conv2(F.gelu(self.conv1(F.gelu(x))))
+        return x + self.conv2(conv_gelu(self.conv1, F.gelu(x)))
 
 
 class FusionBlock(nn.Module):
@@ -104,4 +105,5 @@ class DPTDecoder(nn.Module):
                 parts += [F.interpolate(rgb, size=size, mode="bilinear", align_corners=False, antialias=True),
                           F.interpolate(z, size=size, mode="nearest")]
             fused = self.fuse[i](self.project[i](cat_channels(parts)), fused)
-        return self.head(upsample_bilinear(fused, (H, W), dtype))  # in the head's dtype
+        head_in = upsample_bilinear(fused, (H, W), dtype)  # in the head's dtype
+        return self.head[2](conv_gelu(self.head[0], head_in))  # head = conv3x3, GELU, conv1x1

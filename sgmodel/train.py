@@ -117,14 +117,17 @@ def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, 
     optimizer.zero_grad(set_to_none=True)
     rgb, _, _ = render_targets(model, batch, amp)
     loss, parts = objective(rgb.flatten(0, 1), batch["targets"].flatten(0, 1))
+    loss.backward()
+    # checked once the backward is queued (the GPU is not left idle while the host starts it), before the
+    # optimiser: a non-finite loss still changes no weight
     if not torch.isfinite(loss):
         raise TrainingDiverged(f"the loss is {loss.item()}")
-    loss.backward()
     lr = optimizer.param_groups[0]["lr"]
     optimizer.step()
     scheduler.step()
     psnr = metrics.psnr(rgb.detach(), batch["targets"]).mean()
-    return {"loss": loss.item(), "psnr": psnr.item(), "lr": lr, **{k: float(v) for k, v in parts.items()}}
+    values = torch.stack([loss.detach(), psnr, *parts.values()]).tolist()  # one transfer for all of them
+    return {"loss": values[0], "psnr": values[1], "lr": lr, **dict(zip(parts, values[2:]))}
 
 
 @torch.no_grad()

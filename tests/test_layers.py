@@ -324,3 +324,49 @@ def test_upsample_bilinear_2x_matches_pytorch_float64_on_cuda(shape, dtype, out_
     if dtype == torch.float32 and out_dtype == torch.bfloat16:  # float32 results may differ in the last ulp (FMA)
         torch_fp32 = F.interpolate(x.detach(), size=(2 * h, 2 * w), mode="bilinear", align_corners=False)
         assert (y != torch_fp32.to(out_dtype)).float().mean().item() < 1e-3
+
+
+def test_conv_gelu_is_the_convolution_then_gelu_off_cuda():
+    """Off the Triton path ``conv_gelu`` is ``nn.Conv2d`` (bias included) then GELU: float64 values and every
+    gradient; and the decoder's modules keep their state_dict keys."""
+    torch.manual_seed(0)
+    conv = nn.Conv2d(6, 5, 3, padding=1).double()
+    x = torch.randn(2, 6, 7, 4, dtype=torch.float64, requires_grad=True)
+    got = layers.conv_gelu(conv, x)
+    want = F.gelu(conv(x))
+    torch.testing.assert_close(got, want, rtol=1e-14, atol=1e-14)
+    g = torch.randn_like(want)
+    wrt = [x, conv.weight, conv.bias]
+    for u, v in zip(torch.autograd.grad(got, wrt, g), torch.autograd.grad(want, wrt, g)):
+        torch.testing.assert_close(u, v, rtol=1e-13, atol=1e-13)
+    keys = set(decoder.ResidualConvUnit(4).state_dict())
+    assert keys == {"conv1.weight", "conv1.bias", "conv2.weight", "conv2.bias"}
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the Triton bias + GELU kernels)")
+@pytest.mark.parametrize("shape,dtype", [((32, 128, 64, 64), torch.bfloat16), ((2, 128, 33, 17), torch.float32),
+                                         ((3, 40, 5, 7), torch.bfloat16), ((1, 8, 1, 1), torch.float32)])
+def test_bias_gelu_matches_float64_on_cuda(shape, dtype):
+    """The Triton GELU(x + bias) against float64 PyTorch on the same (rounded) inputs: y and dx within x's dtype's
+    rounding, the bias gradient (summed in float32 over every pixel, in the backward's own pass) within
+    float32's; many pixels, a channel count that is not a power of two, pixels that leave a tile part empty,
+    one pixel; values far into both tails of the GELU."""
+    if not fused_group_norm_available(torch.zeros(1, 8, 1, 1, device="cuda").contiguous(memory_format=CL)):
+        pytest.skip("Triton is not installed")
+    torch.manual_seed(0)
+    C = shape[1]
+    x = (torch.randn(shape, device="cuda") * 4).to(dtype).contiguous(memory_format=CL).requires_grad_(True)
+    b = torch.randn(C, device="cuda", requires_grad=True)
+    y = layers.bias_gelu(x, b)
+    assert y.dtype == dtype and y.is_contiguous(memory_format=CL)
+    xd, bd = (t.detach().double().requires_grad_(True) for t in (x, b))
+    ref = F.gelu(xd + bd.view(-1, 1, 1))
+    g = torch.randn(shape, device="cuda").to(dtype).contiguous(memory_format=CL)
+    gx, gb = torch.autograd.grad(y, [x, b], g)
+    rx, rb = torch.autograd.grad(ref, [xd, bd], g.double())
+    assert gx.dtype == dtype and gb.dtype == torch.float32
+    tol = 1e-5 if dtype == torch.float32 else 2 ** -7  # relative: one bf16 ulp (y and dx are rounded once)
+    torch.testing.assert_close(y.double(), ref, rtol=tol, atol=1e-6)
+    torch.testing.assert_close(gx.double(), rx, rtol=tol, atol=1e-6)
+    scale = rx.abs().sum(dim=(0, 2, 3)).max()  # what the float32 sum adds up
+    assert ((gb.double() - rb).abs().max() / scale).item() < 1e-5
