@@ -10,7 +10,7 @@
 # Device call 2 (carry .devdata):                  mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
 # Device call 3 (carry .gpukit/b, .whl; one call carries at most 64 MiB, each within 30 s of the one before):
 #   SGMODEL_CACHE=/root/sgcache bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
-#   tests:   the CUDA tests of the model's layers and SSIM term (Triton kernels), LPIPS, the soft-argmin, the rasteriser
+#   tests:   the CUDA tests of the layers, SSIM term and composer (Triton, compiled), LPIPS, soft-argmin, rasteriser
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
 #            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
 #   profile: scripts/gpu_train_profile.py with each term
@@ -74,9 +74,10 @@ train=(python3 -m sgmodel.cli train --data $data/dataset --device cuda --steps $
 
 for what in "$@"; do case $what in
 tests)
-  run python3 -m pytest -q -p no:cacheprovider tests/test_layers.py tests/test_ssim_kernels.py tests/test_lpips.py \
-    tests/test_soft_argmin.py tests/test_raster_backward.py tests/test_raster_forward.py tests/test_raster_variants.py \
-    tests/test_raster_batch.py tests/test_raster_stability.py -k "cuda" 2>&1 | tee "$OUT/tests.txt" | tail -5 ;;
+  run python3 -m pytest -q -p no:cacheprovider tests/test_layers.py tests/test_ssim_kernels.py tests/test_model.py \
+    tests/test_lpips.py tests/test_soft_argmin.py tests/test_raster_backward.py tests/test_raster_forward.py \
+    tests/test_raster_variants.py tests/test_raster_batch.py tests/test_raster_stability.py -k "cuda" 2>&1 \
+    | tee "$OUT/tests.txt" | tail -5 ;;
 bench)
   run "${bench[@]}" --lpips-random-vgg --out /tmp/bench_new.md && cat /tmp/bench_new.md >> "$OUT/bench.md"
   if [[ -n $base ]]; then  # the code before: its bench times one loss per call; random VGG16 in torchvision's format

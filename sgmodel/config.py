@@ -113,6 +113,7 @@ class TrainParams:
     workers: int = 4  # DataLoader worker processes per rank
     amp: bool = True  # bf16 autocast for the encoder and the convolutions on CUDA (rasteriser float32)
     compile_lpips: bool = True  # torch.compile the LPIPS term's VGG16 trunk on CUDA (~15 s once per process)
+    compile_composer: bool = True  # torch.compile the composer on CUDA (~20 s once per process and batch shape)
     sheet_samples: int = 4  # validation samples shown in each contact sheet
 
     def to_dict(self) -> dict[str, Any]:

@@ -285,6 +285,13 @@ def triton_installed() -> bool:
     return importlib.util.find_spec("triton") is not None
 
 
+def compiles(device: torch.device, wanted: bool = True) -> bool:
+    """Whether training runs a block through ``torch.compile`` (the LPIPS term's VGG16, the composer):
+    wanted (not ``--no-compile-lpips`` / ``--no-compile-composer``), on CUDA, with Triton installed (inductor
+    writes its GPU code in Triton)."""
+    return wanted and device.type == "cuda" and triton_installed()
+
+
 def group_norm_gelu(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.Tensor, eps: float,
                     gelu: bool = True) -> torch.Tensor:
     """GroupNorm of ``x`` [B,C,H,W] (``groups`` contiguous channel blocks, per-channel affine ``weight``,

@@ -16,7 +16,7 @@ import os
 import torch
 from torch import Tensor
 
-from sgmodel.layers import amp_autocast, triton_installed
+from sgmodel.layers import amp_autocast
 from sgmodel.lpips import LPIPS, create_lpips, vgg16_missing_message
 from sgmodel.metrics import ssim_map
 
@@ -61,12 +61,6 @@ class Objective:
             perceptual = 1 - s
             parts = {"mse": mse.detach(), "ssim": s.detach()}
         return mse + self.weight * perceptual, parts
-
-
-def compiles_lpips(device: torch.device, wanted: bool = True) -> bool:
-    """Whether training compiles the LPIPS term's VGG16 (``LPIPS.compile_trunk``): wanted (not
-    ``--no-compile-lpips``), on CUDA, with Triton installed (inductor writes its GPU code in Triton)."""
-    return wanted and device.type == "cuda" and triton_installed()
 
 
 def create_objective(vgg_path: str | os.PathLike | None = None, lin_path: str | os.PathLike | None = None,

@@ -50,7 +50,8 @@ from .data import RUN_SPLITS, check_first_sample, load_sample, make_loader, read
 from .distributed import World, all_sum, broadcast_flag, close_world, init_world
 from .encoder_cache import EncoderCache, open_cache, precision_of
 from .layers import amp_autocast
-from .losses import compiles_lpips, create_objective
+from .layers import compiles
+from .losses import create_objective
 from .model import StereoGaussians, create_model
 from .render import render_views
 from .sheets import validation_sheet
@@ -244,7 +245,9 @@ def _check_resumable(paths: RunPaths, config: dict) -> bool:
     if not isinstance(old, dict):
         raise ValueError(f"{paths.config}: not a JSON object; choose another --out")
     differs = [part for part in ("model", "data", "encoder", "loss", "init_from") if old.get(part) != config[part]]
-    ignore = ("workers",)  # workers do not change results
+    # workers do not change results, compilation only their rounding (and a run from before a compile flag
+    # existed resumes)
+    ignore = ("workers", "compile_lpips", "compile_composer")
     if {k: v for k, v in old.get("train", {}).items() if k not in ignore} != \
             {k: v for k, v in config["train"].items() if k not in ignore}:
         differs.append("train")
@@ -303,8 +306,10 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
     # every training step has the same shapes: let cuDNN time its algorithms once (8% of a step on an H100)
     torch.backends.cudnn.benchmark = world.device.type == "cuda"
     model = create_model(model_params, world.device)
+    if compiles(world.device, tp.compile_composer):
+        model.compile_composer()
     objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp,
-                                 compile_trunk=compiles_lpips(world.device, tp.compile_lpips))
+                                 compile_trunk=compiles(world.device, tp.compile_lpips))
     cache = open_run_cache(encoder_cache, data, model.encoder, model_params.resolution, world.device, tp.amp) \
         if encoder_cache is not None else None
     config = run_config(model_params, tp, data, model.encoder, objective, _init_from(init_from, model), cache)

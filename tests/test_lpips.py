@@ -318,11 +318,11 @@ def test_compiled_trunk_matches_eager_on_cuda(vgg_path, lin_path, amp):
 
 
 def test_training_compiles_the_trunk_only_on_cuda_with_triton(monkeypatch):
-    from sgmodel import losses
+    from sgmodel import layers
 
     cuda, cpu = torch.device("cuda"), torch.device("cpu")
-    monkeypatch.setattr(losses, "triton_installed", lambda: True)
-    assert losses.compiles_lpips(cuda) and not losses.compiles_lpips(cuda, wanted=False)
-    assert not losses.compiles_lpips(cpu)
-    monkeypatch.setattr(losses, "triton_installed", lambda: False)
-    assert not losses.compiles_lpips(cuda)
+    monkeypatch.setattr(layers, "triton_installed", lambda: True)
+    assert layers.compiles(cuda) and not layers.compiles(cuda, wanted=False)
+    assert not layers.compiles(cpu)
+    monkeypatch.setattr(layers, "triton_installed", lambda: False)
+    assert not layers.compiles(cuda)

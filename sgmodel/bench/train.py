@@ -32,7 +32,8 @@ from ..data import make_loader
 from ..encoder_cache import open_cache, precision_of
 from ..geometry import depth_from_disparity
 from ..layers import amp_autocast
-from ..losses import Objective, compiles_lpips, create_objective
+from ..layers import compiles
+from ..losses import Objective, create_objective
 from ..lpips import random_lpips, vgg16_missing_message
 from ..model import create_model
 from ..render import render_views
@@ -167,7 +168,9 @@ def run(args: argparse.Namespace) -> int:
     torch.backends.cudnn.benchmark = device.type == "cuda"  # as `sgmodel train` does
     model = create_model(model_params, device)
     S, amp = model_params.resolution, not args.no_amp
-    compiled = compiles_lpips(device, not args.no_compile_lpips)  # as `sgmodel train` does
+    compiled = compiles(device, not args.no_compile_lpips)  # as `sgmodel train` does
+    if compiles(device, not args.no_compile_composer):  # as `sgmodel train` does
+        model.compile_composer()
     objectives = [Objective(None, reason="the bench times both" if args.lpips_vgg or args.lpips_random_vgg
                             else vgg16_missing_message(), amp=amp)]
     if args.lpips_random_vgg:
@@ -264,4 +267,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-amp", action="store_true", help="float32 convolutions")
     p.add_argument("--no-compile-lpips", action="store_true",
                    help="the LPIPS term's VGG16 eagerly (default on CUDA: torch.compile, as sgmodel train)")
+    p.add_argument("--no-compile-composer", action="store_true",
+                   help="the composer eagerly (default on CUDA: torch.compile, as sgmodel train)")
     p.add_argument("--out", type=Path, help="also write the markdown table here")
