@@ -67,3 +67,20 @@ def sgmodel_status(argv) -> int:
 def predict_status(argv) -> int:
     """``sgmodel predict ARGV``'s exit status (``sgmodel_status``)."""
     return sgmodel_status(["predict", *argv])
+
+
+def record_compile(monkeypatch) -> list:
+    """Replace ``torch.compile`` by a recorder: the list returned gets each call's options, then "call" each
+    time a compiled function runs (eagerly). For the CPU tests of what is handed to compilation."""
+    seen = []
+
+    def recorder(fn, **options):
+        seen.append(options)
+
+        def run(*args, **kwargs):
+            seen.append("call")
+            return fn(*args, **kwargs)
+        return run
+
+    monkeypatch.setattr(torch, "compile", recorder)
+    return seen

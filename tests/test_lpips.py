@@ -18,6 +18,7 @@ from sgmodel import weights
 from sgmodel.losses import create_objective
 from sgmodel.lpips import LPIPS, create_lpips, find_vgg16_weights, tap_distance
 from sgmodel.weights import WeightsError
+from tests.model_helpers import record_compile
 
 #: torchvision's VGG16 `features` indices of the 13 convolutions, and of the first conv of stages 2-5.
 CONV_INDICES = (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28)
@@ -262,17 +263,7 @@ def test_compiled_trunk_is_handed_to_torch_compile_and_computes_the_same(vgg_pat
     from sgmodel.args import params_from_args
     from sgmodel.cli import build_parser
 
-    seen = []
-
-    def recorder(fn, **options):
-        seen.append(options)
-
-        def run(*args, **kwargs):
-            seen.append("call")
-            return fn(*args, **kwargs)
-        return run
-
-    monkeypatch.setattr(torch, "compile", recorder)
+    seen = record_compile(monkeypatch)
     g = torch.Generator().manual_seed(4)
     target = torch.rand(2, 3, 32, 32, generator=g)
     render = (target + 0.1 * torch.randn(target.shape, generator=g)).clamp(0, 1).requires_grad_(True)

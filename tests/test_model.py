@@ -11,7 +11,7 @@ from sgmodel.decoder import DPTDecoder
 from sgmodel.model import create_model
 from sgmodel.predictor import CHANNELS, LAYER_CHANNELS, GaussianPredictor
 from sgmodel.render import render_views
-from tests.model_helpers import StandInEncoder, textured_batch
+from tests.model_helpers import StandInEncoder, record_compile, textured_batch
 
 
 def small_params(**changes) -> ModelParams:
@@ -174,23 +174,13 @@ def test_compiled_composer_is_handed_to_torch_compile_and_computes_the_same(monk
     from sgmodel.args import params_from_args
     from sgmodel.cli import build_parser
 
-    seen = []
-
-    def recorder(fn, **options):
-        seen.append(options)
-
-        def run(*args, **kwargs):
-            seen.append("call")
-            return fn(*args, **kwargs)
-        return run
-
     torch.manual_seed(0)
     model = create_model(small_params(), "cpu", encoder=StandInEncoder())
     batch = textured_batch(2, 1, 32)
     args = (batch["left"], batch["right"], batch["K"], batch["baseline"])
     with torch.no_grad():
         want = model(*args).gaussians
-        monkeypatch.setattr(torch, "compile", recorder)
+        seen = record_compile(monkeypatch)
         got = model.compile_composer()(*args).gaussians
     assert seen == [{"dynamic": False}, "call"]
     for k in want:

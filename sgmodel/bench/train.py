@@ -31,8 +31,7 @@ from ..args import add_device_argument, add_model_arguments, device_from_flag, p
 from ..data import make_loader
 from ..encoder_cache import open_cache, precision_of
 from ..geometry import depth_from_disparity
-from ..layers import amp_autocast
-from ..layers import compiles
+from ..layers import amp_autocast, compiles
 from ..losses import Objective, create_objective
 from ..lpips import random_lpips, vgg16_missing_message
 from ..model import create_model
