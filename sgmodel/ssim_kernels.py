@@ -3,9 +3,9 @@ the training loss's SSIM term) for float32 CUDA images of any strides.
 
 Imported only on CUDA with Triton present; elsewhere ``metrics._InteriorSSIM`` computes the same map with
 PyTorch's depthwise convolutions, which is also the float64 reference the kernels are tested against
-(tests/test_ssim_kernels.py). Conventions as ``_InteriorSSIM``'s: x, y [N, C, H, W]; the interior map [N, C, h, w] with
-h = H - 2r, w = W - 2r (r = 5), the window's taps g[0..2r]; interior pixel (i, j) reads image pixels
-(i + t, j + l) with weight g[t] g[l].
+(tests/test_ssim_kernels.py). Conventions as ``_InteriorSSIM``'s: x, y [N, C, H, W]; the interior map
+[N, C, h, w] with h = H - 2r, w = W - 2r (r = 5), the window's taps g[0..2r]; interior pixel (i, j) reads
+image pixels (i + t, j + l) with weight g[t] g[l].
 
 Forward: one program per tile of BH x BW interior pixels of one image channel. It walks the BH + 2r image
 rows the tile's windows cover; on each row it filters the five moments (x, y, x^2, y^2, xy) along the row
