@@ -65,9 +65,8 @@ def forward(x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     return y
 
 
-def backward(grad: torch.Tensor, x: torch.Tensor, bias: torch.Tensor, need_x: bool
-             ) -> tuple[torch.Tensor | None, torch.Tensor]:
-    """(dx in x's dtype and layout or None when not needed, dbias float32 [C]) from dL/dy ``grad``."""
+def backward(grad: torch.Tensor, x: torch.Tensor, bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(dx in x's dtype, channels-last; dbias float32 [C]) from dL/dy ``grad`` (one pass writes both)."""
     C = x.shape[1]
     M = x.numel() // C
     grad = grad.contiguous(memory_format=torch.channels_last)
@@ -76,4 +75,4 @@ def backward(grad: torch.Tensor, x: torch.Tensor, bias: torch.Tensor, need_x: bo
     partial = torch.empty(programs, C, device=x.device, dtype=torch.float32)
     _bias_gelu_backward_kernel[(programs,)](grad, x, bias, dx, partial, M, C, BLOCK_M=_BLOCK_M,
                                             BLOCK_C=triton.next_power_of_2(C), TILES=_TILES)
-    return (dx if need_x else None), partial.sum(0)
+    return dx, partial.sum(0)

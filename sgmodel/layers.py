@@ -340,7 +340,7 @@ class _BiasGELU(torch.autograd.Function):
         from . import bias_gelu_kernels
 
         x, bias = ctx.saved_tensors
-        dx, db = bias_gelu_kernels.backward(grad, x, bias, ctx.needs_input_grad[0])
+        dx, db = bias_gelu_kernels.backward(grad, x, bias)
         return dx, db.to(bias.dtype)
 
 

@@ -23,6 +23,8 @@ A mask with no valid pixel gives NaN for that image (average with ``nanmean``).
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -65,7 +67,10 @@ def psnr(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
     return 10 * torch.log10(1 / mse)
 
 
+@functools.cache
 def _gaussian_window(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The window's 2r + 1 taps, made once per dtype and device (not copied to the GPU at every call: a copy
+    from pageable memory waits for the stream). Callers only read it."""
     x = torch.arange(-SSIM_RADIUS, SSIM_RADIUS + 1, dtype=torch.float64)
     w = torch.exp(-0.5 * (x / SSIM_SIGMA) ** 2)
     return (w / w.sum()).to(dtype=dtype, device=device)
