@@ -10,7 +10,8 @@
 # Device call 2 (carry .devdata):                  mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
 # Device call 3 (carry .gpukit/b, .whl; one call carries at most 64 MiB, each within 30 s of the one before):
 #   SGMODEL_CACHE=/root/sgcache bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
-#   tests:   the CUDA tests of the layers, SSIM term and composer (Triton, compiled), LPIPS, soft-argmin, rasteriser
+#   tests:   the CUDA tests of the layers, concatenation, SSIM term and composer (Triton, compiled), LPIPS,
+#            soft-argmin, rasteriser
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
 #            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
 #   profile: scripts/gpu_train_profile.py with each term
@@ -26,6 +27,7 @@
 #   lpips:   the step with the LPIPS term's VGG16 eager (--no-compile-lpips; `bench` times the compiled default),
 #            then training runs with the LPIPS term (random VGG16) compiled and eager, SEEDS each
 #            ($OUT/lpips_curves.md)
+#   composer: training runs with the composer compiled (the default) and eager, SEEDS each ($OUT/composer_curves.md)
 # WHEELS (default .whl), KIT (.gpukit/b), SGMODEL_CACHE (.devdata), GUITAR ($SGMODEL_CACHE/guitar.ply), STEPS (200),
 # VAL (50), SEEDS ("0 1").
 set -uo pipefail
@@ -71,10 +73,24 @@ EOF
 }
 train=(python3 -m sgmodel.cli train --data $data/dataset --device cuda --steps ${STEPS:-200} --val-every ${VAL:-50}
        --workers 8 --no-progress)
+compiled_and_eager() {  # compiled_and_eager FILE NAME EAGER_FLAG [TRAIN FLAGS...]: SEEDS runs of each, side by side
+  local file=$1 name=$2 eager=$3; shift 3
+  dataset
+  local runs=() s mode flags
+  for s in ${SEEDS:-0 1}; do
+    for mode in compiled eager; do
+      flags=(); [[ $mode == eager ]] && flags=("$eager")
+      run "${train[@]}" --seed $s "$@" "${flags[@]}" --out /tmp/runs/$name-$mode-seed$s > /tmp/runs-$name-$mode-$s.log 2>&1
+      runs+=(/tmp/runs/$name-$mode-seed$s)
+    done
+  done
+  curves "$file" "${runs[@]}"
+}
 
 for what in "$@"; do case $what in
 tests)
   run python3 -m pytest -q -p no:cacheprovider tests/test_layers.py tests/test_ssim_kernels.py tests/test_model.py \
+    tests/test_concat_kernels.py \
     tests/test_lpips.py tests/test_soft_argmin.py tests/test_raster_backward.py tests/test_raster_forward.py \
     tests/test_raster_variants.py tests/test_raster_batch.py tests/test_raster_stability.py -k "cuda" 2>&1 \
     | tee "$OUT/tests.txt" | tail -5 ;;
@@ -117,17 +133,9 @@ lpips)  # the LPIPS term's VGG16 compiled (the default) and eager: the step, the
     && { echo "## the LPIPS term's VGG16 eager (--no-compile-lpips)"; cat /tmp/bench_eager.md; } >> "$OUT/bench.md"
   run python3 -c "import torch; from sgmodel.lpips import VGG16Trunk
 torch.manual_seed(0); torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.pth')"
-  dataset
-  runs=()
-  for s in ${SEEDS:-0 1}; do
-    for mode in compiled eager; do
-      flags=(); [[ $mode == eager ]] && flags=(--no-compile-lpips)
-      run "${train[@]}" --seed $s --lpips-vgg /tmp/vgg16-random.pth "${flags[@]}" --out /tmp/runs/lpips-$mode-seed$s \
-        > /tmp/runs-lpips-$mode-$s.log 2>&1
-      runs+=(/tmp/runs/lpips-$mode-seed$s)
-    done
-  done
-  curves "$OUT/lpips_curves.md" "${runs[@]}" ;;
+  compiled_and_eager "$OUT/lpips_curves.md" lpips --no-compile-lpips --lpips-vgg /tmp/vgg16-random.pth ;;
+composer)  # training runs with the composer compiled (the default on CUDA) and eager, SEEDS each
+  compiled_and_eager "$OUT/composer_curves.md" composer --no-compile-composer ;;
 cache)  # the encoder cache: `sgmodel encode` of the small dataset, its outputs against the encoder run live,
         # then the step on real batches with the encoder run and read from the cache ($OUT/cache_bench.md)
   encoder_cache

@@ -3,7 +3,10 @@
 After decoding at the original resolution, the reference RGB, the processed depth and the descriptor are
 extended by edge replication with P pixels per side, to Hc x Wc = (H + 2P) x (W + 2P). The canvas
 intrinsics keep the focal lengths and shift the principal point by P (eq. canvas-intrinsics), so padded
-pixels define rays outside the original frustum. Target cameras keep their own K and size.
+pixels define rays outside the original frustum. Target cameras keep their own K and size. The
+descriptor is extended where the predictor concatenates it with the other inputs (``layers.cat_channels``'
+``pads``: on CUDA in the same pass, without a padded copy); the RGB and depth here, since the composer
+reads them too.
 """
 
 from __future__ import annotations

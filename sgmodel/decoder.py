@@ -101,9 +101,9 @@ class DPTDecoder(nn.Module):
         for i in self.order:
             size = features[i].shape[-2:] if features else _scaled_size(H, W, self.scales[i])
             parts = [features[i].to(dtype, memory_format=fmt)] if features else []
-            if self.rgbd:
-                parts += [F.interpolate(rgb, size=size, mode="bilinear", align_corners=False, antialias=True),
-                          F.interpolate(z, size=size, mode="nearest")]
+            if self.rgbd:  # resized in float32 under autocast, cast as the convolution would cast them
+                parts += [F.interpolate(rgb, size=size, mode="bilinear", align_corners=False, antialias=True).to(dtype),
+                          F.interpolate(z, size=size, mode="nearest").to(dtype)]
             fused = self.fuse[i](self.project[i](cat_channels(parts)), fused)
         head_in = upsample_bilinear(fused, (H, W), dtype)  # in the head's dtype
         return self.head[2](conv_gelu(self.head[0], head_in))  # head = conv3x3, GELU, conv1x1

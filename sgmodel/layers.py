@@ -17,6 +17,9 @@ CPU kernels prefer. The blocks below work in either layout and compute the same 
   multiples of 8 and otherwise pad with copies of their own. The first extra channel is all ones and
   carries the bias inside the convolution. Same parameters and state_dict keys as
   ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
+- ``cat_channels``: the channel concatenation of the convolutions' inputs, each source edge-replicated by
+  its own padding on the way (the descriptor onto the canvas), with the ones channel and zeros appended; on
+  CUDA one Triton pass (``sgmodel.concat_kernels``) instead of a padded copy and PyTorch's per-source copies.
 - ``group_norm_gelu`` / ``GroupNorm``: GroupNorm, optionally followed by the exact GELU, in its input's
   dtype (statistics in float32). On CUDA with Triton, for channels-last inputs, one fused kernel pair
   forward and one backward (``sgmodel.group_norm_kernels``): PyTorch's CUDA GroupNorm is NCHW-only and
@@ -67,19 +70,51 @@ def _round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
 
-def cat_channels(tensors: list[torch.Tensor], multiple: int = 1) -> torch.Tensor:
-    """Concatenate [B, C_i, H, W] tensors of one dtype along channels, in the first one's layout
+def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int] | None = None) -> torch.Tensor:
+    """Concatenate [B, C_i, H_i, W_i] tensors of one dtype along channels, each first edge-replicated by
+    ``pads[i]`` pixels (``replicate_pad``; default none) to one height and width, in the first one's layout
     (``activation_format``), with channels appended up to a multiple of ``multiple``: the first of them all
-    ones (the bias channel of ``replicate_conv3x3``), the rest zeros."""
+    ones (the bias channel of ``replicate_conv3x3``), the rest zeros. On CUDA with Triton (at most three
+    tensors) one pass writes it all, padding included (``sgmodel.concat_kernels``), with no padded copy of
+    its own; the same values as the padding and ``torch.cat`` that run elsewhere."""
+    pads = [0] * len(tensors) if pads is None else list(pads)
     x = tensors[0]
-    B, _, H, W = x.shape
+    sizes = {(t.shape[0], t.shape[2] + 2 * p, t.shape[3] + 2 * p) for t, p in zip(tensors, pads)}
+    if len(pads) != len(tensors) or min(pads) < 0 or len(sizes) != 1 or len({t.dtype for t in tensors}) != 1:
+        raise ValueError("cat_channels: tensors must be [B, C, H, W] of one dtype, one batch and, once padded, "
+                         f"one size; got {[tuple(t.shape) for t in tensors]}, {[t.dtype for t in tensors]}, "
+                         f"pads {pads}")
     total = sum(t.shape[1] for t in tensors)
-    extra = _round_up(total, multiple) - total
-    if extra:
-        spare = x.new_zeros(B, extra, H, W)
+    width = _round_up(total, multiple)
+    if x.is_cuda and len(tensors) <= 3 and triton_installed() and x.dtype.is_floating_point:
+        return _CatChannels.apply(width, tuple(pads), *tensors)
+    tensors = [replicate_pad(t, p) for t, p in zip(tensors, pads)]
+    if width > total:
+        spare = x.new_zeros(x.shape[0], width - total, *tensors[0].shape[2:])
         spare[:, 0] = 1.0
         tensors = [*tensors, spare]
     return torch.cat([t.contiguous(memory_format=activation_format(x)) for t in tensors], dim=1)
+
+
+class _CatChannels(torch.autograd.Function):
+    """The Triton kernels of ``sgmodel.concat_kernels`` (CUDA tensors of one dtype, at most three)."""
+
+    @staticmethod
+    def forward(ctx, width: int, pads: tuple[int, ...], *tensors: torch.Tensor) -> torch.Tensor:
+        from . import concat_kernels
+
+        ctx.pads, ctx.shapes, ctx.dtypes = pads, [t.shape for t in tensors], [t.dtype for t in tensors]
+        return concat_kernels.forward(list(tensors), list(pads), width)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        from . import concat_kernels
+
+        grads, lo = [], 0
+        for need, shape, dtype, p in zip(ctx.needs_input_grad[2:], ctx.shapes, ctx.dtypes, ctx.pads):
+            grads.append(concat_kernels.backward(grad, lo, shape[1], p, shape[2], shape[3], dtype) if need else None)
+            lo += shape[1]
+        return None, None, *grads
 
 
 class _ReplicatePad(torch.autograd.Function):

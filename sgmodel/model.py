@@ -113,9 +113,9 @@ class StereoGaussians(nn.Module):
                ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, canvas.Canvas]:
         """Decoder at the input size, then the canvas, then the predictor: (front, back, dz, canvas)."""
         P = self.params.padding
-        phi = canvas.extend(self.decoder(features, left, z), P) if self.decoder is not None else None
+        phi = self.decoder(features, left, z) if self.decoder is not None else None  # extended by the predictor
         c = canvas.Canvas(rgb=canvas.extend(left, P), depth=canvas.extend(z, P), K=canvas.canvas_intrinsics(K, P))
-        front, back, dz = self.predictor(c.rgb, c.depth, phi)
+        front, back, dz = self.predictor(c.rgb, c.depth, phi, phi_padding=P)
         return front, back, dz, c
 
     def compile_composer(self) -> StereoGaussians:

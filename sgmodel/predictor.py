@@ -101,18 +101,21 @@ class GaussianPredictor(nn.Module):
             for name in ZERO_INIT:
                 conv.weight[CHANNELS[name]] = 0.0
 
-    def forward(self, rgb: torch.Tensor, z: torch.Tensor, phi: torch.Tensor | None
+    def forward(self, rgb: torch.Tensor, z: torch.Tensor, phi: torch.Tensor | None, phi_padding: int = 0
                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """Canvas inputs rgb [B,3,Hc,Wc] in [0,1], z [B,1,Hc,Wc] metres, phi [B,C,Hc,Wc] or None.
-        back and dz are None without a back layer. Activations in ``layers.activation_format``; the
-        concatenated inputs carry zero channels up to ``layers.channel_multiple``."""
+        """Canvas inputs rgb [B,3,Hc,Wc] in [0,1], z [B,1,Hc,Wc] metres, phi [B,C,Hc - 2p,Wc - 2p] or None,
+        p = ``phi_padding``: phi is edge-replicated onto the canvas by the concatenations that read it
+        (``layers.cat_channels``), with no padded copy of its own. back and dz are None without a back
+        layer. Activations in ``layers.activation_format``; the concatenated inputs carry zero channels up
+        to ``layers.channel_multiple``."""
         dtype, fmt = compute_dtype(rgb.device), activation_format(rgb)  # cast once, in the convolutions' dtype
         rgb, z = rgb.to(dtype, memory_format=fmt), z.to(dtype, memory_format=fmt)
         phi = None if phi is None else phi.to(dtype, memory_format=fmt)
         multiple = channel_multiple(rgb)
-        inputs = ([rgb, z] if self.rgbd else []) + ([phi] if self.use_descriptor else [])
-        h = self.regressor(cat_channels(inputs, multiple))
-        shared = cat_channels([h] + ([rgb] if self.rgbd else []) + ([phi] if self.use_descriptor else []), multiple)
+        rgbd = [rgb, z] if self.rgbd else []
+        desc, desc_pad = ([phi], [phi_padding]) if self.use_descriptor else ([], [])
+        h = self.regressor(cat_channels(rgbd + desc, multiple, [0] * len(rgbd) + desc_pad))
+        shared = cat_channels([h] + rgbd[:1] + desc, multiple, [0] * (1 + len(rgbd[:1])) + desc_pad)
         if self.back is None:
             return self.front(shared), None, None
         front, back, dz = fused_branches([self.front, self.back, self.dz], shared)  # the same as each alone
