@@ -112,10 +112,13 @@ class GaussianPredictor(nn.Module):
         rgb, z = rgb.to(dtype, memory_format=fmt), z.to(dtype, memory_format=fmt)
         phi = None if phi is None else phi.to(dtype, memory_format=fmt)
         multiple = channel_multiple(rgb)
-        rgbd = [rgb, z] if self.rgbd else []
-        desc, desc_pad = ([phi], [phi_padding]) if self.use_descriptor else ([], [])
-        h = self.regressor(cat_channels(rgbd + desc, multiple, [0] * len(rgbd) + desc_pad))
-        shared = cat_channels([h] + rgbd[:1] + desc, multiple, [0] * (1 + len(rgbd[:1])) + desc_pad)
+        desc = [phi] if self.use_descriptor else []
+
+        def on_canvas(tensors: list[torch.Tensor]) -> torch.Tensor:  # phi extended on the way
+            return cat_channels(tensors, multiple, [phi_padding if t is phi else 0 for t in tensors])
+
+        h = self.regressor(on_canvas(([rgb, z] if self.rgbd else []) + desc))
+        shared = on_canvas([h] + ([rgb] if self.rgbd else []) + desc)
         if self.back is None:
             return self.front(shared), None, None
         front, back, dz = fused_branches([self.front, self.back, self.dz], shared)  # the same as each alone
