@@ -40,7 +40,7 @@ def reference(tensors, pads, width):
 
 
 def _case(B, size, p, channels, layouts, dtype, device, seed=0):
-    """Sources: the first at the canvas size (no padding), the rest at size - 2p, padded by p."""
+    """Sources: the first at the output's size, ``size`` + 2p (no padding), the rest at ``size``, padded by p."""
     g = torch.Generator().manual_seed(seed)
     H, W = size
     out = []
@@ -55,7 +55,7 @@ def _case(B, size, p, channels, layouts, dtype, device, seed=0):
     return out, [0] + [p] * (len(channels) - 1)
 
 
-CASES = [  # batch, size of the padded sources, padding, channels, layouts, appended multiple
+CASES = [  # batch, size of the sources that are padded, padding, channels, layouts, appended multiple
     (2, (5, 7), 2, (3, 1, 70), ("cl", "cl", "cl"), 8),
     (1, (1, 1), 3, (2, 5), ("cl", "nchw"), 1),  # one source pixel: every output pixel copies it
     (3, (4, 1), 1, (130, 3), ("nchw", "slice"), 8),
