@@ -47,6 +47,8 @@ from torch import nn
 #: (cuDNN's NHWC tensor-core kernels; a 259 -> 384 channel 3x3 convolution at the canvas size took 36.6 ms
 #: forward + backward with 259 input channels and 28.9 ms with 264, H100, bf16, batch 32).
 CUDA_CHANNEL_MULTIPLE = 8
+#: the most tensors ``cat_channels`` concatenates in one Triton launch (``sgmodel.concat_kernels``' slots)
+CAT_KERNEL_SOURCES = 3
 
 
 def amp_autocast(x: torch.Tensor, amp: bool = True) -> torch.autocast:
@@ -86,7 +88,7 @@ def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int]
                          f"pads {pads}")
     total = sum(t.shape[1] for t in tensors)
     width = _round_up(total, multiple)
-    if x.is_cuda and len(tensors) <= 3 and triton_installed() and x.dtype.is_floating_point:
+    if x.is_cuda and len(tensors) <= CAT_KERNEL_SOURCES and triton_installed() and x.dtype.is_floating_point:
         return _CatChannels.apply(width, tuple(pads), *tensors)
     tensors = [replicate_pad(t, p) for t, p in zip(tensors, pads)]
     if width > total:
@@ -307,9 +309,10 @@ class _GroupNormGELU(torch.autograd.Function):
         return dx, dw, db, None, None, None, None
 
 
-def fused_group_norm_available(x: torch.Tensor) -> bool:
-    """Whether ``group_norm_gelu`` and ``bias_gelu`` run their Triton kernels for ``x``: a 4D channels-last
-    CUDA tensor in float32, float16 or bfloat16, with Triton installed."""
+def channels_last_kernels_run(x: torch.Tensor) -> bool:
+    """Whether the Triton kernels for channels-last activations (``group_norm_gelu``, ``bias_gelu``,
+    ``upsample_bilinear``'s 2x) run for ``x``: a 4D channels-last CUDA tensor in float32, float16 or
+    bfloat16, with Triton installed."""
     return (x.is_cuda and x.dim() == 4 and x.dtype in (torch.float32, torch.float16, torch.bfloat16)
             and x.is_contiguous(memory_format=torch.channels_last) and triton_installed())
 
@@ -331,7 +334,7 @@ def group_norm_gelu(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: to
                     gelu: bool = True) -> torch.Tensor:
     """GroupNorm of ``x`` [B,C,H,W] (``groups`` contiguous channel blocks, per-channel affine ``weight``,
     ``bias``), then the exact GELU when ``gelu``; in ``x``'s dtype and layout, autocast or not. Fused
-    Triton kernels where ``fused_group_norm_available``, else ``F.group_norm`` and ``F.gelu``."""
+    Triton kernels where ``channels_last_kernels_run``, else ``F.group_norm`` and ``F.gelu``."""
     return group_norm_gelu_parts(x, groups, weight, bias, eps, gelu, parts=1)[0]
 
 
@@ -341,7 +344,7 @@ def group_norm_gelu_parts(x: torch.Tensor, groups: int, weight: torch.Tensor, bi
     groups; at most 3), for consumers that each read one block. Where the Triton kernels run, each block
     is its own channels-last tensor (written so, and its gradient read so: no copy of a channel slice,
     no concatenation of gradients); elsewhere views of one output."""
-    if fused_group_norm_available(x):
+    if channels_last_kernels_run(x):
         with torch.autocast(x.device.type, enabled=False):
             return list(_GroupNormGELU.apply(x, weight, bias, groups, eps, gelu, parts))
     y = group_norm(x, groups, weight, bias, eps)
@@ -384,7 +387,7 @@ def bias_gelu(x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     channels-last CUDA tensor (``sgmodel.bias_gelu_kernels``: x + bias in float32, its gradient in the same
     pass as x's), else PyTorch's addition (the bias cast to x's dtype, as a convolution under autocast adds
     it) and GELU."""
-    if fused_group_norm_available(x):
+    if channels_last_kernels_run(x):
         return _BiasGELU.apply(x, bias)
     return F.gelu(x + bias.to(x.dtype).view(-1, 1, 1))
 
@@ -419,9 +422,7 @@ def upsample_bilinear(x: torch.Tensor, size: tuple[int, int], dtype: torch.dtype
     (``sgmodel.upsample_kernels``: the decoder's last upsampling, 6 ms less a training step on an H100),
     else ``F.interpolate`` (float32 under autocast) and a cast."""
     h, w = x.shape[-2:]
-    if (tuple(size) == (2 * h, 2 * w) and x.is_cuda and x.dim() == 4 and triton_installed()
-            and x.dtype in (torch.float32, torch.float16, torch.bfloat16)
-            and x.is_contiguous(memory_format=torch.channels_last)):
+    if tuple(size) == (2 * h, 2 * w) and channels_last_kernels_run(x):
         with torch.autocast(x.device.type, enabled=False):
             return _Upsample2x.apply(x, dtype)
     return F.interpolate(x, size=tuple(size), mode="bilinear", align_corners=False).to(dtype)

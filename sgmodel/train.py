@@ -49,8 +49,7 @@ from .config import ModelParams, TrainParams
 from .data import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
 from .distributed import World, all_sum, broadcast_flag, close_world, init_world
 from .encoder_cache import EncoderCache, open_cache, precision_of
-from .layers import amp_autocast
-from .layers import compiles
+from .layers import amp_autocast, compiles
 from .losses import create_objective
 from .model import StereoGaussians, create_model
 from .render import render_views

@@ -84,3 +84,24 @@ def record_compile(monkeypatch) -> list:
 
     monkeypatch.setattr(torch, "compile", recorder)
     return seen
+
+
+def layers_case() -> tuple:
+    """A small float64 model (stand-in encoder, 32x32 input, padding 4, 16 channels, 4 groups) with every
+    weight drawn at std 0.2 (no zero-initialised head), and inputs for ``model.layers``:
+    (model, left, z, features, K)."""
+    from sgmodel.config import ModelParams
+    from sgmodel.model import StereoGaussians
+
+    torch.manual_seed(0)
+    p = ModelParams(resolution=32, padding=4)
+    p.decoder.channels = p.predictor.channels = 16
+    p.decoder.groups = p.predictor.groups = 4
+    model = StereoGaussians(p, StandInEncoder()).double()
+    with torch.no_grad():
+        for t in model.parameters():
+            t.normal_(std=0.2)
+    left = torch.rand(2, 3, 32, 32, dtype=torch.float64)
+    z = 1 + torch.rand(2, 1, 32, 32, dtype=torch.float64)
+    K = torch.tensor([[30.0, 0, 16], [0, 30, 16], [0, 0, 1]], dtype=torch.float64).expand(2, 3, 3)
+    return model, left, z, model.encoder(left, left).features, K

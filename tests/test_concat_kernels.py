@@ -12,11 +12,10 @@ import torch
 
 from sgmodel import decoder as decoder_module
 from sgmodel import predictor as predictor_module
-from sgmodel.config import ModelParams, PredictorParams
+from sgmodel.config import PredictorParams
 from sgmodel.layers import cat_channels
-from sgmodel.model import StereoGaussians
 from sgmodel.predictor import GaussianPredictor
-from tests.model_helpers import StandInEncoder
+from tests.model_helpers import layers_case
 
 CL = torch.channels_last
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the Triton concat kernels)")
@@ -158,15 +157,7 @@ def test_decoder_casts_its_resized_inputs_to_the_convolutions_dtype(monkeypatch)
     depth to its convolutions' dtype before they meet the features (``cat_channels`` takes one dtype, as
     its CUDA kernels do). Here the resize is made to answer in float32 while the layers run in float64 on
     the CPU: the layers run, and give the float64 result to float32's rounding."""
-    torch.manual_seed(0)
-    p = ModelParams(resolution=32, padding=4)
-    p.decoder.channels = p.predictor.channels = 16
-    p.decoder.groups = p.predictor.groups = 4
-    model = StereoGaussians(p, StandInEncoder()).double()
-    left = torch.rand(2, 3, 32, 32, dtype=torch.float64)
-    z = 1 + torch.rand(2, 1, 32, 32, dtype=torch.float64)
-    K = torch.tensor([[30.0, 0, 16], [0, 30, 16], [0, 0, 1]], dtype=torch.float64).expand(2, 3, 3)
-    features = model.encoder(left, left).features
+    model, left, z, features, K = layers_case()
     for module in (decoder_module, predictor_module):
         monkeypatch.setattr(module, "compute_dtype", lambda device: torch.float64)
     want = model.layers(left, z, features, K)[:3]

@@ -9,13 +9,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from sgmodel import decoder, layers, predictor
-from sgmodel.config import ModelParams, PredictorParams
-from sgmodel.layers import (GroupNorm, ReplicateConv2d, cat_channels, compute_dtype, fused_group_norm_available,
+from sgmodel.config import PredictorParams
+from sgmodel.layers import (GroupNorm, ReplicateConv2d, cat_channels, compute_dtype, channels_last_kernels_run,
                             group_norm_gelu, group_norm_gelu_parts, replicate_conv3x3, replicate_pad,
                             triton_installed, upsample_bilinear)
-from sgmodel.model import StereoGaussians
 from sgmodel.predictor import GaussianPredictor, fused_branches
-from tests.model_helpers import StandInEncoder
+from tests.model_helpers import layers_case
 
 CL = torch.channels_last
 
@@ -199,7 +198,7 @@ def test_group_norm_gelu_is_pytorch_off_cuda():
     torch.manual_seed(0)
     x = (torch.randn(2, 12, 5, 6, dtype=torch.float64) * 4 + 1).contiguous(memory_format=CL)
     w, b = torch.randn(12, dtype=torch.float64), torch.randn(12, dtype=torch.float64)
-    assert not fused_group_norm_available(x)
+    assert not channels_last_kernels_run(x)
     torch.testing.assert_close(group_norm_gelu(x, 3, w, b, 1e-5), F.gelu(F.group_norm(x, 3, w, b, 1e-5)),
                                rtol=0, atol=0)
     torch.testing.assert_close(group_norm_gelu(x, 3, w, b, 1e-5, gelu=False), F.group_norm(x, 3, w, b, 1e-5),
@@ -209,18 +208,7 @@ def test_group_norm_gelu_is_pytorch_off_cuda():
 def test_cuda_layout_computes_the_same_model_on_the_cpu(monkeypatch):
     """The decoder and predictor with CUDA's layout (channels-last activations, channels padded to 8) give
     the NCHW results and gradients, in float64 on the CPU."""
-    torch.manual_seed(0)
-    p = ModelParams(resolution=32, padding=4)
-    p.decoder.channels = p.predictor.channels = 16
-    p.decoder.groups = p.predictor.groups = 4
-    model = StereoGaussians(p, StandInEncoder()).double()
-    with torch.no_grad():
-        for t in model.parameters():
-            t.normal_(std=0.2)
-    left = torch.rand(2, 3, 32, 32, dtype=torch.float64)
-    z = 1 + torch.rand(2, 1, 32, 32, dtype=torch.float64)
-    K = torch.tensor([[30.0, 0, 16], [0, 30, 16], [0, 0, 1]], dtype=torch.float64).expand(2, 3, 3)
-    features = model.encoder(left, left).features
+    model, left, z, features, K = layers_case()
     for module in (decoder, predictor):  # float64 convolutions (compute_dtype says float32 off autocast)
         monkeypatch.setattr(module, "compute_dtype", lambda device: torch.float64)
 
@@ -252,7 +240,7 @@ def test_fused_group_norm_gelu_matches_pytorch_float64_on_cuda(shape, groups, ge
     channel blocks of 16, 4, 12 (not a power of two) and 2, one-pixel images, a mean far from zero; and
     the output in parts (the predictor's branches), each its own channels-last tensor, with one cotangent
     per part, against the float64 whole split."""
-    if not fused_group_norm_available(torch.zeros(1, 8, 1, 1, device="cuda").contiguous(memory_format=CL)):
+    if not channels_last_kernels_run(torch.zeros(1, 8, 1, 1, device="cuda").contiguous(memory_format=CL)):
         pytest.skip("Triton is not installed")
     torch.manual_seed(0)
     C = shape[1]
@@ -351,7 +339,7 @@ def test_bias_gelu_matches_float64_on_cuda(shape, dtype):
     rounding, the bias gradient (summed in float32 over every pixel, in the backward's own pass) within
     float32's; many pixels, a channel count that is not a power of two, pixels that leave a tile part empty,
     one pixel; values far into both tails of the GELU."""
-    if not fused_group_norm_available(torch.zeros(1, 8, 1, 1, device="cuda").contiguous(memory_format=CL)):
+    if not channels_last_kernels_run(torch.zeros(1, 8, 1, 1, device="cuda").contiguous(memory_format=CL)):
         pytest.skip("Triton is not installed")
     torch.manual_seed(0)
     C = shape[1]
