@@ -47,7 +47,8 @@ from torch import nn
 #: (cuDNN's NHWC tensor-core kernels; a 259 -> 384 channel 3x3 convolution at the canvas size took 36.6 ms
 #: forward + backward with 259 input channels and 28.9 ms with 264, H100, bf16, batch 32).
 CUDA_CHANNEL_MULTIPLE = 8
-#: the most tensors ``cat_channels`` concatenates in one Triton launch (``sgmodel.concat_kernels``' slots)
+#: the most tensors ``cat_channels`` concatenates in one Triton launch (``sgmodel.concat_kernels``' source
+#: slots; that module cannot import this one: no import cycles)
 CAT_KERNEL_SOURCES = 3
 
 
