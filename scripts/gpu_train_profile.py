@@ -1,5 +1,6 @@
 """Where a training step's GPU time goes: ``torch.profiler`` over free-running ``train_step`` calls at the
-paper's size (synthetic batches, as ``sgmodel bench train``). Prints markdown: the top CUDA kernels per
+paper's size (synthetic batches, as ``sgmodel bench train``; the composer and the LPIPS term's VGG16 compiled as ``sgmodel train``
+runs them on CUDA). Prints markdown: the top CUDA kernels per
 step, their time by kind, and the GPU's idle gaps (first kernel to last) with the host operation that was
 running when each of the largest began; then the PyTorch operations with the most GPU time of their own, by
 input shape (which elementwise kernel, copy or reduction comes from where). Used by scripts/gpu_train_step.sh
@@ -23,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sgmodel.bench.train import synthetic_batch  # noqa: E402
 from sgmodel.config import ModelParams  # noqa: E402
-from sgmodel.layers import amp_autocast  # noqa: E402
+from sgmodel.layers import amp_autocast, compiles  # noqa: E402
 from sgmodel.losses import Objective  # noqa: E402
 from sgmodel.lpips import random_lpips  # noqa: E402
 from sgmodel.model import create_model, encode_pair  # noqa: E402
@@ -64,7 +65,11 @@ def main() -> int:
     device = torch.device("cuda")
     torch.backends.cudnn.benchmark = True
     model = create_model(ModelParams(resolution=args.resolution), device)
-    objective = Objective(random_lpips(device) if args.lpips_random_vgg else None, reason="profiled", amp=True)
+    lpips = random_lpips(device) if args.lpips_random_vgg else None
+    if compiles(device):  # the composer and the LPIPS term's VGG16 compiled, as `sgmodel train` runs them
+        model.compile_composer()
+        lpips = lpips and lpips.compile_trunk()
+    objective = Objective(lpips, reason="profiled", amp=True)
     optimizer = create_optimizer([p for p in model.parameters() if p.requires_grad], device, lr=1e-5)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
     batches = [synthetic_batch(args.batch_size, 4, args.resolution, device, i) for i in range(2)]

@@ -10,8 +10,8 @@
 # Device call 2 (carry .devdata):                  mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
 # Device call 3 (carry .gpukit/b, .whl; one call carries at most 64 MiB, each within 30 s of the one before):
 #   SGMODEL_CACHE=/root/sgcache bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
-#   tests:   the CUDA tests of the layers, concatenation, SSIM term and composer (Triton, compiled), LPIPS,
-#            soft-argmin, rasteriser
+#   tests:   the CUDA tests of the layers, concatenation, SSIM term and composer (Triton, compiled), LPIPS (its
+#            tap-distance kernels), soft-argmin, rasteriser
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
 #            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
 #   profile: scripts/gpu_train_profile.py with each term
@@ -90,7 +90,7 @@ compiled_and_eager() {  # compiled_and_eager FILE NAME EAGER_FLAG [TRAIN FLAGS..
 for what in "$@"; do case $what in
 tests)
   run python3 -m pytest -q -p no:cacheprovider tests/test_layers.py tests/test_ssim_kernels.py tests/test_model.py \
-    tests/test_concat_kernels.py \
+    tests/test_concat_kernels.py tests/test_lpips_kernels.py \
     tests/test_lpips.py tests/test_soft_argmin.py tests/test_raster_backward.py tests/test_raster_forward.py \
     tests/test_raster_variants.py tests/test_raster_batch.py tests/test_raster_stability.py -k "cuda" 2>&1 \
     | tee "$OUT/tests.txt" | tail -5 ;;

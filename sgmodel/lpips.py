@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from sgmodel.layers import triton_installed
 from sgmodel.weights import WeightsError, resolve, sha256_file
 
 #: torchvision's file name for the ImageNet VGG16 weights; its 8 hex digits are the sha256 prefix.
@@ -45,6 +46,8 @@ _SHIFT = (-0.030, -0.088, -0.188)
 _SCALE = (0.458, 0.448, 0.450)
 #: epsilon of LPIPS's channel normalisation ``f / (||f|| + eps)``.
 _NORM_EPS = 1e-10
+#: the widest features ``tap_distance`` sends to the Triton kernels (a program holds every channel of its pixels).
+_KERNEL_MAX_CHANNELS = 1024
 
 
 class VGG16Trunk(nn.Module):
@@ -151,11 +154,44 @@ class _TapDistance(torch.autograd.Function):
         return tuple(grads)
 
 
+class _KernelTapDistance(torch.autograd.Function):
+    """``_TapDistance`` for CUDA features in two Triton kernels (``sgmodel.lpips_kernels``): the forward reads
+    each side once and keeps the two norms per pixel, the backward recomputes the difference from the
+    features; no float32 copy of a feature map is made or kept."""
+
+    @staticmethod
+    def forward(ctx, a: Tensor, b: Tensor, weight: Tensor) -> Tensor:
+        from sgmodel import lpips_kernels
+
+        w = weight.reshape(-1).float().contiguous()
+        d, norm_a, norm_b = lpips_kernels.forward(a, b, w, _NORM_EPS)
+        if any(ctx.needs_input_grad[:2]):  # both sides' features: the difference is recomputed from them
+            ctx.save_for_backward(a, b, w, norm_a, norm_b)
+        return d
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        from sgmodel import lpips_kernels
+
+        a, b, w, norm_a, norm_b = ctx.saved_tensors
+        da, db = lpips_kernels.backward(grad, a, b, w, norm_a, norm_b, _NORM_EPS, *ctx.needs_input_grad[:2])
+        return da, db, None
+
+
+def _kernel_runs(a: Tensor, b: Tensor) -> bool:
+    """Whether ``tap_distance`` runs the Triton kernels: 4D CUDA features of one float32, float16 or bfloat16
+    dtype, at most ``_KERNEL_MAX_CHANNELS`` channels, with Triton installed."""
+    return (a.is_cuda and a.dim() == 4 and a.dtype == b.dtype and a.dtype in (torch.float32, torch.float16,
+            torch.bfloat16) and a.shape[1] <= _KERNEL_MAX_CHANNELS and triton_installed())
+
+
 def tap_distance(a: Tensor, b: Tensor, weight: Tensor) -> Tensor:
     """LPIPS's distance map of one tap: raw features a, b [N, C, h, w] (any float dtype), linear weights
     [1, C, 1, 1] -> [N, 1, h, w] in float32 (float64 for float64 inputs): each side unit-normalised over
-    channels (|f| + 1e-10), the squared difference weighted and summed over channels (``_TapDistance``)."""
-    return _TapDistance.apply(a, b, weight.to(torch.promote_types(weight.dtype, torch.float32)))
+    channels (|f| + 1e-10), the squared difference weighted and summed over channels. On CUDA in Triton
+    kernels (``_KernelTapDistance``), elsewhere ``_TapDistance``."""
+    weight = weight.to(torch.promote_types(weight.dtype, torch.float32))
+    return (_KernelTapDistance if _kernel_runs(a, b) else _TapDistance).apply(a, b, weight)
 
 
 class LPIPS(nn.Module):
