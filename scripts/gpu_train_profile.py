@@ -1,9 +1,9 @@
 """Where a training step's GPU time goes: ``torch.profiler`` over free-running ``train_step`` calls at the
-paper's size (synthetic batches, as ``sgmodel bench train``; the composer and the LPIPS term's VGG16 compiled as ``sgmodel train``
-runs them on CUDA). Prints markdown: the top CUDA kernels per
-step, their time by kind, and the GPU's idle gaps (first kernel to last) with the host operation that was
-running when each of the largest began; then the PyTorch operations with the most GPU time of their own, by
-input shape (which elementwise kernel, copy or reduction comes from where). Used by scripts/gpu_train_step.sh
+paper's size (synthetic batches, as ``sgmodel bench train``; the composer and the LPIPS term's VGG16
+compiled, as ``sgmodel train`` runs them on CUDA). Prints markdown: the top CUDA kernels per step, their
+time by kind, and the GPU's idle gaps (first kernel to last) with the host operation that was running when
+each of the largest began; then the PyTorch operations with the most GPU time of their own, by input shape
+(which elementwise kernel, copy or reduction comes from where). Used by scripts/gpu_train_step.sh
 (profile). ``--cached-encoder``: the encoder's outputs given with the batch, as ``--encoder-cache`` gives them.
 
     python scripts/gpu_train_profile.py [--steps 3] [--lpips-random-vgg] [--cached-encoder] [--top 40] [--out FILE]
