@@ -46,8 +46,9 @@ def _load(ptr, pix, ch, m, HW, W, sn, sc, sh, sw):
 
 
 @triton.jit
-def _tap_forward_kernel(a_ptr, b_ptr, w_ptr, d_ptr, na_ptr, nb_ptr, P, C, HW, W,
-                        san, sac, sah, saw, sbn, sbc, sbh, sbw, eps, BP: tl.constexpr, BC: tl.constexpr):
+def _tile(a_ptr, b_ptr, w_ptr, P, C, HW, W, san, sac, sah, saw, sbn, sbc, sbh, sbw,
+          BP: tl.constexpr, BC: tl.constexpr):
+    """This program's pixels, channels, their masks, the [BP, BC] tiles of a and b (float32) and the weights."""
     pix = tl.program_id(0) * BP + tl.arange(0, BP)
     ch = tl.arange(0, BC)
     pok = pix < P
@@ -55,6 +56,13 @@ def _tap_forward_kernel(a_ptr, b_ptr, w_ptr, d_ptr, na_ptr, nb_ptr, P, C, HW, W,
     a = _load(a_ptr, pix, ch, m, HW, W, san, sac, sah, saw)
     b = _load(b_ptr, pix, ch, m, HW, W, sbn, sbc, sbh, sbw)
     w = tl.load(w_ptr + ch, mask=ch < C, other=0.0)
+    return pix, ch, pok, m, a, b, w
+
+
+@triton.jit
+def _tap_forward_kernel(a_ptr, b_ptr, w_ptr, d_ptr, na_ptr, nb_ptr, P, C, HW, W,
+                        san, sac, sah, saw, sbn, sbc, sbh, sbw, eps, BP: tl.constexpr, BC: tl.constexpr):
+    pix, ch, pok, m, a, b, w = _tile(a_ptr, b_ptr, w_ptr, P, C, HW, W, san, sac, sah, saw, sbn, sbc, sbh, sbw, BP, BC)
     na = tl.sqrt(tl.sum(a * a, axis=1))
     nb = tl.sqrt(tl.sum(b * b, axis=1))
     diff = a / (na + eps)[:, None] - b / (nb + eps)[:, None]
@@ -77,13 +85,7 @@ def _tap_backward_kernel(g_ptr, a_ptr, b_ptr, w_ptr, na_ptr, nb_ptr, da_ptr, db_
                          sgn, sgh, sgw, san, sac, sah, saw, sbn, sbc, sbh, sbw,
                          sdan, sdac, sdah, sdaw, sdbn, sdbc, sdbh, sdbw, eps,
                          NEED_A: tl.constexpr, NEED_B: tl.constexpr, BP: tl.constexpr, BC: tl.constexpr):
-    pix = tl.program_id(0) * BP + tl.arange(0, BP)
-    ch = tl.arange(0, BC)
-    pok = pix < P
-    m = pok[:, None] & (ch < C)[None, :]
-    a = _load(a_ptr, pix, ch, m, HW, W, san, sac, sah, saw)
-    b = _load(b_ptr, pix, ch, m, HW, W, sbn, sbc, sbh, sbw)
-    w = tl.load(w_ptr + ch, mask=ch < C, other=0.0)
+    pix, ch, pok, m, a, b, w = _tile(a_ptr, b_ptr, w_ptr, P, C, HW, W, san, sac, sah, saw, sbn, sbc, sbh, sbw, BP, BC)
     na = tl.load(na_ptr + pix, mask=pok, other=0.0)
     nb = tl.load(nb_ptr + pix, mask=pok, other=0.0)
     grad = tl.load(g_ptr + _offsets(pix, HW, W, sgn, sgh, sgw), mask=pok, other=0.0).to(tl.float32)
@@ -99,7 +101,7 @@ def _tap_backward_kernel(g_ptr, a_ptr, b_ptr, w_ptr, na_ptr, nb_ptr, da_ptr, db_
         tl.store(db_ptr + offs, gb.to(db_ptr.dtype.element_ty), mask=m)
 
 
-def _tile(c: int) -> tuple[int, int]:
+def _tile_shape(c: int) -> tuple[int, int]:
     """(BP, BC): the tile's pixels and channels for C channels."""
     bc = triton.next_power_of_2(c)
     return max(1, _TILE // bc), bc
@@ -111,7 +113,7 @@ def forward(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor, eps: float
     [N, C, h, w] (one dtype, any strides) with weights [C] (float32, contiguous)."""
     n, c, h, w = a.shape
     d, na, nb = (torch.empty((n, 1, h, w), device=a.device, dtype=torch.float32) for _ in range(3))
-    bp, bc = _tile(c)
+    bp, bc = _tile_shape(c)
     grid = (triton.cdiv(n * h * w, bp),)
     _tap_forward_kernel[grid](a, b, weight, d, na, nb, n * h * w, c, h * w, w, *a.stride(), *b.stride(), eps,
                               BP=bp, BC=bc, num_warps=4)
@@ -126,7 +128,7 @@ def backward(grad: torch.Tensor, a: torch.Tensor, b: torch.Tensor, weight: torch
     n, c, h, w = a.shape
     da = torch.empty_like(a) if need_a else None
     db = torch.empty_like(b) if need_b else None
-    bp, bc = _tile(c)
+    bp, bc = _tile_shape(c)
     grid = (triton.cdiv(n * h * w, bp),)
     sg = grad.stride()
     da_or_a, db_or_b = a if da is None else da, b if db is None else db  # an unwanted side's pointer is unused

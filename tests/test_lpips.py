@@ -148,7 +148,7 @@ def test_gradient_reaches_input_not_weights(net):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the bf16 channels-last loss path)")
-def test_bf16_training_path_stays_close_to_float32(net):
+def test_bf16_training_path_stays_close_to_float32_on_cuda(net):
     """Under CUDA autocast the loss runs VGG16 channels-last in bf16: close to the float32 path in value,
     and its input gradient points the same way."""
     cuda = net.to("cuda")
