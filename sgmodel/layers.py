@@ -310,12 +310,17 @@ class _GroupNormGELU(torch.autograd.Function):
         return dx, dw, db, None, None, None, None
 
 
+def triton_kernels_run(x: torch.Tensor) -> bool:
+    """Whether our Triton kernels of 4D activations take ``x``: a 4D CUDA tensor in float32, float16 or
+    bfloat16, with Triton installed (``channels_last_kernels_run``; LPIPS's tap distance in any strides)."""
+    return (x.is_cuda and x.dim() == 4 and x.dtype in (torch.float32, torch.float16, torch.bfloat16)
+            and triton_installed())
+
+
 def channels_last_kernels_run(x: torch.Tensor) -> bool:
     """Whether the Triton kernels for channels-last activations (``group_norm_gelu``, ``bias_gelu``,
-    ``upsample_bilinear``'s 2x) run for ``x``: a 4D channels-last CUDA tensor in float32, float16 or
-    bfloat16, with Triton installed."""
-    return (x.is_cuda and x.dim() == 4 and x.dtype in (torch.float32, torch.float16, torch.bfloat16)
-            and x.is_contiguous(memory_format=torch.channels_last) and triton_installed())
+    ``upsample_bilinear``'s 2x) run for ``x``: ``triton_kernels_run`` and channels-last."""
+    return triton_kernels_run(x) and x.is_contiguous(memory_format=torch.channels_last)
 
 
 @functools.cache

@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from sgmodel.layers import triton_installed
+from sgmodel.layers import triton_kernels_run
 from sgmodel.weights import WeightsError, resolve, sha256_file
 
 #: torchvision's file name for the ImageNet VGG16 weights; its 8 hex digits are the sha256 prefix.
@@ -179,10 +179,9 @@ class _KernelTapDistance(torch.autograd.Function):
 
 
 def _kernel_runs(a: Tensor, b: Tensor) -> bool:
-    """Whether ``tap_distance`` runs the Triton kernels: 4D CUDA features of one float32, float16 or bfloat16
-    dtype, at most ``_KERNEL_MAX_CHANNELS`` channels, with Triton installed."""
-    return (a.is_cuda and a.dim() == 4 and a.dtype == b.dtype and a.dtype in (torch.float32, torch.float16,
-            torch.bfloat16) and a.shape[1] <= _KERNEL_MAX_CHANNELS and triton_installed())
+    """Whether ``tap_distance`` runs the Triton kernels: features the kernels take (``layers.triton_kernels_run``)
+    of one dtype, at most ``_KERNEL_MAX_CHANNELS`` channels."""
+    return triton_kernels_run(a) and a.dtype == b.dtype and a.shape[1] <= _KERNEL_MAX_CHANNELS
 
 
 def tap_distance(a: Tensor, b: Tensor, weight: Tensor) -> Tensor:
