@@ -27,10 +27,10 @@ from scenesplat_stereo.files import (LOCK_FILE, TMP_PREFIX, FolderLock, atomic_w
                                      check_writable, read_json)
 from scenesplat_stereo.text import markdown_table
 
-from . import evaluate
-from .config import ConfigurationError, ModelParams, TrainParams
-from .encoders.flags import build_encoder
-from .train import open_run_cache, read_split_checked, train
+from sgmodel import evaluate
+from sgmodel.config import ConfigurationError, ModelParams, TrainParams
+from sgmodel.encoders.flags import build_encoder
+from sgmodel.train import open_run_cache, read_split_checked, train
 
 
 def variants(base: ModelParams) -> list[tuple[str, str, ModelParams]]:

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import torch
 
-from .geometry import unproject
-from .render import SH_COEFFS
+from sgmodel.geometry import unproject
+from sgmodel.render import SH_COEFFS
 
 METHODS = ("naive-gs", "forward-splat")
 #: Real SH constant of degree 0 (SPEC section 1): colour = C0 * DC + 0.5.

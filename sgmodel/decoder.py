@@ -17,8 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .config import ConfigurationError
-from .layers import GroupNorm, activation_format, cat_channels, compute_dtype, conv_gelu, upsample_bilinear
+from sgmodel.config import ConfigurationError
+from sgmodel.layers import GroupNorm, activation_format, cat_channels, compute_dtype, conv_gelu, upsample_bilinear
 
 
 class ResidualConvUnit(nn.Module):

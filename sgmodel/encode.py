@@ -35,14 +35,14 @@ from scenesplat_stereo.files import LOCK_FILE, TMP_PREFIX, FolderLock, atomic_wr
 from scenesplat_stereo.shards import PlannedShards, iter_shard, read_done, remove_unplanned, shard_number, write_index
 from scenesplat_stereo.text import format_table, whole_number
 
-from . import encoder_cache as cache_format
-from .args import add_device_argument, device_from_flag, preset_params
-from .config import PRESETS
-from .data import RUN_SPLITS, DataError, Shard, check_first_sample, init_loader_worker, load_pair, read_split
-from .distributed import World, all_sum, barrier, close_world, init_world
-from .encoders.flags import add_encoder_arguments, build_encoder, encoder_params
-from .layers import amp_autocast
-from .model import encode_pair
+from sgmodel import encoder_cache as cache_format
+from sgmodel.args import add_device_argument, device_from_flag, preset_params
+from sgmodel.config import PRESETS
+from sgmodel.data import RUN_SPLITS, DataError, Shard, check_first_sample, init_loader_worker, load_pair, read_split
+from sgmodel.distributed import World, all_sum, barrier, close_world, init_world
+from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
+from sgmodel.layers import amp_autocast
+from sgmodel.model import encode_pair
 
 class PairChunks(Dataset):
     """Item j: up to a batch of consecutive pairs of one shard, ``(shard number, keys, left [n,3,S,S], right)``,

@@ -41,7 +41,7 @@ import torch
 from scenesplat_stereo.files import FileFormatError, read_json
 from scenesplat_stereo.shards import INDEX_NAME, iter_shard
 
-from .data import DataError, Shard, read_split
+from sgmodel.data import DataError, Shard, read_split
 
 FORMAT = "sgmodel-encoder-cache/1"
 MANIFEST = "cache.json"

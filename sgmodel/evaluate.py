@@ -30,17 +30,17 @@ from tqdm import tqdm
 from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.text import markdown_table, whole_number
 
-from . import metrics
-from .config import EncoderParams
-from .data import eval_batches, read_split
-from .encoders import DEFAULT_ENCODER
-from .encoders.flags import add_encoder_arguments, build_encoder, encoder_params
-from .inference import Reconstructor
-from .lpips import create_lpips
-from .model import load_predictor
-from .render import render_views
-from .sheets import target_sheet
-from .train import to_device
+from sgmodel import metrics
+from sgmodel.config import EncoderParams
+from sgmodel.data import eval_batches, read_split
+from sgmodel.encoders import DEFAULT_ENCODER
+from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
+from sgmodel.inference import Reconstructor
+from sgmodel.lpips import create_lpips
+from sgmodel.model import load_predictor
+from sgmodel.render import render_views
+from sgmodel.sheets import target_sheet
+from sgmodel.train import to_device
 
 METHODS = ("naive-gs", "forward-splat")
 METRICS = ("psnr", "ssim", "lpips")

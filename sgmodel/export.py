@@ -19,7 +19,7 @@ from scenesplat_stereo.cameras import translation
 from scenesplat_stereo.gaussians import GaussianScene, content_sh_degree
 from scenesplat_stereo.scene_files import save_scene
 
-from .render import check_gaussians
+from sgmodel.render import check_gaussians
 
 #: Frames per second of the orbit animation.
 ORBIT_FPS = 12

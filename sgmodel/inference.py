@@ -24,10 +24,10 @@ import torch
 
 from scenesplat_stereo.gaussians import GaussianScene
 
-from . import baselines
-from .export import to_scene
-from .geometry import depth_from_disparity, disparity_validity
-from .render import render_views
+from sgmodel import baselines
+from sgmodel.export import to_scene
+from sgmodel.geometry import depth_from_disparity, disparity_validity
+from sgmodel.render import render_views
 
 #: Optional stage clock of ``Reconstructor.__call__``: called with a stage name after each stage.
 Lap = Callable[[str], None]

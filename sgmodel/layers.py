@@ -104,14 +104,14 @@ class _CatChannels(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, width: int, pads: tuple[int, ...], *tensors: torch.Tensor) -> torch.Tensor:
-        from . import concat_kernels
+        from sgmodel import concat_kernels
 
         ctx.pads, ctx.shapes, ctx.dtypes = pads, [t.shape for t in tensors], [t.dtype for t in tensors]
         return concat_kernels.forward(list(tensors), list(pads), width)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        from . import concat_kernels
+        from sgmodel import concat_kernels
 
         grads, lo = [], 0
         for need, shape, dtype, p in zip(ctx.needs_input_grad[2:], ctx.shapes, ctx.dtypes, ctx.pads):
@@ -293,7 +293,7 @@ class _GroupNormGELU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, groups: int, eps: float,
                 gelu: bool, parts: int) -> tuple[torch.Tensor, ...]:
-        from . import group_norm_kernels
+        from sgmodel import group_norm_kernels
 
         ys, mean, rstd = group_norm_kernels.forward(x, groups, weight, bias, eps, gelu, parts)
         ctx.save_for_backward(x, weight, bias, mean, rstd)
@@ -302,7 +302,7 @@ class _GroupNormGELU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grads: torch.Tensor):
-        from . import group_norm_kernels
+        from sgmodel import group_norm_kernels
 
         x, weight, bias, mean, rstd = ctx.saved_tensors
         dx, dw, db = group_norm_kernels.backward(list(grads), x, mean, rstd, ctx.groups, weight, bias, ctx.gelu,
@@ -374,14 +374,14 @@ class _BiasGELU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        from . import bias_gelu_kernels
+        from sgmodel import bias_gelu_kernels
 
         ctx.save_for_backward(x, bias)
         return bias_gelu_kernels.forward(x, bias)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        from . import bias_gelu_kernels
+        from sgmodel import bias_gelu_kernels
 
         x, bias = ctx.saved_tensors
         dx, db = bias_gelu_kernels.backward(grad, x, bias)
@@ -409,14 +409,14 @@ class _Upsample2x(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-        from . import upsample_kernels
+        from sgmodel import upsample_kernels
 
         ctx.size, ctx.dtype = tuple(x.shape[-2:]), x.dtype
         return upsample_kernels.forward(x, dtype)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        from . import upsample_kernels
+        from sgmodel import upsample_kernels
 
         return upsample_kernels.backward(grad, *ctx.size, ctx.dtype), None
 

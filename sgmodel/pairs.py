@@ -16,10 +16,10 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from . import rig
-from .calib import Calibration, calib_from_flags, read_calib
-from .rectify import Rectification
-from .stereo_pair import Pair, PredictError, read_image, resize_pair
+from sgmodel import rig
+from sgmodel.calib import Calibration, calib_from_flags, read_calib
+from sgmodel.rectify import Rectification
+from sgmodel.stereo_pair import Pair, PredictError, read_image, resize_pair
 
 #: Raw pair -> model-ready pair (``prepare_pairs``).
 PairTransform = Callable[[Pair], Pair]

@@ -31,12 +31,12 @@ from scenesplat_stereo.cameras import rotation_angle_deg
 from scenesplat_stereo.encode import encode_png, to_uint8
 from scenesplat_stereo.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
 
-from . import rig as rig_mod
-from . import stereo_check
-from .calib import Calibration, foundation_stereo_text
-from .rig import FISHEYE, RigError, StereoRig
-from .rotate import rotate_gaussians
-from .stereo_pair import Pair, read_image, resize_pair
+from sgmodel import rig as rig_mod
+from sgmodel import stereo_check
+from sgmodel.calib import Calibration, foundation_stereo_text
+from sgmodel.rig import FISHEYE, RigError, StereoRig
+from sgmodel.rotate import rotate_gaussians
+from sgmodel.stereo_pair import Pair, read_image, resize_pair
 
 #: OpenCV's free scaling parameter (alpha for pinhole lenses, balance for fisheye): 0 = only valid pixels.
 FREE_SCALING = 0.0

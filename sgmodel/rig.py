@@ -49,7 +49,7 @@ import numpy as np
 
 from scenesplat_stereo.cameras import intrinsics_matrix
 
-from .calib import CalibError
+from sgmodel.calib import CalibError
 
 #: Metres per unit of ``--rig-units``.
 UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}

@@ -20,10 +20,10 @@ import torch.nn.functional as F
 
 from scenesplat_stereo.encode import decode_image
 
-from .calib import Calibration
+from sgmodel.calib import Calibration
 
 if TYPE_CHECKING:
-    from .rectify import Rectification
+    from sgmodel.rectify import Rectification
 
 #: Model input sides are multiples of this (the decoder's coarsest feature stride).
 SIZE_MULTIPLE = 16

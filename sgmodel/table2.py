@@ -28,8 +28,8 @@ from scenesplat_stereo.benchmark import read_benchmark
 from scenesplat_stereo.files import atomic_write_bytes, check_apart, check_replaceable, check_writable
 from scenesplat_stereo.text import key_safe_name, markdown_table
 
-from .data import read_split
-from .evaluate import OWNER, eval_inputs, evaluate, method_of
+from sgmodel.data import read_split
+from sgmodel.evaluate import OWNER, eval_inputs, evaluate, method_of
 
 TABLE_MD, TABLE_JSON = "table2.md", "table2.json"
 #: Row order and labels of the paper's Table 2 ("Stereo geometry without learned prediction", then ours).

@@ -43,17 +43,17 @@ from scenesplat_stereo.files import (LOCK_FILE, TMP_PREFIX, FolderLock, append_l
                                      check_writable, read_json, read_json_lines, remove_temp_files)
 from scenesplat_stereo.text import format_table
 
-from . import metrics
-from .checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
-from .config import ModelParams, TrainParams
-from .data import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
-from .distributed import World, all_sum, broadcast_flag, close_world, init_world
-from .encoder_cache import EncoderCache, open_cache, precision_of
-from .layers import amp_autocast, compiles
-from .losses import create_objective
-from .model import StereoGaussians, create_model
-from .render import render_views
-from .sheets import validation_sheet
+from sgmodel import metrics
+from sgmodel.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
+from sgmodel.config import ModelParams, TrainParams
+from sgmodel.data import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
+from sgmodel.distributed import World, all_sum, broadcast_flag, close_world, init_world
+from sgmodel.encoder_cache import EncoderCache, open_cache, precision_of
+from sgmodel.layers import amp_autocast, compiles
+from sgmodel.losses import create_objective
+from sgmodel.model import StereoGaussians, create_model
+from sgmodel.render import render_views
+from sgmodel.sheets import validation_sheet
 
 log = logging.getLogger(__name__)
 

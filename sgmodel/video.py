@@ -35,13 +35,13 @@ from scenesplat_stereo.encode import to_uint8
 from scenesplat_stereo.gaussians import GaussianScene
 from scenesplat_stereo.scene_files import FORMATS
 
-from .bench import synced_clock
-from .calib import Calibration
-from .export import offset_camera, orbit_camera, write_scene
-from .inference import Reconstructor
-from .pairs import PairTransform
-from .stereo_pair import Pair, PredictError, to_tensor
-from .rectify import Rectification
+from sgmodel.bench import synced_clock
+from sgmodel.calib import Calibration
+from sgmodel.export import offset_camera, orbit_camera, write_scene
+from sgmodel.inference import Reconstructor
+from sgmodel.pairs import PairTransform
+from sgmodel.stereo_pair import Pair, PredictError, to_tensor
+from sgmodel.rectify import Rectification
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import launch, to_wp, vector_type
+from scenesplat_stereo.raster._warp import launch, to_wp, vector_type
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199

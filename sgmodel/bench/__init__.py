@@ -16,7 +16,7 @@ import torch
 from scenesplat_stereo.files import atomic_write_bytes
 
 if TYPE_CHECKING:
-    from ..model import Predictor
+    from sgmodel.model import Predictor
 
 
 def synced_clock(device: torch.device) -> Callable[[], float]:

@@ -29,13 +29,13 @@ from scenesplat_stereo.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene_files import FORMATS
 from scenesplat_stereo.text import argtype, markdown_table, parse_size
 
-from .. import export
-from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
-from ..geometry import depth_from_disparity
-from ..layers import amp_autocast
-from ..model import Predictor, create_model, load_predictor
-from ..render import SH_DEGREE, render_views
-from . import describe, report, synced_clock, synthetic_pair
+from sgmodel import export
+from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
+from sgmodel.geometry import depth_from_disparity
+from sgmodel.layers import amp_autocast
+from sgmodel.model import Predictor, create_model, load_predictor
+from sgmodel.render import SH_DEGREE, render_views
+from sgmodel.bench import describe, report, synced_clock, synthetic_pair
 
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
 
@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     device = torch.device(device_from_flag(args.device))
     predictor = bench_model(args, device)
     if args.video:
-        from .predict_video import bench_video
+        from sgmodel.bench.predict_video import bench_video
 
         return bench_video(args, predictor, device)
     model = predictor.model

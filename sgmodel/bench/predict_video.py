@@ -26,13 +26,13 @@ import torch
 from scenesplat_stereo.encode import to_uint8
 from scenesplat_stereo.text import markdown_table
 
-from ..calib import Calibration
-from ..inference import Reconstructor
-from ..model import Predictor
-from ..pairs import prepare_pairs
-from ..stereo_pair import Pair, to_tensor
-from ..video import CODECS, StereoSource, Trajectory, VideoSink, stream
-from . import describe, report, synced_clock, synthetic_pair
+from sgmodel.calib import Calibration
+from sgmodel.inference import Reconstructor
+from sgmodel.model import Predictor
+from sgmodel.pairs import prepare_pairs
+from sgmodel.stereo_pair import Pair, to_tensor
+from sgmodel.video import CODECS, StereoSource, Trajectory, VideoSink, stream
+from sgmodel.bench import describe, report, synced_clock, synthetic_pair
 
 #: The novel view of the end-to-end run: the left camera moved 5 cm to the right.
 OFFSET = (0.05, 0.0, 0.0)

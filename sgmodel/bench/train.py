@@ -27,17 +27,17 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from scenesplat_stereo.text import markdown_table
 
-from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
-from ..data import make_loader
-from ..encoder_cache import open_cache, precision_of
-from ..geometry import depth_from_disparity
-from ..layers import amp_autocast, compiles
-from ..losses import Objective, create_objective
-from ..lpips import random_lpips, vgg16_missing_message
-from ..model import create_model
-from ..render import render_views
-from ..train import cached_encoding, create_optimizer, to_device, train_step
-from . import report, synced_clock
+from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
+from sgmodel.data import make_loader
+from sgmodel.encoder_cache import open_cache, precision_of
+from sgmodel.geometry import depth_from_disparity
+from sgmodel.layers import amp_autocast, compiles
+from sgmodel.losses import Objective, create_objective
+from sgmodel.lpips import random_lpips, vgg16_missing_message
+from sgmodel.model import create_model
+from sgmodel.render import render_views
+from sgmodel.train import cached_encoding, create_optimizer, to_device, train_step
+from sgmodel.bench import report, synced_clock
 
 STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation forward", "loss", "backward",
           "optimiser")
