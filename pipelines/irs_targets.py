@@ -25,7 +25,7 @@ selection order, ``mask_<jj>.png`` all valid (255: real images have no holes), a
 the largest reference-to-target distance (metres; IRS targets are not on a sphere), plus
 ``target_frames`` (IRS frame numbers) and ``target_coverage``.
 
-Exit status (``scenesplat_stereo.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
+Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
 file, nothing removed), 130 interrupted, 1 internal error.
 """
 
@@ -42,8 +42,8 @@ import numpy as np
 
 from pipelines.irs import IRS_FOCAL_BASELINE, depth_from_disparity, read_disparity
 from scenesplat_stereo.cameras import rotation_angle_deg
-from scenesplat_stereo.commandline import Parser, run_command
-from scenesplat_stereo.text import format_table, key_safe_name, positive_number, whole_number
+from scenesplat_stereo.common.commandline import Parser, run_command
+from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
 
 # Paper appendix F, "IRS target selection and training".
 REFERENCE_MIN_TRANSLATION = 0.05  # metres since the last reference frame ...
@@ -299,13 +299,13 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
 
     from tqdm import tqdm
 
-    from scenesplat_stereo.files import atomic_write_json
+    from scenesplat_stereo.common.files import atomic_write_json
     from scenesplat_stereo.encode_pool import SampleEncoder
     from scenesplat_stereo.protocol import split_scenes
     from scenesplat_stereo.shards import (ShardWriter, collect_stats, finished_shards, remove_shard, write_index,
                                           write_stats)
 
-    from scenesplat_stereo.files import check_writable
+    from scenesplat_stereo.common.files import check_writable
 
     if samples_per_shard < 1:
         raise ValueError(f"--samples-per-shard {samples_per_shard}: must be >= 1")

@@ -19,7 +19,7 @@ import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from scenesplat_stereo.files import atomic_write_json
+from scenesplat_stereo.common.files import atomic_write_json
 
 BENCHMARK_NAME = "benchmark.json"
 SOURCES = ("rendered", "captured")

@@ -31,9 +31,9 @@ from tqdm import tqdm
 from scenesplat_stereo import shards
 from scenesplat_stereo.benchmark import Benchmark, write_benchmark
 from scenesplat_stereo.build_settings import SPLITS_OF_MODE, BuildSettings, add_arguments, settings_from_args
-from scenesplat_stereo.commandline import NotAvailable
+from scenesplat_stereo.common.commandline import NotAvailable
 from scenesplat_stereo.encode_pool import SampleEncoder
-from scenesplat_stereo.files import read_json
+from scenesplat_stereo.common.files import read_json
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.nvjpeg import NvJpegEncoder
 from scenesplat_stereo.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_PER_SCENE, VAL_SCENES, SamplePlan,
@@ -47,7 +47,7 @@ from scenesplat_stereo.teachers import (
     resolve_trajectory,
     summary_table,
 )
-from scenesplat_stereo.text import format_table
+from scenesplat_stereo.common.text import format_table
 
 __all__ = ["BuildSettings", "BuildReport", "add_arguments", "build", "run", "settings_from_args", "summary"]
 

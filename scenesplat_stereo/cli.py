@@ -2,7 +2,7 @@
 
 Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``inspect``,
 ``demo-teachers``, ``bench render``, ``bench build``, ``bench encode``. Units and conventions are stated in each
-command's ``--help``. Exit status (``scenesplat_stereo.commandline``): 0 done, 2 bad arguments or input (one line
+command's ``--help``. Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2 bad arguments or input (one line
 naming the flag or file), 130 interrupted, 1 internal error (traceback with ``--debug``); ``build`` exits 3 when
 a teacher failed, ``inspect`` 1 when a check failed.
 """
@@ -13,8 +13,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenesplat_stereo.commandline import Parser, run_command
-from scenesplat_stereo.text import argtype, parse_size, whole_number
+from scenesplat_stereo.common.commandline import Parser, run_command
+from scenesplat_stereo.common.text import argtype, parse_size, whole_number
 
 
 def _add_render(sub: argparse._SubParsersAction) -> None:

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from scenesplat_stereo.commandline import NotAvailable
+from scenesplat_stereo.common.commandline import NotAvailable
 
 # Matching strategy: exhaustive up to this many frames (all n(n-1)/2 pairs: robust, but O(n^2)), sequential
 # above (about 14 pairs per frame with the overlap below). Measured at 960x540 with 8192 SIFT features on a

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.ply import SH_C0, PlyError, PlyHeader, columns, read_elements
 
 if TYPE_CHECKING:

@@ -26,7 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo.cameras import OPENGL_TO_OPENCV, intrinsics_matrix, look_at
-from scenesplat_stereo.files import atomic_write_json
+from scenesplat_stereo.common.files import atomic_write_json
 from scenesplat_stereo.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.ply import SH_C0
 from scenesplat_stereo.protocol import TIERS

@@ -29,7 +29,7 @@ from scenesplat_stereo import shards
 from scenesplat_stereo.cameras import fibonacci_directions, right_camera, rigid_error, translation
 from scenesplat_stereo.encode import decode_image, encode_png
 from scenesplat_stereo.protocol import NUM_TARGETS, SampleMeta, SampleMetaError, sample_key, tier_for_psnr
-from scenesplat_stereo.text import whole_number
+from scenesplat_stereo.common.text import whole_number
 
 POSE_TOLERANCE = 1e-6  # world units / unitless, for poses stored as float64 JSON
 THUMB_WIDTH = 128  # pixels, contact-sheet thumbnails

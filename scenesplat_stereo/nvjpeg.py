@@ -38,7 +38,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import torch
 
-from scenesplat_stereo.commandline import NotAvailable
+from scenesplat_stereo.common.commandline import NotAvailable
 from scenesplat_stereo.protocol import JPEG_QUALITY
 
 # nvjpeg.h constants

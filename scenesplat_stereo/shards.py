@@ -29,10 +29,10 @@ from typing import Any
 
 import numpy as np
 
-from scenesplat_stereo.files import TMP_PREFIX as _TMP_PREFIX
-from scenesplat_stereo.files import atomic_write_bytes, remove_temp_files
+from scenesplat_stereo.common.files import TMP_PREFIX as _TMP_PREFIX
+from scenesplat_stereo.common.files import atomic_write_bytes, remove_temp_files
 
-__all__ = ["atomic_write_bytes"]  # re-exported: the one atomic writer lives in scenesplat_stereo.files
+__all__ = ["atomic_write_bytes"]  # re-exported: the one atomic writer lives in scenesplat_stereo.common.files
 
 SHARD_NAME = "shard-{:06d}.tar"
 DONE_DIR = ".done"

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.gaussians import GaussianScene
 
 #: "NGSP" read as a little-endian uint32.

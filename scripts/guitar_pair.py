@@ -16,7 +16,7 @@ import torch
 
 from scenesplat_stereo.cameras import orbit_poses, right_camera
 from scenesplat_stereo.encode import encode_png, to_uint8
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
 

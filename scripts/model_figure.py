@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.encode import decode_image, encode_png
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.files import atomic_write_bytes
 from sgmodel.calib import read_calib
 from sgmodel.export import depth_png, novel_view_cameras
 from sgmodel.model import load_predictor

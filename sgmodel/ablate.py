@@ -23,9 +23,9 @@ import copy
 import time
 from pathlib import Path
 
-from scenesplat_stereo.files import (LOCK_FILE, TMP_PREFIX, FolderLock, atomic_write_bytes, check_apart,
+from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, atomic_write_bytes, check_apart,
                                      check_writable, read_json)
-from scenesplat_stereo.text import markdown_table
+from scenesplat_stereo.common.text import markdown_table
 
 from sgmodel import evaluate
 from sgmodel.config import ConfigurationError, ModelParams, TrainParams

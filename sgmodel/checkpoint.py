@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.files import atomic_write_bytes
 
 from sgmodel.config import ModelParams
 

@@ -2,7 +2,7 @@
 
 Commands: ``train``, ``eval``, ``predict``, ``rectify``, ``ablate``, ``encode``, ``weights fetch``,
 ``bench train``, ``bench encoders``, ``bench predict``. Every command checks all its inputs before it writes
-anything; its errors end in ``scenesplat_stereo.commandline.run_command``: exit 2 with one line naming the flag or file
+anything; its errors end in ``scenesplat_stereo.common.commandline.run_command``: exit 2 with one line naming the flag or file
 for bad arguments and input (a bad flag value, a missing or corrupt file, weights that are not there, a
 diverged run, a full disk, running out of memory), 130 for Ctrl-C (what was kept is said), 1 with one line
 for an internal error (the traceback with ``--debug`` or ``STEREOGAUSSIANS_DEBUG=1``).
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from scenesplat_stereo.commandline import Parser, run_command
+from scenesplat_stereo.common.commandline import Parser, run_command
 
 from sgmodel.args import (add_device_argument, add_model_arguments, add_train_arguments, device_from_flag,
                           params_from_args)

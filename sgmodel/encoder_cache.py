@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.files import FileFormatError, read_json
+from scenesplat_stereo.common.files import FileFormatError, read_json
 from scenesplat_stereo.shards import INDEX_NAME, iter_shard
 
 from sgmodel.data import DataError, Shard, read_split

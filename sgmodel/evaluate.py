@@ -11,7 +11,7 @@ Writes REPORT/ after every input is checked (the data split, the checkpoint or e
 and REPORT itself: absent, empty or an earlier report, apart from the data): ``metrics.json`` (means,
 target count, encoder, method or checkpoint, split), ``targets.csv`` (one row per target), ``scenes.md`` (a
 table per scene), and ``sheet.png`` (the worst and the best targets by PSNR: target | render). The report
-is built in a staging folder that replaces REPORT as a whole (``scenesplat_stereo.files.StagedFolder``).
+is built in a staging folder that replaces REPORT as a whole (``scenesplat_stereo.common.files.StagedFolder``).
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable
-from scenesplat_stereo.text import markdown_table, whole_number
+from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
+from scenesplat_stereo.common.text import markdown_table, whole_number
 
 from sgmodel import metrics
 from sgmodel.config import EncoderParams

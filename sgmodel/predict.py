@@ -24,7 +24,7 @@ side), the calibration against them (principal point inside the image; a warning
 centre, as with a K of another resolution), a pair's depth against the calibration (refused when ``doffs``
 or the baseline puts 99% of the pixels at the depth clamp), and OUT (absent, empty, or an earlier output of
 ``sgmodel predict``; apart from the inputs). The outputs are written to a staging folder beside OUT that
-replaces OUT as a whole at the end (``scenesplat_stereo.files.StagedFolder``): no file of an earlier
+replaces OUT as a whole at the end (``scenesplat_stereo.common.files.StagedFolder``): no file of an earlier
 prediction is left beside new ones. Errors in the inputs raise ``PredictError`` (or ``CalibError``, a
 ``StereoCheckError``), which the command line turns into one line and exit status 2.
 
@@ -47,7 +47,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.encode import encode_png, to_uint8
-from scenesplat_stereo.files import StagedFolder, check_apart, check_replaceable
+from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene_files import FORMATS
 
 from sgmodel import baselines, export, rig, stereo_check, video

@@ -29,7 +29,7 @@ import torch
 
 from scenesplat_stereo.cameras import rotation_angle_deg
 from scenesplat_stereo.encode import encode_png, to_uint8
-from scenesplat_stereo.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
+from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
 
 from sgmodel import rig as rig_mod
 from sgmodel import stereo_check

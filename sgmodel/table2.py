@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from scenesplat_stereo.benchmark import read_benchmark
-from scenesplat_stereo.files import atomic_write_bytes, check_apart, check_replaceable, check_writable
-from scenesplat_stereo.text import key_safe_name, markdown_table
+from scenesplat_stereo.common.files import atomic_write_bytes, check_apart, check_replaceable, check_writable
+from scenesplat_stereo.common.text import key_safe_name, markdown_table
 
 from sgmodel.data import read_split
 from sgmodel.evaluate import OWNER, eval_inputs, evaluate, method_of

@@ -38,10 +38,10 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from scenesplat_stereo.commandline import Interrupted
-from scenesplat_stereo.files import (LOCK_FILE, TMP_PREFIX, FolderLock, append_line, atomic_write_bytes, check_apart,
+from scenesplat_stereo.common.commandline import Interrupted
+from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, append_line, atomic_write_bytes, check_apart,
                                      check_writable, read_json, read_json_lines, remove_temp_files)
-from scenesplat_stereo.text import format_table
+from scenesplat_stereo.common.text import format_table
 
 from sgmodel import metrics
 from sgmodel.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint

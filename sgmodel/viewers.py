@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesplat_stereo.files import atomic_write_json
+from scenesplat_stereo.common.files import atomic_write_json
 
 #: The settings schema version written (the viewer migrates older ones, never newer).
 SETTINGS_VERSION = 2

@@ -62,7 +62,7 @@ def test_matching_choice_and_checks(tmp_path):
 
 
 def test_atomic_write_json(tmp_path):
-    from scenesplat_stereo.files import atomic_write_json
+    from scenesplat_stereo.common.files import atomic_write_json
 
     path = tmp_path / "sub" / "a.json"
     atomic_write_json(path, {"x": [1, 2]})

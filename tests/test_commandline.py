@@ -1,6 +1,6 @@
-"""The one way out of every command (``scenesplat_stereo.commandline``): exit 2 with one line for what the user
+"""The one way out of every command (``scenesplat_stereo.common.commandline``): exit 2 with one line for what the user
 can fix, 130 for Ctrl-C, 1 for a bug (traceback only on request), argparse's refusals in one line, warnings
-named by the command; and the file helpers that keep outputs whole (``scenesplat_stereo.files``)."""
+named by the command; and the file helpers that keep outputs whole (``scenesplat_stereo.common.files``)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from scenesplat_stereo.commandline import (DEBUG_ENV, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE, Interrupted,
+from scenesplat_stereo.common.commandline import (DEBUG_ENV, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE, Interrupted,
                                            NotAvailable, Parser, one_line, run_command)
-from scenesplat_stereo.files import (LOCK_FILE, OWNER_FILE, FileFormatError, FolderBusy, FolderLock, StagedFolder,
+from scenesplat_stereo.common.files import (LOCK_FILE, OWNER_FILE, FileFormatError, FolderBusy, FolderLock, StagedFolder,
                                      append_line, check_replaceable, read_json, read_json_lines)
 from scenesplat_stereo.shards import ShardError, ShardWriter, iter_shard
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo.commandline import Interrupted
+from scenesplat_stereo.common.commandline import Interrupted
 from sgmodel import encode as encode_mod
 from sgmodel import encoder_cache as cache_mod
 from sgmodel import train as train_mod

@@ -17,7 +17,7 @@ import pytest
 import torch
 from bad_input import refusal
 
-from scenesplat_stereo.files import LOCK_FILE, read_json_lines
+from scenesplat_stereo.common.files import LOCK_FILE, read_json_lines
 from sgmodel import train as train_mod
 from sgmodel.cli import main
 

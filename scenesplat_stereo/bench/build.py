@@ -44,7 +44,7 @@ from scenesplat_stereo.demo import make_room, room_trajectory
 from scenesplat_stereo.effects import CameraEffects
 from scenesplat_stereo.encode import JPEG_ENCODERS, decode_image, encode_jpeg
 from scenesplat_stereo.encode_pool import ENCODER_MODES, SampleEncoder, default_encoder_workers
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.nvjpeg import NvJpegEncoder
 from scenesplat_stereo.protocol import JPEG_QUALITY, SamplePlan, plan_scene
 from scenesplat_stereo.raster import rasterization

@@ -30,8 +30,8 @@ import torch
 
 from scenesplat_stereo.bench.render_batch import batch_table
 from scenesplat_stereo.cameras import look_at, viewmats_from_c2w
-from scenesplat_stereo.commandline import Parser
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.commandline import Parser
+from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.reference import as_renderer_sees, reference_rasterization
 

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.files import atomic_write_bytes
 
 if TYPE_CHECKING:
     from sgmodel.model import Predictor

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from scenesplat_stereo.text import markdown_table
+from scenesplat_stereo.common.text import markdown_table
 
 from sgmodel.args import add_device_argument, device_from_flag
 from sgmodel.data import make_loader

@@ -27,7 +27,7 @@ import torch
 
 from scenesplat_stereo.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene_files import FORMATS
-from scenesplat_stereo.text import argtype, markdown_table, parse_size
+from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
 
 from sgmodel import export
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.encode import to_uint8
-from scenesplat_stereo.text import markdown_table
+from scenesplat_stereo.common.text import markdown_table
 
 from sgmodel.calib import Calibration
 from sgmodel.inference import Reconstructor

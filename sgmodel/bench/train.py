@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from scenesplat_stereo.text import markdown_table
+from scenesplat_stereo.common.text import markdown_table
 
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from sgmodel.data import make_loader
