@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.irs import IRS_FOCAL_BASELINE, depth_from_disparity, read_disparity
-from scenesplat_stereo.cameras import rotation_angle_deg
+from scenesplat_stereo.scene.cameras import rotation_angle_deg
 from scenesplat_stereo.common.commandline import Parser, run_command
 from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
 

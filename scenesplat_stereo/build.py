@@ -34,12 +34,12 @@ from scenesplat_stereo.build_settings import SPLITS_OF_MODE, BuildSettings, add_
 from scenesplat_stereo.common.commandline import NotAvailable
 from scenesplat_stereo.encode_pool import SampleEncoder
 from scenesplat_stereo.common.files import read_json
-from scenesplat_stereo.gaussians import load_ply
+from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.nvjpeg import NvJpegEncoder
 from scenesplat_stereo.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_PER_SCENE, VAL_SCENES, SamplePlan,
                                         filter_teachers, plan_scene, split_scenes)
 from scenesplat_stereo.render_pairs import start_render, stream_samples
-from scenesplat_stereo.teachers import (
+from scenesplat_stereo.scene.teachers import (
     Discovery,
     Rejection,
     Teacher,

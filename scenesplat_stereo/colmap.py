@@ -57,7 +57,7 @@ class PinholeCamera:
     def scaled(self, width: int, height: int) -> PinholeCamera:
         """The same camera for the image resized to ``width`` x ``height`` (SPEC section 1 pixel
         convention: coordinates scale about the image corner, see ``cameras.scale_intrinsics``)."""
-        from scenesplat_stereo.cameras import scale_intrinsics
+        from scenesplat_stereo.scene.cameras import scale_intrinsics
 
         K = scale_intrinsics(self.K, (self.width, self.height), (width, height))
         return PinholeCamera(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))

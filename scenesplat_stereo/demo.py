@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from scenesplat_stereo.cameras import OPENGL_TO_OPENCV, intrinsics_matrix, look_at
+from scenesplat_stereo.scene.cameras import OPENGL_TO_OPENCV, intrinsics_matrix, look_at
 from scenesplat_stereo.common.files import atomic_write_json
-from scenesplat_stereo.gaussians import GaussianScene, save_ply
-from scenesplat_stereo.ply import SH_C0
+from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
+from scenesplat_stereo.scene.ply import SH_C0
 from scenesplat_stereo.protocol import TIERS
 
 ROOM_SIZE = (4.0, 5.0, 2.6)  # metres: x width, y depth, z height

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesplat_stereo.cameras import intrinsics_matrix, orthonormalize, rigid_error, scale_intrinsics
+from scenesplat_stereo.scene.cameras import intrinsics_matrix, orthonormalize, rigid_error, scale_intrinsics
 
 #: R_opencv = R_llff @ LLFF_TO_OPENCV: OpenCV (right, down, forward) from LLFF (down, right, backwards).
 LLFF_TO_OPENCV = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])

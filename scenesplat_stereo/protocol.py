@@ -17,8 +17,8 @@ from typing import Literal
 
 import numpy as np
 
-from scenesplat_stereo.cameras import fibonacci_directions, scale_intrinsics, stereo_rig
-from scenesplat_stereo.teachers import Rejection, Teacher
+from scenesplat_stereo.scene.cameras import fibonacci_directions, scale_intrinsics, stereo_rig
+from scenesplat_stereo.scene.teachers import Rejection, Teacher
 
 Split = Literal["train", "val", "test"]
 

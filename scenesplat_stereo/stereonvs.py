@@ -51,7 +51,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo.benchmark import Benchmark, write_benchmark
-from scenesplat_stereo.cameras import right_camera, rotation_angle_deg
+from scenesplat_stereo.scene.cameras import right_camera, rotation_angle_deg
 from scenesplat_stereo.colmap import image_size
 from scenesplat_stereo.encode import SampleImages, decode_image, encode_jpeg, encode_sample
 from scenesplat_stereo.common.files import atomic_write_json, check_writable

@@ -91,7 +91,7 @@ def profile(name: str, scene: dict, viewmats, Ks, s: Setting, backward: bool = F
 def build_batch(width: int, height: int, cameras: int = 48):
     """The dataset build's call: 4 pairs x 12 cameras around one reference (10 cm apart) in a 1M room."""
     from scenesplat_stereo.bench.build import synthetic_teacher
-    from scenesplat_stereo.cameras import viewmats_from_c2w
+    from scenesplat_stereo.scene.cameras import viewmats_from_c2w
 
     teacher, gaussians = synthetic_teacher(1_000_000, 3, cameras, (width, height), "cuda")
     viewmats = torch.tensor(viewmats_from_c2w(teacher.c2w), dtype=torch.float32, device="cuda")

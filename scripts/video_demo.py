@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.cameras import right_camera
+from scenesplat_stereo.scene.cameras import right_camera
 from scenesplat_stereo.demo import make_room, room_trajectory
 from scenesplat_stereo.encode import encode_png, to_uint8
 from scenesplat_stereo.raster import rasterization

@@ -1,4 +1,4 @@
-"""What ``sgmodel predict`` writes: the scene (``scenesplat_stereo.scene_files`` formats), a colour-mapped
+"""What ``sgmodel predict`` writes: the scene (``scenesplat_stereo.scene.scene_files`` formats), a colour-mapped
 depth image, novel-view cameras around the left camera and the orbit animation.
 
 All in the left camera frame: OpenCV axes (x right, y down, z forward), metres.
@@ -15,9 +15,9 @@ import numpy as np
 import OpenImageIO as oiio
 import torch
 
-from scenesplat_stereo.cameras import translation
-from scenesplat_stereo.gaussians import GaussianScene, content_sh_degree
-from scenesplat_stereo.scene_files import save_scene
+from scenesplat_stereo.scene.cameras import translation
+from scenesplat_stereo.scene.gaussians import GaussianScene, content_sh_degree
+from scenesplat_stereo.scene.scene_files import save_scene
 
 from sgmodel.render import check_gaussians
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from scenesplat_stereo.gaussians import GaussianScene
+from scenesplat_stereo.scene.gaussians import GaussianScene
 
 from sgmodel import baselines
 from sgmodel.export import to_scene

@@ -48,7 +48,7 @@ import torch
 
 from scenesplat_stereo.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
-from scenesplat_stereo.scene_files import FORMATS
+from scenesplat_stereo.scene.scene_files import FORMATS
 
 from sgmodel import baselines, export, rig, stereo_check, video
 from sgmodel.args import add_device_argument, device_from_flag

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.cameras import rotation_angle_deg
+from scenesplat_stereo.scene.cameras import rotation_angle_deg
 from scenesplat_stereo.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
 

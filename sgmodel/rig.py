@@ -47,7 +47,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scenesplat_stereo.cameras import intrinsics_matrix
+from scenesplat_stereo.scene.cameras import intrinsics_matrix
 
 from sgmodel.calib import CalibError
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from scenesplat_stereo.cameras import fibonacci_directions
+from scenesplat_stereo.scene.cameras import fibonacci_directions
 from scenesplat_stereo.reference import sh_basis
 
 #: Directions the band matrices are fitted on (more than the 7 unknowns per row of band 3, well spread).

@@ -32,8 +32,8 @@ import torch
 from tqdm import tqdm
 
 from scenesplat_stereo.encode import to_uint8
-from scenesplat_stereo.gaussians import GaussianScene
-from scenesplat_stereo.scene_files import FORMATS
+from scenesplat_stereo.scene.gaussians import GaussianScene
+from scenesplat_stereo.scene.scene_files import FORMATS
 
 from sgmodel.bench import synced_clock
 from sgmodel.calib import Calibration

@@ -9,7 +9,7 @@ in the viewer's world (y up; a camera looks along its local -z), and it places i
 applies as the horizontal field of view in a landscape window (``camera.horizontalFov = width > height``)
 and as the vertical one in a portrait window. The INRIA ``cameras.json`` (the 3DGS trainer's
 ``camera_to_JSON``) lists cameras with ``position`` = camera centre and ``rotation`` = the camera-to-world
-rotation (OpenCV axes), ``fx``, ``fy``, ``width``, ``height``; ``scenesplat_stereo.teachers`` reads it.
+rotation (OpenCV axes), ``fx``, ``fy``, ``width``, ``height``; ``scenesplat_stereo.scene.teachers`` reads it.
 docs/model.md "Opening a scene in a viewer" shows both in use.
 """
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesplat_stereo.gaussians import GaussianScene, save_ply
+from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
 
 
 def snapshot(root: Path) -> dict[str, bytes]:

@@ -47,7 +47,7 @@ def synthetic_trajectory(n_frames: int) -> np.ndarray:
     sweeps 2 m sideways (x 1.0 -> 3.0) at y about 1.6 m and 1.2-1.4 m height, looking towards the far wall
     (+y, about 3.4 m away) with +-7 deg of yaw and a slight downward pitch. (Larger yaw swings at this
     image size leave COLMAP's rotation-translation trade-off less well determined.)"""
-    from scenesplat_stereo.cameras import look_at
+    from scenesplat_stereo.scene.cameras import look_at
 
     a = np.linspace(0.0, 1.0, n_frames)
     eyes = np.column_stack([1.0 + 2.0 * a, 1.6 + 0.25 * np.sin(np.pi * a), 1.3 + 0.1 * np.sin(3 * np.pi * a)])
@@ -60,7 +60,7 @@ def _render(scene: dict, sh_degree: int, c2w: np.ndarray, camera: PinholeCamera)
     """RGB [C,H,W,3] in [0,1] and expected depth [C,H,W] (metres, 0 where alpha < 0.5)."""
     import torch
 
-    from scenesplat_stereo.cameras import viewmats_from_c2w
+    from scenesplat_stereo.scene.cameras import viewmats_from_c2w
     from scenesplat_stereo.raster import rasterization
 
     viewmats = torch.tensor(viewmats_from_c2w(c2w), dtype=torch.float32)

@@ -1,5 +1,5 @@
 """Small independent PLY writer and float64 reference decode for the .ply tests (written from SPEC
-section 1 and the compressed-PLY format description, never from scenesplat_stereo.gaussians)."""
+section 1 and the compressed-PLY format description, never from scenesplat_stereo.scene.gaussians)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesplat_stereo.gaussians import GaussianScene
+from scenesplat_stereo.scene.gaussians import GaussianScene
 
 C0 = 0.28209479177387814
 EPS32 = 2.0**-24  # unit roundoff of float32 (half an ulp at 1)

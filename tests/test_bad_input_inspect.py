@@ -10,7 +10,7 @@ import pytest
 from bad_input import run_cli, snapshot
 
 from scenesplat_stereo import shards
-from scenesplat_stereo.cameras import right_camera
+from scenesplat_stereo.scene.cameras import right_camera
 from scenesplat_stereo.cli import main
 from scenesplat_stereo.encode import SampleImages, encode_sample
 from scenesplat_stereo.inspection import inspect_dataset

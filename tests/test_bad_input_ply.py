@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from scenesplat_stereo.gaussians import PlyError, load_ply
+from scenesplat_stereo.scene.gaussians import PlyError, load_ply
 
 PROPS = "x y z f_dc_0 f_dc_1 f_dc_2 opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3".split()
 ROW = "0 0 1 0.1 0.2 0.3 0.5 -2 -2 -2 1 0 0 0"

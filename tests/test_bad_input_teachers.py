@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from bad_input import snapshot, tiny_teacher
 
-from scenesplat_stereo.teachers import discover_teachers
+from scenesplat_stereo.scene.teachers import discover_teachers
 
 
 def inria(folder: Path, cameras: object, results: object | None = None, step: int = 100) -> Path:

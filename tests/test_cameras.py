@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from scenesplat_stereo.cameras import (
+from scenesplat_stereo.scene.cameras import (
     OPENGL_TO_OPENCV,
     fibonacci_directions,
     intrinsics_matrix,

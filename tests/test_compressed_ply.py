@@ -1,4 +1,4 @@
-"""The PlayCanvas compressed .ply writer (scenesplat_stereo.compressed_ply): round trip through our reader
+"""The PlayCanvas compressed .ply writer (scenesplat_stereo.scene.compressed_ply): round trip through our reader
 within each field's quantisation (bounds from the bit widths over the chunk ranges read from the file by
 hand), the Morton order against a bit-by-bit version written here, and extreme inputs. (The reader is held
 against the format description in tests/test_gaussians_compressed.py; tests/test_scene_files.py checks the
@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from ply_helpers import EPS32, random_scene
 
-from scenesplat_stereo.compressed_ply import morton_order, save_compressed_ply
-from scenesplat_stereo.gaussians import GaussianScene, load_ply
-from scenesplat_stereo.ply import SH_C0
+from scenesplat_stereo.scene.compressed_ply import morton_order, save_compressed_ply
+from scenesplat_stereo.scene.gaussians import GaussianScene, load_ply
+from scenesplat_stereo.scene.ply import SH_C0
 
 
 def file_tables(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Tests of scenesplat_stereo.gaussians: GaussianScene, INRIA .ply reading and writing, bad input.
+"""Tests of scenesplat_stereo.scene.gaussians: GaussianScene, INRIA .ply reading and writing, bad input.
 
 Expected values come from a float64 reference decode written from SPEC section 1 (tests/ply_helpers.py),
 not from the module's output, and files are written by an independent PLY writer there.
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenesplat_stereo.gaussians import (
+from scenesplat_stereo.scene.gaussians import (
     GaussianScene, PlyError, PlyRepairWarning, load_ply, save_ply,
 )
 from ply_helpers import (

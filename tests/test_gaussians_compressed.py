@@ -1,4 +1,4 @@
-"""Tests of scenesplat_stereo.gaussians on the PlayCanvas/SuperSplat compressed .ply: synthetic files
+"""Tests of scenesplat_stereo.scene.gaussians on the PlayCanvas/SuperSplat compressed .ply: synthetic files
 against a float64 decode written from the format description, and the real guitar pair in ../shared/data
 (compressed vs its INRIA decode) within the format's quantisation.
 """
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenesplat_stereo.gaussians import (
+from scenesplat_stereo.scene.gaussians import (
     PlyError, load_ply, read_ply_header,
 )
 from ply_helpers import (

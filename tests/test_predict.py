@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from scenesplat_stereo.encode import decode_image, encode_png
-from scenesplat_stereo.gaussians import load_ply
+from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
 from scripts.guitar_pair import H, W, render_pair
 from sgmodel import predict as predict_mod
@@ -223,7 +223,7 @@ def test_predict_writes_the_chosen_format_and_viewer_files(small_pair, capsys, m
                 "--method", "naive-gs", "--resolution", "32", "--format", fmt, "--out", out, "--device", "cpu"]) == 0
     log = capsys.readouterr().out
     assert f"{4 * 48:,} of {32 * 48:,} Gaussians dropped" in log and "SH degree 0" in log
-    from scenesplat_stereo.scene_files import load_scene
+    from scenesplat_stereo.scene.scene_files import load_scene
 
     scene = load_scene(out / f"scene{suffix}")
     assert len(scene) == 28 * 48 and scene.sh_degree == 0

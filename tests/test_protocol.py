@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import scenesplat_stereo.protocol as protocol
-from scenesplat_stereo.cameras import intrinsics_matrix, look_at
+from scenesplat_stereo.scene.cameras import intrinsics_matrix, look_at
 from scenesplat_stereo.protocol import (
     JPEG_QUALITY,
     MASK_ALPHA_THRESHOLD,
@@ -26,7 +26,7 @@ from scenesplat_stereo.protocol import (
     tier_for_psnr,
     validation_frames,
 )
-from scenesplat_stereo.teachers import OrbitSpec, Teacher
+from scenesplat_stereo.scene.teachers import OrbitSpec, Teacher
 
 
 def make_teacher(n_frames: int = 20, psnr: float | None = 33.0, scene_id: str = "scene0000_00",

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from scenes import orbit_cameras, psnr
-from scenesplat_stereo.gaussians import load_ply
+from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
 
 WIDTH, HEIGHT = 48, 36

@@ -306,7 +306,7 @@ def test_guitar_matches_reference(guitar_ply, rasterize_mode: str) -> None:
     hundreds deep. Its positions are quantised (PlayCanvas compressed origin), so many Gaussians share a
     depth to within float32 rounding: about 10% of the pixels have a depth-order knife-edge (measured:
     629 of 6144 classic, 490 antialiased); up to 15% are allowed."""
-    from scenesplat_stereo.gaussians import load_ply
+    from scenesplat_stereo.scene.gaussians import load_ply
 
     teacher = load_ply(guitar_ply)
     viewmats, Ks = orbit_cameras(teacher.median(), 6.0, 2, 48, 64, fov_x_deg=40.0)

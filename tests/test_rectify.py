@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from scenesplat_stereo.encode import decode_image, encode_png
-from scenesplat_stereo.gaussians import load_ply
+from scenesplat_stereo.scene.gaussians import load_ply
 from scripts.rig_pair import BASELINE, H, W, distort, render
 from sgmodel import pairs as pairs_mod
 from sgmodel.calib import read_calib

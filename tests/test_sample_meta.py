@@ -51,7 +51,7 @@ def test_builder_json_reads_back_equal_to_its_plan(demo_dataset):
     import warnings
 
     from scenesplat_stereo.protocol import plan_scene
-    from scenesplat_stereo.teachers import discover_teachers
+    from scenesplat_stereo.scene.teachers import discover_teachers
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -1,4 +1,4 @@
-"""scenesplat_stereo.scene_files (every format by name, read back by its first bytes), and our files checked
+"""scenesplat_stereo.scene.scene_files (every format by name, read back by its first bytes), and our files checked
 against real clients: PlayCanvas splat-transform (its compressed .ply writer, Niantic's SPZ encoder through
 @adobe/spz, its readers) and the SuperSplat viewer's settings validator. The client tests need node and
 ``npm install`` in scripts/viewer (docs/model.md "Scene files"); they skip with the reason otherwise."""
@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from ply_helpers import random_scene
 
-from scenesplat_stereo.compressed_ply import morton_order
-from scenesplat_stereo.gaussians import PlyError, load_ply, save_ply
-from scenesplat_stereo.scene_files import FORMATS, load_scene, save_scene
-from scenesplat_stereo.spz import encode_spz
+from scenesplat_stereo.scene.compressed_ply import morton_order
+from scenesplat_stereo.scene.gaussians import PlyError, load_ply, save_ply
+from scenesplat_stereo.scene.scene_files import FORMATS, load_scene, save_scene
+from scenesplat_stereo.scene.spz import encode_spz
 from sgmodel.viewers import supersplat_settings
 
 VIEWER = Path(__file__).resolve().parents[1] / "scripts" / "viewer"

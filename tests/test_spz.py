@@ -1,4 +1,4 @@
-"""scenesplat_stereo.spz against files packed here from the format description (nianticlabs/spz README and
+"""scenesplat_stereo.scene.spz against files packed here from the format description (nianticlabs/spz README and
 load-spz.cc), decoded point by point in float64; the writer's round trip within each field's quantisation
 step; every malformed file. (tests/test_scene_files.py checks both against Niantic's own encoder.)"""
 
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from ply_helpers import EPS32, random_scene
 
-from scenesplat_stereo.gaussians import GaussianScene
-from scenesplat_stereo.spz import SpzError, encode_spz, load_spz, save_spz
+from scenesplat_stereo.scene.gaussians import GaussianScene
+from scenesplat_stereo.scene.spz import SpzError, encode_spz, load_spz, save_spz
 
 MAGIC = 0x5053474E
 

@@ -12,7 +12,7 @@ import torch
 from stereonvs_fixture import BASELINE, FOCAL, IMAGE_SIZE, POSES_SIZE, llff_row, render, rotation_about, true_K
 
 from scenesplat_stereo import stereonvs as S
-from scenesplat_stereo.cameras import translation
+from scenesplat_stereo.scene.cameras import translation
 from scenesplat_stereo.cli import main as cli_main
 from scenesplat_stereo.demo import make_room
 from scenesplat_stereo.encode import decode_image, encode_jpeg

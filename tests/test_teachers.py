@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenesplat_stereo.cameras import look_at
-from scenesplat_stereo.gaussians import GaussianScene, load_ply, save_ply
+from scenesplat_stereo.scene.cameras import look_at
+from scenesplat_stereo.scene.gaussians import GaussianScene, load_ply, save_ply
 from scenesplat_stereo.protocol import filter_teachers, plan_scene
-from scenesplat_stereo.teachers import (
+from scenesplat_stereo.scene.teachers import (
     OrbitSpec,
     Rejection,
     discover_teachers,

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from scenesplat_stereo.teachers import _read_inria_cameras
+from scenesplat_stereo.scene.teachers import _read_inria_cameras
 from sgmodel.viewers import horizontal_fov, supersplat_settings, write_viewer_files
 
 

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.build_settings import BuildSettings
-from scenesplat_stereo.cameras import intrinsics_matrix
+from scenesplat_stereo.scene.cameras import intrinsics_matrix
 from scenesplat_stereo.demo import make_room, room_trajectory
 from scenesplat_stereo.effects import CameraEffects
 from scenesplat_stereo.encode import JPEG_ENCODERS, decode_image, encode_jpeg
@@ -50,7 +50,7 @@ from scenesplat_stereo.protocol import JPEG_QUALITY, SamplePlan, plan_scene
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.render_pairs import start_render, stream_samples
 from scenesplat_stereo.shards import ShardWriter
-from scenesplat_stereo.teachers import Teacher
+from scenesplat_stereo.scene.teachers import Teacher
 
 # Paper appendix B ("Scene splits and counts", "Rendering and valid masks"): training pairs per subset at
 # the subsets' native resolutions.

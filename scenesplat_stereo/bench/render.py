@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.bench.render_batch import batch_table
-from scenesplat_stereo.cameras import look_at, viewmats_from_c2w
+from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
 from scenesplat_stereo.common.commandline import Parser
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.raster import rasterization
@@ -79,7 +79,7 @@ def identity_camera(width: int, height: int, device: str) -> tuple[torch.Tensor,
 
 def guitar_scene(device: str, width: int, height: int) -> tuple[dict, torch.Tensor, torch.Tensor]:
     """The real guitar teacher and an orbit camera (radius 6 around the median of the means, y down)."""
-    from scenesplat_stereo.gaussians import load_ply
+    from scenesplat_stereo.scene.gaussians import load_ply
 
     scene = load_ply(GUITAR)
     center = np.median(scene.means, axis=0)

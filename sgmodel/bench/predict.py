@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.gaussians import GaussianScene, save_ply
-from scenesplat_stereo.scene_files import FORMATS
+from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
+from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
 
 from sgmodel import export

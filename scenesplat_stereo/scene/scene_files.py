@@ -13,9 +13,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from scenesplat_stereo.compressed_ply import save_compressed_ply
-from scenesplat_stereo.gaussians import GaussianScene, PlyError, load_ply, save_ply
-from scenesplat_stereo.spz import load_spz, save_spz
+from scenesplat_stereo.scene.compressed_ply import save_compressed_ply
+from scenesplat_stereo.scene.gaussians import GaussianScene, PlyError, load_ply, save_ply
+from scenesplat_stereo.scene.spz import load_spz, save_spz
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """The PLY container of Gaussian scene files: header and elements, as the INRIA layout
-(``scenesplat_stereo.gaussians``) and the PlayCanvas compressed one (``scenesplat_stereo.compressed_ply``)
+(``scenesplat_stereo.scene.gaussians``) and the PlayCanvas compressed one (``scenesplat_stereo.scene.compressed_ply``)
 both read them, and the conventions every layout shares (``SH_C0``; the SH degree of a count of ``f_rest_*``).
 
 ``read_ply_header`` parses and checks a header (ascii, binary_little_endian, binary_big_endian; elements with

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from scenesplat_stereo.common.files import atomic_write_bytes
-from scenesplat_stereo.gaussians import GaussianScene
+from scenesplat_stereo.scene.gaussians import GaussianScene
 
 #: "NGSP" read as a little-endian uint32.
 MAGIC = 0x5053474E

@@ -27,10 +27,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from scenesplat_stereo.common.files import atomic_write_bytes
-from scenesplat_stereo.ply import SH_C0, PlyError, PlyHeader, columns, read_elements
+from scenesplat_stereo.scene.ply import SH_C0, PlyError, PlyHeader, columns, read_elements
 
 if TYPE_CHECKING:
-    from scenesplat_stereo.gaussians import GaussianScene
+    from scenesplat_stereo.scene.gaussians import GaussianScene
 
 #: Splats per ``chunk`` row.
 CHUNK_SIZE = 256

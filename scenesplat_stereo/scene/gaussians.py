@@ -5,12 +5,12 @@ wxyz, unit norm; scales linear; opacities in [0, 1]; SH coefficients ``[N, K, 3]
 ``sh[:, 0]`` the DC term.
 
 This module owns the INRIA layout (3DGS trainer, gsplat, nerfstudio, SuperSplat export) on the PLY container
-of ``scenesplat_stereo.ply`` (header, elements): element ``vertex`` with properties read by name, in any order and of any
+of ``scenesplat_stereo.scene.ply`` (header, elements): element ``vertex`` with properties read by name, in any order and of any
 numeric type; ``x y z``, ``f_dc_0..2``, optional ``f_rest_*`` (0, 9, 24 or 45 of them, channel-major),
 ``opacity`` (a logit), ``scale_0..2`` (natural logs), ``rot_0..3`` (wxyz, any norm); ``nx ny nz`` and any
 other property are ignored. ascii, binary_little_endian, binary_big_endian. ``load_ply`` also reads the
 PlayCanvas / SuperSplat compressed layout (an element named ``chunk``), whose reader and writer live in
-``scenesplat_stereo.compressed_ply``.
+``scenesplat_stereo.scene.compressed_ply``.
 
 Rows with non-finite values, zero-norm quaternions or scales that are zero (below the smallest normal
 float32) or infinite in float32 are dropped and counted in one warning (``PlyRepairWarning``), or raise
@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from scenesplat_stereo.compressed_ply import decode_compressed
+from scenesplat_stereo.scene.compressed_ply import decode_compressed
 from scenesplat_stereo.common.files import atomic_write_bytes
-from scenesplat_stereo.ply import PlyError, PlyHeader, PlyRepairWarning, columns, read_elements, read_ply_header
+from scenesplat_stereo.scene.ply import PlyError, PlyHeader, PlyRepairWarning, columns, read_elements, read_ply_header
 
 #: Opacities are clipped to [eps, 1 - eps] before the logit in ``save_ply`` so that 0 and 1 stay finite.
 OPACITY_EPS = 1e-7
