@@ -1,4 +1,4 @@
-"""CUDA parity of the Warp rasteriser against the float64 reference (scenesplat_stereo/reference.py), for
+"""CUDA parity of the Warp rasteriser against the float64 reference (scenesplat_stereo/raster/reference.py), for
 scripts/gpu_bench.sh: the CPU path is covered by the test suite, this covers the CUDA build of the same
 kernel source.
 
@@ -16,7 +16,7 @@ import torch
 
 from scenesplat_stereo.bench.render import identity_camera, psnr, random_scene
 from scenesplat_stereo.raster import RENDER_MODES, rasterization
-from scenesplat_stereo.reference import as_renderer_sees, reference_rasterization
+from scenesplat_stereo.raster.reference import as_renderer_sees, reference_rasterization
 
 
 def render(scene, device, dtype, **kw):

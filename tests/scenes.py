@@ -25,7 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from scenesplat_stereo.reference import as_renderer_sees, reference_rasterization
+from scenesplat_stereo.raster.reference import as_renderer_sees, reference_rasterization
 
 # Tolerances against the float64 reference (the acceptance numbers).
 PSNR_MIN_DB = 50.0  # RGB, peak 1, per image

@@ -1,4 +1,4 @@
-"""The rasteriser's hand-written backward pass against the float64 reference (scenesplat_stereo/reference.py).
+"""The rasteriser's hand-written backward pass against the float64 reference (scenesplat_stereo/raster/reference.py).
 
 Truth: torch autograd through ``reference_rasterization`` (float64, written from SPEC section 2 only) and,
 independently of autograd, central finite differences of that reference. The loss is a random cotangent
@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo.reference import reference_rasterization
+from scenesplat_stereo.raster.reference import reference_rasterization
 from scenes import camera_rig, intrinsics, knife_edge_pixels, random_scene
 from scenesplat_stereo.raster import autograd, rasterization
 from scenesplat_stereo.raster.composite_backward import composite_backward
@@ -187,7 +187,7 @@ def test_sh_stage_matches_reference(sh_degree, device):
     channels clamped at 0 and some culled pairs (zero gradient). Gradients reach the means through the
     directions (summed over the cameras) and the coefficients; the reference takes the camera centre as
     -R^T t of each world-to-camera matrix."""
-    from scenesplat_stereo.reference import sh_colors as reference_sh_colors
+    from scenesplat_stereo.raster.reference import sh_colors as reference_sh_colors
 
     g = torch.Generator().manual_seed(sh_degree)
     C, N, K = 3, 64, 16

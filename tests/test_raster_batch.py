@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo.reference import reference_rasterization
+from scenesplat_stereo.raster.reference import reference_rasterization
 from scenes import assert_matches_reference, camera_rig, knife_edge_pixels, random_scene
 from scenesplat_stereo.raster import rasterization
 

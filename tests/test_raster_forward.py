@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo.reference import SH_C1, reference_rasterization, sh_basis
+from scenesplat_stereo.raster.reference import SH_C1, reference_rasterization, sh_basis
 from scenes import (assert_matches_reference, camera_rig, knife_edge_pixels, orbit_cameras, random_scene,
                     render_both)
 
@@ -193,7 +193,7 @@ def test_reference_sh_colour_direction_from_camera_centre() -> None:
 def test_reference_block_pruning_is_exact(monkeypatch: pytest.MonkeyPatch, rasterize_mode: str) -> None:
     """The reference's per-block pruning (``reference._touch_extents``) changes nothing: the same
     scene with unbounded extents (every Gaussian against every pixel) gives the same image and decisions."""
-    from scenesplat_stereo import reference
+    from scenesplat_stereo.raster import reference
 
     scene = random_scene(150, seed=7, sh_degree=1, scale=(0.01, 1.0), opacity=(0.0, 1.0))
     viewmats, Ks = camera_rig(2, 37, 21, seed=5)
@@ -322,7 +322,7 @@ def test_reference_never_imports_the_rasteriser() -> None:
     import subprocess
     import sys
 
-    code = ("import sys, scenesplat_stereo.reference; "
+    code = ("import sys, scenesplat_stereo.raster.reference; "
             "print(sorted(m for m in sys.modules if m.startswith('scenesplat_stereo.raster') or m == 'warp'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from scenesplat_stereo.raster import rasterization
-from scenesplat_stereo.reference import quat_to_rotmat, sh_colors
+from scenesplat_stereo.raster.reference import quat_to_rotmat, sh_colors
 from sgmodel.rotate import rotate_gaussians, rotation_to_quaternion, sh_rotation
 
 

@@ -5,7 +5,7 @@ Prints markdown tables (paste-ready for docs/benchmarks.md):
    antialiased) against gsplat 1.5.3's ``rasterization`` on the same inputs (when gsplat is importable);
 2. one-knob-at-a-time sweeps from a base setting (tile size, SH degree, rasterize mode, render mode,
    resolution, number of Gaussians): median ms per frame, PSNR against gsplat at the timed size, and PSNR
-   against the float64 reference (``scenesplat_stereo.reference``) on a small frame;
+   against the float64 reference (``scenesplat_stereo.raster.reference``) on a small frame;
 3. with ``--backward``: forward+backward time and peak memory against gsplat, for the two headline
    workloads and the model's (32 scenes x 4 targets at 256x256, 2 x 288^2 Gaussians per scene).
 With ``--batch``, only the model's workload instead, one batched call against a loop of calls, ours and
@@ -33,7 +33,7 @@ from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
 from scenesplat_stereo.common.commandline import Parser
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.raster import rasterization
-from scenesplat_stereo.reference import as_renderer_sees, reference_rasterization
+from scenesplat_stereo.raster.reference import as_renderer_sees, reference_rasterization
 
 # The real guitar teacher beside a checkout (../shared/data), or where SCENESPLAT_GUITAR_PLY points.
 GUITAR = Path(os.environ.get("SCENESPLAT_GUITAR_PLY", Path(__file__).resolve().parents[2].parent
