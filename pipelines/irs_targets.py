@@ -265,7 +265,7 @@ def kept_variants(poses_dir: Path) -> list[str]:
 def sample_images(sel: VariantSelection, ref: Reference):
     """The ``encode.SampleImages`` of one stored reference pair (at least one target; images read from the
     IRS folder)."""
-    from scenesplat_stereo.encode import SampleImages
+    from scenesplat_stereo.shards.encode import SampleImages
     from scenesplat_stereo.protocol import SampleMeta, SamplePlan, sample_key
 
     frames, w, h = sel.poses["frames"], sel.poses["width"], sel.poses["height"]
@@ -300,9 +300,9 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
     from tqdm import tqdm
 
     from scenesplat_stereo.common.files import atomic_write_json
-    from scenesplat_stereo.encode_pool import SampleEncoder
+    from scenesplat_stereo.shards.encode_pool import SampleEncoder
     from scenesplat_stereo.protocol import split_scenes
-    from scenesplat_stereo.shards import (ShardWriter, collect_stats, finished_shards, remove_shard, write_index,
+    from scenesplat_stereo.shards.webdataset import (ShardWriter, collect_stats, finished_shards, remove_shard, write_index,
                                           write_stats)
 
     from scenesplat_stereo.common.files import check_writable

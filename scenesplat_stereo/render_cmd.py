@@ -21,7 +21,7 @@ import torch
 from tqdm import tqdm
 
 from scenesplat_stereo.scene.cameras import scale_intrinsics, viewmats_from_c2w
-from scenesplat_stereo.encode import encode_png
+from scenesplat_stereo.shards.encode import encode_png
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.raster import check_device, rasterization, tile_size_for

@@ -50,14 +50,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from scenesplat_stereo.benchmark import Benchmark, write_benchmark
+from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
 from scenesplat_stereo.scene.cameras import right_camera, rotation_angle_deg
 from scenesplat_stereo.colmap import image_size
-from scenesplat_stereo.encode import SampleImages, decode_image, encode_jpeg, encode_sample
+from scenesplat_stereo.shards.encode import SampleImages, decode_image, encode_jpeg, encode_sample
 from scenesplat_stereo.common.files import atomic_write_json, check_writable
 from scenesplat_stereo.llff import read_poses_bounds
 from scenesplat_stereo.protocol import SampleMeta, sample_key
-from scenesplat_stereo.shards import (INDEX_NAME, ShardWriter, collect_stats, remove_unplanned, write_index,
+from scenesplat_stereo.shards.webdataset import (INDEX_NAME, ShardWriter, collect_stats, remove_unplanned, write_index,
                                       write_stats)
 from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scenesplat_stereo.encode import decode_image, encode_png, to_uint8
+from scenesplat_stereo.shards.encode import decode_image, encode_png, to_uint8
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scripts.rig_pair import BASELINE, H, W, render, write_rig
 from sgmodel.rectify import Rectification

@@ -75,7 +75,7 @@ echo "== a tiny demo dataset"
 import sys
 from pathlib import Path
 import numpy as np
-from scenesplat_stereo.encode import encode_png
+from scenesplat_stereo.shards.encode import encode_png
 work = Path(sys.argv[1])
 img = (np.random.default_rng(0).random((72, 104, 3)) * 255).astype(np.uint8)
 (work / "left.png").write_bytes(encode_png(img[:, :96]))  # left(x) = right(x - 8): disparity 8 px

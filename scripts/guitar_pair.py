@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.scene.cameras import orbit_poses, right_camera
-from scenesplat_stereo.encode import encode_png, to_uint8
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization

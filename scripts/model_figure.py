@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.encode import decode_image, encode_png
+from scenesplat_stereo.shards.encode import decode_image, encode_png
 from scenesplat_stereo.common.files import atomic_write_bytes
 from sgmodel.calib import read_calib
 from sgmodel.export import depth_png, novel_view_cameras

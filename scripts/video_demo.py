@@ -21,7 +21,7 @@ import torch
 
 from scenesplat_stereo.scene.cameras import right_camera
 from scenesplat_stereo.demo import make_room, room_trajectory
-from scenesplat_stereo.encode import encode_png, to_uint8
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.common.text import parse_size
 from sgmodel.cli import main as sgmodel

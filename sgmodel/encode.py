@@ -33,7 +33,8 @@ from tqdm import tqdm
 from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, atomic_write_json, check_apart,
                                             check_writable)
-from scenesplat_stereo.shards import PlannedShards, iter_shard, read_done, remove_unplanned, shard_number, write_index
+from scenesplat_stereo.shards.webdataset import (PlannedShards, iter_shard, read_done, remove_unplanned, shard_number,
+                                                 write_index)
 from scenesplat_stereo.common.text import format_table, whole_number
 
 from sgmodel import encoder_cache as cache_format

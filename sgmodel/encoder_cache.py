@@ -14,7 +14,7 @@ Layout of a cache folder ``CACHE`` (one owner: this module)::
 
     CACHE/cache.json                  # what was cached (below); written before the first shard
     CACHE/<split>/shard-NNNNNN.tar    # one per shard of the data's split, same name, same keys, same order
-    CACHE/<split>/.done/...           # done markers (``scenesplat_stereo.shards``): a rerun resumes
+    CACHE/<split>/.done/...           # done markers (``scenesplat_stereo.shards.webdataset``): a rerun resumes
     CACHE/<split>/index.json          # written when the split is complete
 
 Members per sample (WebDataset style, ``<key>.<suffix>``): ``disparity.npy`` float32 [1,S,S] (pixels, left
@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.common.files import FileFormatError, read_json
-from scenesplat_stereo.shards import INDEX_NAME, iter_shard
+from scenesplat_stereo.shards.webdataset import INDEX_NAME, iter_shard
 
 from sgmodel.data import DataError, Shard, read_split
 

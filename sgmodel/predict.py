@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.encode import encode_png, to_uint8
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene.scene_files import FORMATS
 

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.scene.cameras import rotation_angle_deg
-from scenesplat_stereo.encode import encode_png, to_uint8
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
 
 from sgmodel import rig as rig_mod

@@ -1,7 +1,7 @@
 """Contact sheets: what the model learned, as pictures a person can look at.
 
 One row per sample: the left input, its stereo depth (colour-mapped), then each target next to its
-render. Labels are drawn with OpenCV; the PNG is encoded by ``scenesplat_stereo.encode`` (the one owner
+render. Labels are drawn with OpenCV; the PNG is encoded by ``scenesplat_stereo.shards.encode`` (the one owner
 of image files). Used by validation during training and by ``sgmodel eval`` (worst and best targets).
 """
 
@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.encode import encode_png
+from scenesplat_stereo.shards.encode import encode_png
 
 from sgmodel.export import depth_png
 

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from scenesplat_stereo.encode import decode_image
+from scenesplat_stereo.shards.encode import decode_image
 
 from sgmodel.calib import Calibration
 

@@ -9,7 +9,7 @@ Every (benchmark, method) pair is one ``sgmodel eval`` run with its own report i
 learned prediction, forward-splat then naive-GS, then the model), per benchmark PSNR, SSIM and LPIPS
 (means over all targets), the best value of each column in bold.
 
-Which numbers: a benchmark folder's ``benchmark.json`` (scenesplat_stereo.benchmark) says whether it is
+Which numbers: a benchmark folder's ``benchmark.json`` (scenesplat_stereo.shards.benchmark_file) says whether it is
 measured over the valid masks (rendered test sets such as ReplicaGS: ``psnr_masked`` and so on, as the
 paper does) or over the full image (captured ones such as StereoNVS); a folder without one (a train/val
 build) is measured over the full image, and the notes say so. Without the VGG16 ImageNet weights LPIPS is
@@ -24,7 +24,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from scenesplat_stereo.benchmark import read_benchmark
+from scenesplat_stereo.shards.benchmark_file import read_benchmark
 from scenesplat_stereo.common.files import atomic_write_bytes, check_apart, check_replaceable, check_writable
 from scenesplat_stereo.common.text import key_safe_name, markdown_table
 

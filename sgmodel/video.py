@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.encode import to_uint8
+from scenesplat_stereo.shards.encode import to_uint8
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS
 

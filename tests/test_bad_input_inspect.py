@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from bad_input import run_cli, snapshot
 
-from scenesplat_stereo import shards
+from scenesplat_stereo.shards import webdataset as shards
 from scenesplat_stereo.scene.cameras import right_camera
 from scenesplat_stereo.cli import main
-from scenesplat_stereo.encode import SampleImages, encode_sample
+from scenesplat_stereo.shards.encode import SampleImages, encode_sample
 from scenesplat_stereo.inspection import inspect_dataset
 from scenesplat_stereo.protocol import SampleMeta, SamplePlan
 

@@ -17,7 +17,7 @@ import pytest
 from bad_input import model_checkpoint, refusal, snapshots
 
 from scenesplat_stereo.common import files
-from scenesplat_stereo.encode import decode_image, encode_png
+from scenesplat_stereo.shards.encode import decode_image, encode_png
 from scenesplat_stereo.common.files import FolderLock, StagedFolder
 from sgmodel.cli import main
 from sgmodel.config import PRESETS, ModelParams

@@ -19,7 +19,7 @@ from scenesplat_stereo.common.commandline import (DEBUG_ENV, EXIT_INTERNAL, EXIT
                                            NotAvailable, Parser, one_line, run_command)
 from scenesplat_stereo.common.files import (LOCK_FILE, OWNER_FILE, FileFormatError, FolderBusy, FolderLock, StagedFolder,
                                      append_line, check_replaceable, read_json, read_json_lines)
-from scenesplat_stereo.shards import ShardError, ShardWriter, iter_shard
+from scenesplat_stereo.shards.webdataset import ShardError, ShardWriter, iter_shard
 
 
 def tool(raise_this: BaseException | None = None, warn: str | None = None) -> Parser:

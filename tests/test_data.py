@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo.encode import decode_image
+from scenesplat_stereo.shards.encode import decode_image
 from scenesplat_stereo.protocol import SampleMeta
-from scenesplat_stereo.shards import iter_shard
+from scenesplat_stereo.shards.webdataset import iter_shard
 from sgmodel import sample_order
 from sgmodel.data import DataError, ShardStream, make_loader
 from sgmodel.square_crop import SquareCrop

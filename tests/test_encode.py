@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo import encode, encode_pool
-from scenesplat_stereo.encode import (
+from scenesplat_stereo.shards import encode
+from scenesplat_stereo.shards import encode_pool
+from scenesplat_stereo.shards.encode import (
     SampleImages,
     decode_image,
     encode_depth_exr,
@@ -23,7 +24,7 @@ from scenesplat_stereo.encode import (
     encode_png,
     to_uint8,
 )
-from scenesplat_stereo.encode_pool import SampleEncoder
+from scenesplat_stereo.shards.encode_pool import SampleEncoder
 
 
 def smooth_image(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:
@@ -239,7 +240,7 @@ def _ijg_table(quality: int) -> list[int]:
 
 def test_written_jpeg_bytes_are_quality_92():
     """The JPEG bytes a sample stores carry the quantisation table of quality 92 (not just 'some quality')."""
-    from scenesplat_stereo.encode import SampleImages, encode_sample
+    from scenesplat_stereo.shards.encode import SampleImages, encode_sample
     from scenesplat_stereo.protocol import JPEG_QUALITY
 
     assert JPEG_QUALITY == 92
@@ -349,7 +350,7 @@ def test_sample_encoder_takes_given_jpegs_as_they_are():
 
 
 def test_nvjpeg_missing_library_names_where_it_looked(monkeypatch, tmp_path):
-    from scenesplat_stereo import nvjpeg
+    from scenesplat_stereo.shards import nvjpeg
 
     missing = str(tmp_path / "libnvjpeg.so.13")
     monkeypatch.setattr(nvjpeg, "_lib", [])
@@ -364,7 +365,7 @@ def test_nvjpeg_missing_library_names_where_it_looked(monkeypatch, tmp_path):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_nvjpeg_quality_420_deterministic_and_close_to_cpu():
-    from scenesplat_stereo.nvjpeg import NvJpegEncoder
+    from scenesplat_stereo.shards.nvjpeg import NvJpegEncoder
 
     rng = np.random.default_rng(0)
     images = [to_uint8(smooth_image(456, 616, seed=s)) for s in range(3)]

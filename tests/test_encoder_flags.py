@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from foundation_standins import FFS_REPO, FS_REPO, save_ffs_model, save_fs_checkpoint
 
-from scenesplat_stereo.encode import encode_png
+from scenesplat_stereo.shards.encode import encode_png
 from sgmodel.cli import build_parser
 from sgmodel.config import EncoderParams
 from sgmodel.encoders import EncoderFlagError

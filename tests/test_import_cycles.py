@@ -105,7 +105,7 @@ def test_the_graph_sees_lazy_and_relative_imports():
     graph = import_graph(modules())
     assert "sgmodel.config" in graph["sgmodel.args"]  # from .config import ...
     assert "sgmodel.train" in graph["sgmodel.cli"]  # from . import train, inside a function
-    assert "scenesplat_stereo.encode" in graph["scenesplat_stereo.encode_pool"]
+    assert "scenesplat_stereo.shards.encode" in graph["scenesplat_stereo.shards.encode_pool"]
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
@@ -116,7 +116,7 @@ def test_no_import_circles():
 def test_the_benches_and_the_command_line_do_not_import_each_other():
     graph = import_graph(modules())
     assert not any(m.startswith("sgmodel.cli") for b in graph if b.startswith("sgmodel.bench") for m in graph[b])
-    assert "scenesplat_stereo.encode_pool" not in graph["scenesplat_stereo.encode"]
+    assert "scenesplat_stereo.shards.encode_pool" not in graph["scenesplat_stereo.shards.encode"]
 
 
 @pytest.mark.parametrize("name", [m for m in modules() if m.startswith("pipelines") or m.endswith(("cli", "args"))])

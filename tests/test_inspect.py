@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from test_build import settings, write_teachers
 
-from scenesplat_stereo import shards
+from scenesplat_stereo.shards import webdataset as shards
 from scenesplat_stereo.build import build
 from scenesplat_stereo.cli import main
-from scenesplat_stereo.encode import decode_image, encode_mask_png
+from scenesplat_stereo.shards.encode import decode_image, encode_mask_png
 from scenesplat_stereo.inspection import THUMB_WIDTH, inspect_dataset, table
 
 
@@ -123,7 +123,7 @@ def test_pose_and_field_damage_is_found(damaged, field, value, message):
 
 
 def test_mask_values_other_than_0_and_255_fail(damaged):
-    from scenesplat_stereo.encode import encode_png
+    from scenesplat_stereo.shards.encode import encode_png
 
     grey = encode_png(np.full((24, 32, 1), 128, np.uint8))
     rewrite(damaged, "val", "shard-000000.tar", first_key_only(lambda k, m: m | {"mask_01.png": grey}))

@@ -170,8 +170,8 @@ def _poses_dir(variant, root: Path) -> Path:
 
 
 def test_shards_from_synthetic_variant(tmp_path_factory, tmp_path, capsys):
-    from scenesplat_stereo.encode import decode_image
-    from scenesplat_stereo.shards import iter_shard
+    from scenesplat_stereo.shards.encode import decode_image
+    from scenesplat_stereo.shards.webdataset import iter_shard
 
     variant = cached_variant(tmp_path_factory.getbasetemp())
     poses = _poses_dir(variant, tmp_path / "poses")

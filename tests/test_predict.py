@@ -13,7 +13,7 @@ import OpenImageIO as oiio
 import pytest
 import torch
 
-from scenesplat_stereo.encode import decode_image, encode_png
+from scenesplat_stereo.shards.encode import decode_image, encode_png
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
 from scripts.guitar_pair import H, W, render_pair

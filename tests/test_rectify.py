@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo.encode import decode_image, encode_png
+from scenesplat_stereo.shards.encode import decode_image, encode_png
 from scenesplat_stereo.scene.gaussians import load_ply
 from scripts.rig_pair import BASELINE, H, W, distort, render
 from sgmodel import pairs as pairs_mod

@@ -13,7 +13,7 @@ from scenesplat_stereo.build_settings import PRESETS
 from scenesplat_stereo.cli import build_parser
 from scenesplat_stereo.inspection import inspect_dataset
 from scenesplat_stereo.protocol import SampleMeta, test_frames
-from scenesplat_stereo.shards import iter_shard
+from scenesplat_stereo.shards.webdataset import iter_shard
 
 
 def settings(*flags: str):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from scenesplat_stereo.protocol import SampleMeta, SampleMetaError, SamplePlan
-from scenesplat_stereo.shards import iter_shard
+from scenesplat_stereo.shards.webdataset import iter_shard
 
 
 def plan() -> SamplePlan:

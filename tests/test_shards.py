@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenesplat_stereo import shards
-from scenesplat_stereo.shards import ShardWriter, iter_shard
+from scenesplat_stereo.shards import webdataset as shards
+from scenesplat_stereo.shards.webdataset import ShardWriter, iter_shard
 
 
 def members_of(i: int, scene: str = "sc", subset: str = "ScanNetGS", psnr: float | None = 33.0, targets: int = 2) -> dict:

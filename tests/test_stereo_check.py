@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from scenesplat_stereo.encode import encode_png, to_uint8
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scripts.rig_pair import BASELINE, H, W, render
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.stereo_check import DY_MEDIAN_MAX, StereoCheckError, matches, measure, run_check

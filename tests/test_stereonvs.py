@@ -15,11 +15,11 @@ from scenesplat_stereo import stereonvs as S
 from scenesplat_stereo.scene.cameras import translation
 from scenesplat_stereo.cli import main as cli_main
 from scenesplat_stereo.demo import make_room
-from scenesplat_stereo.encode import decode_image, encode_jpeg
+from scenesplat_stereo.shards.encode import decode_image, encode_jpeg
 from scenesplat_stereo.inspection import inspect_dataset
 from scenesplat_stereo.llff import LlffError, llff_to_opencv, opencv_to_llff, read_poses_bounds
 from scenesplat_stereo.protocol import SampleMeta
-from scenesplat_stereo.shards import iter_shard
+from scenesplat_stereo.shards.webdataset import iter_shard
 from sgmodel.data import eval_batches
 
 

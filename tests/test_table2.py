@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from scenesplat_stereo.benchmark import BENCHMARK_NAME
+from scenesplat_stereo.shards.benchmark_file import BENCHMARK_NAME
 from sgmodel.data import DataError
 from sgmodel.evaluate import benchmark_flag, summarise
 from sgmodel.table2 import Column, Row, cell, columns, table_markdown

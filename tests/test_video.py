@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo.encode import encode_png, to_uint8
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.scene.gaussians import load_ply
 from scripts.video_demo import read_frames, render_clip
 from sgmodel import predict as predict_mod

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.encode import to_uint8
+from scenesplat_stereo.shards.encode import to_uint8
 from scenesplat_stereo.common.text import markdown_table
 
 from sgmodel.calib import Calibration

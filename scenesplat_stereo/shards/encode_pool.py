@@ -34,7 +34,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-from scenesplat_stereo import encode
+from scenesplat_stereo.shards import encode
 from scenesplat_stereo.protocol import JPEG_QUALITY
 
 ENCODER_MODES = ("auto", "threads", "processes")
