@@ -175,7 +175,7 @@ def split_samples(refs: Sequence[Reference], split: str, min_targets: int = TRAI
     """The references a split stores: "train" every reference with >= ``min_targets`` targets (all its
     targets); "val" ``protocol.validation_frames`` (5 evenly spaced) among those with at least
     ``len(VAL_TARGETS)`` targets, each cut to its first ``len(VAL_TARGETS)`` targets."""
-    from scenesplat_stereo.protocol import VAL_TARGETS, validation_frames
+    from scenesplat_stereo.build.protocol import VAL_TARGETS, validation_frames
 
     if split == "train":
         return [r for r in refs if len(r.targets) >= max(1, min_targets)]
@@ -266,7 +266,7 @@ def sample_images(sel: VariantSelection, ref: Reference):
     """The ``encode.SampleImages`` of one stored reference pair (at least one target; images read from the
     IRS folder)."""
     from scenesplat_stereo.shards.encode import SampleImages
-    from scenesplat_stereo.protocol import SampleMeta, SamplePlan, sample_key
+    from scenesplat_stereo.build.protocol import SampleMeta, SamplePlan, sample_key
 
     frames, w, h = sel.poses["frames"], sel.poses["width"], sel.poses["height"]
     f = frames[ref.index]
@@ -301,7 +301,7 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
 
     from scenesplat_stereo.common.files import atomic_write_json
     from scenesplat_stereo.shards.encode_pool import SampleEncoder
-    from scenesplat_stereo.protocol import split_scenes
+    from scenesplat_stereo.build.protocol import split_scenes
     from scenesplat_stereo.shards.webdataset import (ShardWriter, collect_stats, finished_shards, remove_shard, write_index,
                                           write_stats)
 

@@ -18,7 +18,7 @@ from scenesplat_stereo.common.text import argtype, parse_size, whole_number
 
 
 def _add_render(sub: argparse._SubParsersAction) -> None:
-    from scenesplat_stereo import render_cmd
+    from scenesplat_stereo.build import render_teacher as render_cmd
 
     p = sub.add_parser(
         "render",
@@ -31,7 +31,7 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_build(sub: argparse._SubParsersAction) -> None:
-    from scenesplat_stereo import build
+    from scenesplat_stereo.build import run as build
 
     p = sub.add_parser("build", help="render teacher scenes into SceneSplat-Stereo shards (stereo pairs + targets)",
                        description=build.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -51,7 +51,7 @@ def _add_import(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_inspect(sub: argparse._SubParsersAction) -> None:
-    from scenesplat_stereo import inspection
+    from scenesplat_stereo.build import inspection
 
     p = sub.add_parser("inspect", help="Table-6 counts, a contact sheet and integrity checks of a built dataset",
                        description=inspection.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -60,7 +60,7 @@ def _add_inspect(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_demo_teachers(sub: argparse._SubParsersAction) -> None:
-    from scenesplat_stereo import demo
+    from scenesplat_stereo.build import demo
 
     p = sub.add_parser("demo-teachers", help="write procedural indoor teacher scenes (plain layout) to OUT",
                        description=demo.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

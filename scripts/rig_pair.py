@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import yaml
 
-from scenesplat_stereo.demo import make_room, room_trajectory
+from scenesplat_stereo.build.demo import make_room, room_trajectory
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.raster import rasterization

@@ -4,7 +4,7 @@ sheet of its frames (the README's video demo, docs/images/video_demo.png).
     python scripts/video_demo.py OUT [--frames 24] [--size 256x192] [--sheet docs/images/video_demo.png]
 
 ``render_clip`` renders a rectified stereo camera (baseline 0.1 m) moving slowly through
-``scenesplat_stereo.demo``'s room 0 with the project's rasteriser and writes ``left.mkv``, ``right.mkv``
+``scenesplat_stereo.build.demo``'s room 0 with the project's rasteriser and writes ``left.mkv``, ``right.mkv``
 and ``sbs.mkv`` (FFV1, lossless, so a decoded frame is the rendered one) and ``K.txt``; tests/test_video.py
 uses it too. The demo then predicts naive-GS scenes on SGBM depth (no checkpoint needed) and renders a slow
 orbit; the sheet shows, for four frames, the left input above the novel view.
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.scene.cameras import right_camera
-from scenesplat_stereo.demo import make_room, room_trajectory
+from scenesplat_stereo.build.demo import make_room, room_trajectory
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.common.text import parse_size

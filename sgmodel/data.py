@@ -38,7 +38,7 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from scenesplat_stereo.shards.encode import decode_image
-from scenesplat_stereo.protocol import SampleMeta, SampleMetaError
+from scenesplat_stereo.build.protocol import SampleMeta, SampleMetaError
 from scenesplat_stereo.shards.webdataset import INDEX_NAME, iter_shard
 from sgmodel import sample_order
 from sgmodel.square_crop import ImageTooSmall, SquareCrop

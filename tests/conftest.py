@@ -47,8 +47,8 @@ def demo_dataset(tmp_path_factory) -> Path:
     ``train`` 2 scenes x 6 pairs x 10 targets in 4 shards (4 + 2 samples per scene), ``val`` 1 scene x 5
     pairs x 4 targets in 2 shards, 96x72 images, ``left_depth.exr`` in every sample. Returns the output
     folder (``<out>/<split>/index.json``, shards, ``stats.json``). Read-only: copy it to damage it."""
-    from scenesplat_stereo.build import BuildSettings, build
-    from scenesplat_stereo.demo import write_demo_teachers
+    from scenesplat_stereo.build.run import BuildSettings, build
+    from scenesplat_stereo.build.demo import write_demo_teachers
 
     base = tmp_path_factory.mktemp("demo_dataset")
     teachers, out = base / "teachers", base / "shards"
@@ -95,9 +95,9 @@ def replicags_dataset(tmp_path_factory) -> Path:
     """``scenesplat-stereo build --preset replicags`` of demo teachers in ``<teachers>/ReplicaGS/`` (so their
     subset is ReplicaGS): a test split of 3 scenes x 4 pairs x 10 targets, B = 0.1 m, rho by tier,
     ``benchmark.json`` masked. Returns OUT (its ``build.json`` records the settings). Read-only."""
-    from scenesplat_stereo.build import build, settings_from_args
+    from scenesplat_stereo.build.run import build, settings_from_args
     from scenesplat_stereo.cli import build_parser
-    from scenesplat_stereo.demo import write_demo_teachers
+    from scenesplat_stereo.build.demo import write_demo_teachers
 
     base = tmp_path_factory.mktemp("replicags")
     teachers, out = base / "teachers", base / "ReplicaGS"

@@ -108,7 +108,7 @@ def write_variant(folder: Path, n_frames: int = 32, seed: int = 0, num_gaussians
     """Render a variant of ``n_frames`` stereo frames into ``folder`` (created) and return it."""
     import torch
 
-    from scenesplat_stereo.demo import make_room
+    from scenesplat_stereo.build.demo import make_room
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

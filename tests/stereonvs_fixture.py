@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.scene.cameras import intrinsics_matrix, right_camera, viewmats_from_c2w
-from scenesplat_stereo.demo import make_room, room_trajectory
+from scenesplat_stereo.build.demo import make_room, room_trajectory
 from scenesplat_stereo.shards.encode import encode_jpeg, encode_png
 from scenesplat_stereo.raster import rasterization
 

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo import build as build_mod
+from scenesplat_stereo.build import run as build_mod
 from scenesplat_stereo.shards import webdataset as shards
-from scenesplat_stereo.build import BuildSettings, build, summary
+from scenesplat_stereo.build.run import BuildSettings, build, summary
 from scenesplat_stereo.scene.cameras import viewmats_from_c2w
-from scenesplat_stereo.effects import CameraEffects
+from scenesplat_stereo.build.effects import CameraEffects
 from scenesplat_stereo.shards.encode import decode_image
 from scenesplat_stereo.scene.gaussians import GaussianScene, load_ply, save_ply
 from scenesplat_stereo.raster import rasterization

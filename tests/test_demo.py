@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from scenesplat_stereo.scene.cameras import fibonacci_directions, rigid_error, stereo_rig, viewmats_from_c2w
-from scenesplat_stereo.demo import DEFAULT_NUM_GAUSSIANS, ROOM_SIZE, make_room, room_trajectory, write_demo_teachers
+from scenesplat_stereo.build.demo import (DEFAULT_NUM_GAUSSIANS, ROOM_SIZE, make_room, room_trajectory,
+                                          write_demo_teachers)
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.scene.ply import SH_C0
-from scenesplat_stereo.protocol import TIERS, plan_scene, tier_for_psnr
+from scenesplat_stereo.build.protocol import TIERS, plan_scene, tier_for_psnr
 from scenesplat_stereo.scene.teachers import discover_teachers
 
 SMALL = 4000  # Gaussians per room in these tests (the default is sized for the README build)

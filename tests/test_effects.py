@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo import effects as fx
-from scenesplat_stereo.effects import CameraEffects
+from scenesplat_stereo.build import effects as fx
+from scenesplat_stereo.build.effects import CameraEffects
 
 H, W = 24, 32
 K = torch.tensor([[[20.0, 0.0, 16.0], [0.0, 20.0, 12.0], [0.0, 0.0, 1.0]]])

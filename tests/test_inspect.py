@@ -14,10 +14,10 @@ import pytest
 from test_build import settings, write_teachers
 
 from scenesplat_stereo.shards import webdataset as shards
-from scenesplat_stereo.build import build
+from scenesplat_stereo.build.run import build
 from scenesplat_stereo.cli import main
 from scenesplat_stereo.shards.encode import decode_image, encode_mask_png
-from scenesplat_stereo.inspection import THUMB_WIDTH, inspect_dataset, table
+from scenesplat_stereo.build.inspection import THUMB_WIDTH, inspect_dataset, table
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import scenesplat_stereo.protocol as protocol
+import scenesplat_stereo.build.protocol as protocol
 from scenesplat_stereo.scene.cameras import intrinsics_matrix, look_at
-from scenesplat_stereo.protocol import (
+from scenesplat_stereo.build.protocol import (
     JPEG_QUALITY,
     MASK_ALPHA_THRESHOLD,
     MIN_TEACHER_PSNR,

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from conftest import REPLICAGS_FRAMES, REPLICAGS_SCENES
 
-from scenesplat_stereo.build import settings_from_args
-from scenesplat_stereo.build_settings import PRESETS
+from scenesplat_stereo.build.run import settings_from_args
+from scenesplat_stereo.build.settings import PRESETS
 from scenesplat_stereo.cli import build_parser
-from scenesplat_stereo.inspection import inspect_dataset
-from scenesplat_stereo.protocol import SampleMeta, test_frames
+from scenesplat_stereo.build.inspection import inspect_dataset
+from scenesplat_stereo.build.protocol import SampleMeta, test_frames
 from scenesplat_stereo.shards.webdataset import iter_shard
 
 

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from scenesplat_stereo.protocol import SampleMeta, SampleMetaError, SamplePlan
+from scenesplat_stereo.build.protocol import SampleMeta, SampleMetaError, SamplePlan
 from scenesplat_stereo.shards.webdataset import iter_shard
 
 
@@ -50,7 +50,7 @@ def test_optional_fields_irs_extras_and_no_psnr():
 def test_builder_json_reads_back_equal_to_its_plan(demo_dataset):
     import warnings
 
-    from scenesplat_stereo.protocol import plan_scene
+    from scenesplat_stereo.build.protocol import plan_scene
     from scenesplat_stereo.scene.teachers import discover_teachers
 
     with warnings.catch_warnings():

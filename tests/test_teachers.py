@@ -12,7 +12,7 @@ import pytest
 
 from scenesplat_stereo.scene.cameras import look_at
 from scenesplat_stereo.scene.gaussians import GaussianScene, load_ply, save_ply
-from scenesplat_stereo.protocol import filter_teachers, plan_scene
+from scenesplat_stereo.build.protocol import filter_teachers, plan_scene
 from scenesplat_stereo.scene.teachers import (
     OrbitSpec,
     Rejection,

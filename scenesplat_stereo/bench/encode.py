@@ -36,7 +36,7 @@ from scenesplat_stereo.shards import encode
 from scenesplat_stereo.common.commandline import Parser
 from scenesplat_stereo.shards.encode import SampleImages
 from scenesplat_stereo.shards.encode_pool import SampleEncoder
-from scenesplat_stereo.protocol import NUM_TARGETS
+from scenesplat_stereo.build.protocol import NUM_TARGETS
 from scenesplat_stereo.shards.webdataset import ShardWriter
 from scenesplat_stereo.common.text import parse_size
 

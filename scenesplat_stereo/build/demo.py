@@ -29,7 +29,7 @@ from scenesplat_stereo.scene.cameras import OPENGL_TO_OPENCV, intrinsics_matrix,
 from scenesplat_stereo.common.files import atomic_write_json
 from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene.ply import SH_C0
-from scenesplat_stereo.protocol import TIERS
+from scenesplat_stereo.build.protocol import TIERS
 
 ROOM_SIZE = (4.0, 5.0, 2.6)  # metres: x width, y depth, z height
 DEFAULT_NUM_GAUSSIANS = 36_000  # per room: a 256x192 build of 4 rooms stays a few minutes on 2 CPU cores
@@ -331,7 +331,7 @@ def write_demo_teachers(out: Path, n_scenes: int = 4, seed: int = 0, num_gaussia
             save_ply(room, tmp / "point_cloud.ply")
             atomic_write_json(tmp / "transforms.json", transforms, indent=2)
             atomic_write_json(tmp / "scene.json", {"psnr": psnr, "subset": DEMO_SUBSET, "camera_convention": convention,
-                                                         "generator": f"scenesplat_stereo.demo seed={seed} scene={i}"}, indent=2)
+                                                         "generator": f"scenesplat_stereo.build.demo seed={seed} scene={i}"}, indent=2)
             os.chmod(tmp, 0o755)
             if final.exists():
                 shutil.rmtree(final)
