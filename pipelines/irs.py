@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from scenesplat_stereo.scene.cameras import right_camera
-from scenesplat_stereo.colmap import PinholeCamera, Recovery, RecoveryOptions, image_size, recover_poses
+from scenesplat_stereo.captured.colmap import PinholeCamera, Recovery, RecoveryOptions, image_size, recover_poses
 from scenesplat_stereo.common.files import atomic_write_json
 from scenesplat_stereo.common.text import format_table, key_safe_name
 

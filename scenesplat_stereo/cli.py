@@ -40,7 +40,7 @@ def _add_build(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_import(sub: argparse._SubParsersAction) -> None:
-    from scenesplat_stereo import stereonvs
+    from scenesplat_stereo.captured import stereonvs
 
     p = sub.add_parser("import", help="turn a published benchmark into test shards (StereoNVS-Real)")
     sources = p.add_subparsers(dest="source", required=True)

@@ -79,7 +79,7 @@ def stereonvs_dataset(stereonvs_scenes, tmp_path_factory) -> Path:
     split of 9 samples, 14 targets, in shards of 4 samples. Read-only."""
     from stereonvs_fixture import BASELINE
 
-    from scenesplat_stereo.stereonvs import import_stereonvs
+    from scenesplat_stereo.captured.stereonvs import import_stereonvs
 
     out = tmp_path_factory.mktemp("stereonvs_out") / "StereoNVS"
     import_stereonvs(stereonvs_scenes[0].folder.parent, out, BASELINE, samples_per_shard=4, progress=False)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.irs import IRS_BASELINE, IRS_CAMERA, IRS_FOCAL_BASELINE
-from scenesplat_stereo.colmap import PinholeCamera
+from scenesplat_stereo.captured.colmap import PinholeCamera
 
 SYNTHETIC_SIZE = (240, 135)  # 1/4 of IRS's 960x540
 SPECKLE = 0.12  # std of the per-Gaussian colour speckle (SH DC units, about 0.034 in rgb)

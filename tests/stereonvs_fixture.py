@@ -9,7 +9,7 @@ Written in StereoNeRF's layout: ``ROOT/<scene>/images/left/<name>``, ``images/ri
 names) and ``poses_bounds.npy`` [2N, 17] (rows 0..N-1 left, N..2N-1 right). The poses are COLMAP-like: the
 world is moved by a known similarity x_colmap = s R x + t (so they are not metric), and each camera is
 written in LLFF's column order (down, right, backwards, centre, [H, W, focal]), straight from the
-convention, without scenesplat_stereo.llff.
+convention, without scenesplat_stereo.captured.llff.
 """
 
 from __future__ import annotations

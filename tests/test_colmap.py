@@ -1,4 +1,4 @@
-"""scenesplat_stereo.colmap: generic pose recovery with pycolmap, against a synthetic sequence with known
+"""scenesplat_stereo.captured.colmap: generic pose recovery with pycolmap, against a synthetic sequence with known
 poses (tests/irs_synthetic.py) and on degenerate inputs."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ pytest.importorskip("pycolmap")
 
 from irs_synthetic import align, cached_variant  # noqa: E402
 from pipelines import irs_pose_recovery  # noqa: E402
-from scenesplat_stereo.colmap import (EXHAUSTIVE_MAX_FRAMES, PinholeCamera, RecoveryOptions,  # noqa: E402
+from scenesplat_stereo.captured.colmap import (EXHAUSTIVE_MAX_FRAMES, PinholeCamera, RecoveryOptions,  # noqa: E402
                                       recover_poses, recovery_json)
 
 FAST = dict(max_num_features=1024, num_threads=1)  # one thread: COLMAP runs deterministically

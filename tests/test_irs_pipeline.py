@@ -15,7 +15,7 @@ pytest.importorskip("pycolmap")
 
 from irs_synthetic import align, cached_variant, write_disparity_exr  # noqa: E402
 from pipelines import irs, irs_pose_recovery  # noqa: E402
-from scenesplat_stereo.colmap import Observations, Recovery, RecoveryOptions  # noqa: E402
+from scenesplat_stereo.captured.colmap import Observations, Recovery, RecoveryOptions  # noqa: E402
 
 FAST = RecoveryOptions(max_num_features=1024, num_threads=1)  # one thread: COLMAP runs deterministically
 FILTERS = irs.Filters(min_registered=20)  # the synthetic variant has 32 frames, not >= 150

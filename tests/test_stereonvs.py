@@ -11,13 +11,13 @@ import pytest
 import torch
 from stereonvs_fixture import BASELINE, FOCAL, IMAGE_SIZE, POSES_SIZE, llff_row, render, rotation_about, true_K
 
-from scenesplat_stereo import stereonvs as S
+from scenesplat_stereo.captured import stereonvs as S
 from scenesplat_stereo.scene.cameras import translation
 from scenesplat_stereo.cli import main as cli_main
 from scenesplat_stereo.build.demo import make_room
 from scenesplat_stereo.shards.encode import decode_image, encode_jpeg
 from scenesplat_stereo.build.inspection import inspect_dataset
-from scenesplat_stereo.llff import LlffError, llff_to_opencv, opencv_to_llff, read_poses_bounds
+from scenesplat_stereo.captured.llff import LlffError, llff_to_opencv, opencv_to_llff, read_poses_bounds
 from scenesplat_stereo.build.protocol import SampleMeta
 from scenesplat_stereo.shards.webdataset import iter_shard
 from sgmodel.data import eval_batches

@@ -5,7 +5,7 @@ Input, one folder per scene under ROOT, as StereoNeRF's own loader (``data/llff_
 
     ROOT/<scene>/images/left/*      left images, in name order
     ROOT/<scene>/images/right/*     right images, the same names
-    ROOT/<scene>/poses_bounds.npy   [2N, 17] LLFF cameras (scenesplat_stereo.llff): rows 0..N-1 the left
+    ROOT/<scene>/poses_bounds.npy   [2N, 17] LLFF cameras (scenesplat_stereo.captured.llff): rows 0..N-1 the left
                                     images, rows N..2N-1 the right ones; one focal for all
 
 Cameras. K comes from poses_bounds' focal at its H x W, scaled per axis to the size of the image files
@@ -52,10 +52,10 @@ from tqdm import tqdm
 
 from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
 from scenesplat_stereo.scene.cameras import right_camera, rotation_angle_deg
-from scenesplat_stereo.colmap import image_size
+from scenesplat_stereo.captured.colmap import image_size
 from scenesplat_stereo.shards.encode import SampleImages, decode_image, encode_jpeg, encode_sample
 from scenesplat_stereo.common.files import atomic_write_json, check_writable
-from scenesplat_stereo.llff import read_poses_bounds
+from scenesplat_stereo.captured.llff import read_poses_bounds
 from scenesplat_stereo.build.protocol import SampleMeta, sample_key
 from scenesplat_stereo.shards.webdataset import (INDEX_NAME, ShardWriter, collect_stats, remove_unplanned, write_index,
                                       write_stats)
