@@ -19,15 +19,15 @@ CPU kernels prefer. The blocks below work in either layout and compute the same 
   ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
 - ``cat_channels``: the channel concatenation of the convolutions' inputs, each source edge-replicated by
   its own padding on the way (the descriptor onto the canvas), with the ones channel and zeros appended; on
-  CUDA one Triton pass (``sgmodel.concat_kernels``) instead of a padded copy and PyTorch's per-source copies.
+  CUDA one Triton pass (``sgmodel.kernels.concat``) instead of a padded copy and PyTorch's per-source copies.
 - ``group_norm_gelu`` / ``GroupNorm``: GroupNorm, optionally followed by the exact GELU, in its input's
   dtype (statistics in float32). On CUDA with Triton, for channels-last inputs, one fused kernel pair
-  forward and one backward (``sgmodel.group_norm_kernels``): PyTorch's CUDA GroupNorm is NCHW-only and
+  forward and one backward (``sgmodel.kernels.group_norm``): PyTorch's CUDA GroupNorm is NCHW-only and
   converts channels-last tensors both ways. Elsewhere PyTorch's ``F.group_norm`` and ``F.gelu``, which are
   the reference the kernels are tested against. Same parameters and state_dict keys as ``nn.GroupNorm``.
   ``group_norm_gelu_parts`` gives the output as channel blocks for consumers that each read one.
 - ``upsample_bilinear``: PyTorch's bilinear resize written in its consumer's dtype; an exact 2x of a
-  channels-last CUDA tensor runs Triton kernels (``sgmodel.upsample_kernels``).
+  channels-last CUDA tensor runs Triton kernels (``sgmodel.kernels.upsample``).
 - ``compute_dtype``: the dtype convolutions run in here (autocast's, else float32), so that inputs are
   cast once before they are concatenated instead of concatenated in float32 and cast by every consumer.
 
@@ -47,7 +47,7 @@ from torch import nn
 #: (cuDNN's NHWC tensor-core kernels; a 259 -> 384 channel 3x3 convolution at the canvas size took 36.6 ms
 #: forward + backward with 259 input channels and 28.9 ms with 264, H100, bf16, batch 32).
 CUDA_CHANNEL_MULTIPLE = 8
-#: the most tensors ``cat_channels`` concatenates in one Triton launch (``sgmodel.concat_kernels``' source
+#: the most tensors ``cat_channels`` concatenates in one Triton launch (``sgmodel.kernels.concat``' source
 #: slots; that module cannot import this one: no import cycles)
 CAT_KERNEL_SOURCES = 3
 
@@ -78,7 +78,7 @@ def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int]
     ``pads[i]`` pixels (``replicate_pad``; default none) to one height and width, in the first one's layout
     (``activation_format``), with channels appended up to a multiple of ``multiple``: the first of them all
     ones (the bias channel of ``replicate_conv3x3``), the rest zeros. On CUDA with Triton (at most three
-    tensors) one pass writes it all, padding included (``sgmodel.concat_kernels``), with no padded copy of
+    tensors) one pass writes it all, padding included (``sgmodel.kernels.concat``), with no padded copy of
     its own; the same values as the padding and ``torch.cat`` that run elsewhere."""
     pads = [0] * len(tensors) if pads is None else list(pads)
     x = tensors[0]
@@ -100,18 +100,18 @@ def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int]
 
 
 class _CatChannels(torch.autograd.Function):
-    """The Triton kernels of ``sgmodel.concat_kernels`` (CUDA tensors of one dtype, at most three)."""
+    """The Triton kernels of ``sgmodel.kernels.concat`` (CUDA tensors of one dtype, at most three)."""
 
     @staticmethod
     def forward(ctx, width: int, pads: tuple[int, ...], *tensors: torch.Tensor) -> torch.Tensor:
-        from sgmodel import concat_kernels
+        from sgmodel.kernels import concat as concat_kernels
 
         ctx.pads, ctx.shapes, ctx.dtypes = pads, [t.shape for t in tensors], [t.dtype for t in tensors]
         return concat_kernels.forward(list(tensors), list(pads), width)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        from sgmodel import concat_kernels
+        from sgmodel.kernels import concat as concat_kernels
 
         grads, lo = [], 0
         for need, shape, dtype, p in zip(ctx.needs_input_grad[2:], ctx.shapes, ctx.dtypes, ctx.pads):
@@ -287,13 +287,13 @@ def group_norm(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.T
 
 
 class _GroupNormGELU(torch.autograd.Function):
-    """The Triton kernels of ``sgmodel.group_norm_kernels`` for a channels-last CUDA tensor; the output as
+    """The Triton kernels of ``sgmodel.kernels.group_norm`` for a channels-last CUDA tensor; the output as
     ``parts`` channel blocks (a tuple of tensors)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, groups: int, eps: float,
                 gelu: bool, parts: int) -> tuple[torch.Tensor, ...]:
-        from sgmodel import group_norm_kernels
+        from sgmodel.kernels import group_norm as group_norm_kernels
 
         ys, mean, rstd = group_norm_kernels.forward(x, groups, weight, bias, eps, gelu, parts)
         ctx.save_for_backward(x, weight, bias, mean, rstd)
@@ -302,7 +302,7 @@ class _GroupNormGELU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grads: torch.Tensor):
-        from sgmodel import group_norm_kernels
+        from sgmodel.kernels import group_norm as group_norm_kernels
 
         x, weight, bias, mean, rstd = ctx.saved_tensors
         dx, dw, db = group_norm_kernels.backward(list(grads), x, mean, rstd, ctx.groups, weight, bias, ctx.gelu,
@@ -370,18 +370,18 @@ class GroupNorm(nn.GroupNorm):
 
 
 class _BiasGELU(torch.autograd.Function):
-    """The Triton kernels of ``sgmodel.bias_gelu_kernels`` (a channels-last CUDA tensor)."""
+    """The Triton kernels of ``sgmodel.kernels.bias_gelu`` (a channels-last CUDA tensor)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        from sgmodel import bias_gelu_kernels
+        from sgmodel.kernels import bias_gelu as bias_gelu_kernels
 
         ctx.save_for_backward(x, bias)
         return bias_gelu_kernels.forward(x, bias)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        from sgmodel import bias_gelu_kernels
+        from sgmodel.kernels import bias_gelu as bias_gelu_kernels
 
         x, bias = ctx.saved_tensors
         dx, db = bias_gelu_kernels.backward(grad, x, bias)
@@ -390,7 +390,7 @@ class _BiasGELU(torch.autograd.Function):
 
 def bias_gelu(x: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     """GELU(x + bias) (exact GELU) of x [B, C, H, W], bias [C], in x's dtype: fused Triton kernels for a
-    channels-last CUDA tensor (``sgmodel.bias_gelu_kernels``: x + bias in float32, its gradient in the same
+    channels-last CUDA tensor (``sgmodel.kernels.bias_gelu``: x + bias in float32, its gradient in the same
     pass as x's), else PyTorch's addition (the bias cast to x's dtype, as a convolution under autocast adds
     it) and GELU."""
     if channels_last_kernels_run(x):
@@ -405,18 +405,18 @@ def conv_gelu(conv: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
 
 
 class _Upsample2x(torch.autograd.Function):
-    """The Triton kernels of ``sgmodel.upsample_kernels`` (a channels-last CUDA tensor resized to 2x)."""
+    """The Triton kernels of ``sgmodel.kernels.upsample`` (a channels-last CUDA tensor resized to 2x)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-        from sgmodel import upsample_kernels
+        from sgmodel.kernels import upsample as upsample_kernels
 
         ctx.size, ctx.dtype = tuple(x.shape[-2:]), x.dtype
         return upsample_kernels.forward(x, dtype)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        from sgmodel import upsample_kernels
+        from sgmodel.kernels import upsample as upsample_kernels
 
         return upsample_kernels.backward(grad, *ctx.size, ctx.dtype), None
 
@@ -425,7 +425,7 @@ def upsample_bilinear(x: torch.Tensor, size: tuple[int, int], dtype: torch.dtype
     """Bilinear resize of ``x`` [B,C,h,w] to ``size`` as ``F.interpolate(..., align_corners=False)``, computed
     in float32 and returned in ``dtype`` (its consumer's: a resize that feeds a bf16 convolution writes
     bf16, not float32 and then a cast). Triton kernels for an exact 2x of a channels-last CUDA tensor
-    (``sgmodel.upsample_kernels``: the decoder's last upsampling, 6 ms less a training step on an H100),
+    (``sgmodel.kernels.upsample``: the decoder's last upsampling, 6 ms less a training step on an H100),
     else ``F.interpolate`` (float32 under autocast) and a cast."""
     h, w = x.shape[-2:]
     if tuple(size) == (2 * h, 2 * w) and channels_last_kernels_run(x):

@@ -155,13 +155,13 @@ class _TapDistance(torch.autograd.Function):
 
 
 class _KernelTapDistance(torch.autograd.Function):
-    """``_TapDistance`` for CUDA features in two Triton kernels (``sgmodel.lpips_kernels``): the forward reads
+    """``_TapDistance`` for CUDA features in two Triton kernels (``sgmodel.kernels.lpips_tap``): the forward reads
     each side once and keeps the two norms per pixel, the backward recomputes the difference from the
     features; no float32 copy of a feature map is made or kept."""
 
     @staticmethod
     def forward(ctx, a: Tensor, b: Tensor, weight: Tensor) -> Tensor:
-        from sgmodel import lpips_kernels
+        from sgmodel.kernels import lpips_tap as lpips_kernels
 
         w = weight.reshape(-1).float().contiguous()
         d, norm_a, norm_b = lpips_kernels.forward(a, b, w, _NORM_EPS)
@@ -171,7 +171,7 @@ class _KernelTapDistance(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        from sgmodel import lpips_kernels
+        from sgmodel.kernels import lpips_tap as lpips_kernels
 
         a, b, w, norm_a, norm_b = ctx.saved_tensors
         da, db = lpips_kernels.backward(grad, a, b, w, norm_a, norm_b, _NORM_EPS, *ctx.needs_input_grad[:2])

@@ -149,7 +149,7 @@ class _InteriorSSIM(torch.autograd.Function):
 
 
 class _KernelSSIM(torch.autograd.Function):
-    """``_InteriorSSIM`` for float32 CUDA images in two Triton kernels (``sgmodel.ssim_kernels``): the forward
+    """``_InteriorSSIM`` for float32 CUDA images in two Triton kernels (``sgmodel.kernels.ssim``): the forward
     filters the five moments and writes S with the derivative maps the backward needs, the backward filters
     them back and combines them with x and y, reading and writing the images in their own layout (in a
     training step on an H100: 2.7 ms of kernels, forward and backward, where ``_InteriorSSIM``'s depthwise
@@ -157,7 +157,7 @@ class _KernelSSIM(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, y: Tensor) -> Tensor:
-        from sgmodel import ssim_kernels
+        from sgmodel.kernels import ssim as ssim_kernels
 
         window = _gaussian_window(torch.float32, x.device)
         s, maps = ssim_kernels.forward(x, y, window, SSIM_K1 ** 2, SSIM_K2 ** 2, *ctx.needs_input_grad)
@@ -166,7 +166,7 @@ class _KernelSSIM(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        from sgmodel import ssim_kernels
+        from sgmodel.kernels import ssim as ssim_kernels
 
         return ssim_kernels.backward(grad, *ctx.saved_tensors, *ctx.needs_input_grad)
 

@@ -1,5 +1,5 @@
 """``layers.cat_channels`` with edge replication (``pads``): on the CPU the padding and ``torch.cat``, on CUDA
-the Triton kernels of ``sgmodel.concat_kernels``; both against a float64 reference written here from the
+the Triton kernels of ``sgmodel.kernels.concat``; both against a float64 reference written here from the
 definition (each output pixel reads the source pixel at clamped coordinates; gradients by autograd through
 that gather)."""
 

@@ -1,5 +1,5 @@
 """LPIPS's tap distance on CUDA (``sgmodel.lpips._KernelTapDistance``, the Triton kernels of
-``sgmodel.lpips_kernels``) against the float64 ``_TapDistance`` (itself checked against autograd through the
+``sgmodel.kernels.lpips_tap``) against the float64 ``_TapDistance`` (itself checked against autograd through the
 plain operations in tests/test_lpips.py), and the LPIPS term built on it against the PyTorch path. CUDA only
 (Triton's GPU kernels); the CPU's path is ``_TapDistance``, tested there."""
 

@@ -1,4 +1,4 @@
-"""sgmodel.encoders.regression: PSMNet's full-resolution soft-argmin without the volume, against the
+"""sgmodel.kernels.soft_argmin: PSMNet's full-resolution soft-argmin without the volume, against the
 float64 volume computation (trilinear upsampling, softmax, expectation) it replaces; degenerate sizes
 and extreme costs. And the single-output-channel classifier convolution's CUDA path."""
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from sgmodel.encoders.psmnet import ScoreConv3d
-from sgmodel.encoders.regression import soft_argmin, soft_argmin_reference
+from sgmodel.kernels.soft_argmin import soft_argmin, soft_argmin_reference
 
 
 @pytest.mark.parametrize("shape,levels,height,width", [

@@ -1,4 +1,4 @@
-"""The Triton interior SSIM (``sgmodel.metrics._KernelSSIM``, ``sgmodel.ssim_kernels``: the training loss's SSIM
+"""The Triton interior SSIM (``sgmodel.metrics._KernelSSIM``, ``sgmodel.kernels.ssim``: the training loss's SSIM
 term on CUDA) against the float64 ``_InteriorSSIM``, which tests/test_metrics.py checks against autograd
 through the full map and skimage. CUDA only (Triton's GPU kernels)."""
 

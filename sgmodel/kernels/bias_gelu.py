@@ -19,7 +19,7 @@ import torch
 import triton
 import triton.language as tl
 
-from sgmodel.group_norm_kernels import _gelu_and_slope
+from sgmodel.kernels.group_norm import _gelu_and_slope
 
 _BLOCK_M = 32  # pixels of one tile
 _TILES = 16  # tiles one backward program walks (its partial bias-gradient row covers them all)
