@@ -18,8 +18,8 @@ import argparse
 import torch
 
 from sgmodel.config import EncoderParams
-from sgmodel.data import make_loader
-from sgmodel.encoder_cache import open_cache, precision_of
+from sgmodel.data.loader import make_loader
+from sgmodel.data.encoder_cache import open_cache, precision_of
 from sgmodel.encoders.flags import build_encoder
 from sgmodel.layers import amp_autocast
 from sgmodel.model import encode_pair

@@ -1,5 +1,5 @@
 """``sgmodel encode``: run the frozen encoder once over a dataset and keep its outputs in an encoder cache
-(``sgmodel.encoder_cache``), so ``sgmodel train --encoder-cache CACHE`` (and ``ablate``, ``bench train``) skip
+(``sgmodel.data.encoder_cache``), so ``sgmodel train --encoder-cache CACHE`` (and ``ablate``, ``bench train``) skip
 the encoder at every step.
 
 The encoder is frozen and every sample's input pair is the same each epoch, so this computes once what a
@@ -37,10 +37,11 @@ from scenesplat_stereo.shards.webdataset import (PlannedShards, iter_shard, read
                                                  write_index)
 from scenesplat_stereo.common.text import format_table, whole_number
 
-from sgmodel import encoder_cache as cache_format
+from sgmodel.data import encoder_cache as cache_format
 from sgmodel.args import add_device_argument, device_from_flag, preset_params
 from sgmodel.config import PRESETS
-from sgmodel.data import RUN_SPLITS, DataError, Shard, check_first_sample, init_loader_worker, load_pair, read_split
+from sgmodel.data.loader import (RUN_SPLITS, DataError, Shard, check_first_sample, init_loader_worker, load_pair,
+                                 read_split)
 from sgmodel.distributed import World, all_sum, barrier, close_world, init_world
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from sgmodel.layers import amp_autocast

@@ -32,7 +32,7 @@ from scenesplat_stereo.common.text import markdown_table, whole_number
 
 from sgmodel import metrics
 from sgmodel.config import EncoderParams
-from sgmodel.data import eval_batches, read_split
+from sgmodel.data.loader import eval_batches, read_split
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from sgmodel.inference import Reconstructor

@@ -137,7 +137,7 @@ class StereoGaussians(nn.Module):
         """left/right [B,3,H,W] in [0,1], K [B,3,3] pixels, baseline [B] metres -> Prediction. ``doffs``:
         the pair's principal-point disparity offset in pixels (Middlebury), added to the encoder's.
         ``encoded``: the encoder's (disparity [B,1,H,W], features) for this pair, read from an encoder cache
-        (``sgmodel.encoder_cache``); the encoder does not run."""
+        (``sgmodel.data.encoder_cache``); the encoder does not run."""
         check_inputs(left, right, K, baseline)
         if encoded is None:
             disparity, features = self.encode(left, right)

@@ -28,7 +28,7 @@ from scenesplat_stereo.shards.benchmark_file import read_benchmark
 from scenesplat_stereo.common.files import atomic_write_bytes, check_apart, check_replaceable, check_writable
 from scenesplat_stereo.common.text import key_safe_name, markdown_table
 
-from sgmodel.data import read_split
+from sgmodel.data.loader import read_split
 from sgmodel.evaluate import OWNER, eval_inputs, evaluate, method_of
 
 TABLE_MD, TABLE_JSON = "table2.md", "table2.json"

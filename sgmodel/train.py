@@ -1,6 +1,6 @@
 """Training: a step function (``train_step``), validation (``validate``) and the loop (``train``).
 
-The loop reads shards through ``sgmodel.data``, predicts Gaussians with the model, renders every target
+The loop reads shards through ``sgmodel.data.loader``, predicts Gaussians with the model, renders every target
 through ``sgmodel.render`` (our Warp rasteriser and its hand-written backward), and minimises
 MSE + 0.05 LPIPS-VGG (or MSE + 0.05 (1 - SSIM) without the VGG weights) with AdamW and OneCycleLR
 (SPEC section 7). Every ``val_every`` steps it validates on the whole validation split, writes a contact
@@ -16,7 +16,7 @@ a torn last line of ``metrics.jsonl`` is dropped with a warning.
 
 Nothing is written before every input is checked: the flags, ``--out`` (a folder that can be written, not
 inside ``--data``, empty, or a run of the same settings), both splits (their first samples decoded at
-the run's size), the encoder and LPIPS weights, ``--init-from``, ``--encoder-cache`` (``sgmodel.encoder_cache``:
+the run's size), the encoder and LPIPS weights, ``--init-from``, ``--encoder-cache`` (``sgmodel.data.encoder_cache``:
 it must fit the encoder, the resolution, the precision and the data). A RUN that holds an earlier attempt of
 other settings without any checkpoint is started afresh (nothing of value is lost).
 
@@ -46,9 +46,9 @@ from scenesplat_stereo.common.text import format_table
 from sgmodel import metrics
 from sgmodel.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from sgmodel.config import ModelParams, TrainParams
-from sgmodel.data import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
+from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
 from sgmodel.distributed import World, all_sum, broadcast_flag, close_world, init_world
-from sgmodel.encoder_cache import EncoderCache, open_cache, precision_of
+from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
 from sgmodel.layers import amp_autocast, compiles
 from sgmodel.losses import create_objective
 from sgmodel.model import StereoGaussians, create_model

@@ -435,7 +435,7 @@ def test_argparse_refusals_are_one_line(capsys, argv, message):
 
 def test_truncated_shard_in_a_loader_worker_is_named(demo_dataset, tmp_path):
     """A shard cut short after the checks (the loader reads it in full) names the shard and the member."""
-    from sgmodel.data import make_loader
+    from sgmodel.data.loader import make_loader
 
     data = shutil.copytree(demo_dataset, tmp_path / "data")
     shard = data / "val" / "shard-000001.tar"

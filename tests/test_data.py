@@ -1,4 +1,4 @@
-"""sgmodel.data: square crop and K, masks, target viewmats, target draws, worker/rank splits, reproducible
+"""sgmodel.data.loader: square crop and K, masks, target viewmats, target draws, worker/rank splits, reproducible
 training order, bad input (SPEC section 7, the Batch contract)."""
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import torch
 from scenesplat_stereo.shards.encode import decode_image
 from scenesplat_stereo.build.protocol import SampleMeta
 from scenesplat_stereo.shards.webdataset import iter_shard
-from sgmodel import sample_order
-from sgmodel.data import DataError, ShardStream, make_loader
-from sgmodel.square_crop import SquareCrop
+from sgmodel.data import sample_order
+from sgmodel.data.loader import DataError, ShardStream, make_loader
+from sgmodel.data.square_crop import SquareCrop
 
 
 def project(K: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -269,7 +269,7 @@ def global_batches(root: Path, world: int, workers: int, steps: int, global_batc
 
 def test_training_order_is_the_same_on_any_number_of_ranks_and_workers(demo_dataset):
     """The batch of a global step (samples and drawn targets) does not depend on the world size or the
-    loader workers (sgmodel.data docstring): 1, 2 and 4 ranks, 0 to 3 workers, 7 steps (2.3 epochs)."""
+    loader workers (sgmodel.data.loader docstring): 1, 2 and 4 ranks, 0 to 3 workers, 7 steps (2.3 epochs)."""
     one = global_batches(demo_dataset, 1, 0, 7)
     assert sorted(k for step in one[:3] for k, _ in step) == sorted(read_all(demo_dataset, "train"))
     for world, workers in [(2, 0), (4, 0), (1, 3), (2, 2), (4, 3)]:

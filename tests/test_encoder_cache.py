@@ -17,9 +17,9 @@ import torch
 
 from scenesplat_stereo.common.commandline import Interrupted
 from sgmodel import encode as encode_mod
-from sgmodel import encoder_cache as cache_mod
+from sgmodel.data import encoder_cache as cache_mod
 from sgmodel import train as train_mod
-from sgmodel.data import DataError, make_loader
+from sgmodel.data.loader import DataError, make_loader
 from sgmodel.encoders import ENCODERS
 from sgmodel.losses import create_objective
 from sgmodel.model import create_model, encode_pair

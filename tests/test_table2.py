@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from scenesplat_stereo.shards.benchmark_file import BENCHMARK_NAME
-from sgmodel.data import DataError
+from sgmodel.data.loader import DataError
 from sgmodel.evaluate import benchmark_flag, summarise
 from sgmodel.table2 import Column, Row, cell, columns, table_markdown
 from tests.model_helpers import sgmodel_status

@@ -19,7 +19,7 @@ import torch
 from scenesplat_stereo.common.text import markdown_table
 
 from sgmodel.args import add_device_argument, device_from_flag
-from sgmodel.data import make_loader
+from sgmodel.data.loader import make_loader
 from sgmodel.encoders import StereoEncoder
 from sgmodel.encoders.flags import build_encoder, encoder_label, parse_encoder_spec
 from sgmodel.geometry import depth_from_disparity

@@ -28,8 +28,8 @@ from torch.utils.flop_counter import FlopCounterMode
 from scenesplat_stereo.common.text import markdown_table
 
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
-from sgmodel.data import make_loader
-from sgmodel.encoder_cache import open_cache, precision_of
+from sgmodel.data.loader import make_loader
+from sgmodel.data.encoder_cache import open_cache, precision_of
 from sgmodel.geometry import depth_from_disparity
 from sgmodel.layers import amp_autocast, compiles
 from sgmodel.losses import Objective, create_objective

@@ -40,8 +40,8 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from scenesplat_stereo.shards.encode import decode_image
 from scenesplat_stereo.build.protocol import SampleMeta, SampleMetaError
 from scenesplat_stereo.shards.webdataset import INDEX_NAME, iter_shard
-from sgmodel import sample_order
-from sgmodel.square_crop import ImageTooSmall, SquareCrop
+from sgmodel.data import sample_order
+from sgmodel.data.square_crop import ImageTooSmall, SquareCrop
 
 TRAIN_TARGETS = 4  # targets drawn per pair in training (paper section 4, SPEC section 7)
 RESOLUTION = 256  # S (paper section 4, SPEC section 7)

@@ -41,7 +41,7 @@ import torch
 from scenesplat_stereo.common.files import FileFormatError, read_json
 from scenesplat_stereo.shards.webdataset import INDEX_NAME, iter_shard
 
-from sgmodel.data import DataError, Shard, read_split
+from sgmodel.data.loader import DataError, Shard, read_split
 
 FORMAT = "sgmodel-encoder-cache/1"
 MANIFEST = "cache.json"
@@ -98,7 +98,7 @@ def sample_members(disparity: torch.Tensor, features: list[torch.Tensor], precis
 
 class EncoderCache:
     """An opened, checked cache (``open_cache``): ``samples`` reads a shard's encoder outputs in step with
-    the data's shard of the same name (``sgmodel.data.ShardStream``)."""
+    the data's shard of the same name (``sgmodel.data.loader.ShardStream``)."""
 
     def __init__(self, root: Path, info: dict) -> None:
         self.root, self.info = Path(root), info
