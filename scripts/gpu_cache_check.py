@@ -21,8 +21,8 @@ from sgmodel.config import EncoderParams
 from sgmodel.data.loader import make_loader
 from sgmodel.data.encoder_cache import open_cache, precision_of
 from sgmodel.encoders.flags import build_encoder
-from sgmodel.layers import amp_autocast
-from sgmodel.model import encode_pair
+from sgmodel.model.layers import amp_autocast
+from sgmodel.model.network import encode_pair
 from sgmodel.train import to_device
 
 

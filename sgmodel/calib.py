@@ -11,7 +11,7 @@ Two file formats are read (detected from the content):
 
 ``doffs`` is the difference of the two principal points in x: the disparity an encoder measures on the
 images, d, is smaller than the geometric one by doffs, so depth is z = fx B / (d + doffs)
-(``sgmodel.geometry.depth_from_disparity(..., doffs=)``). When the images are resized, doffs scales with the
+(``sgmodel.model.geometry.depth_from_disparity(..., doffs=)``). When the images are resized, doffs scales with the
 width like cx (``Calibration.scaled``). Every problem raises ``CalibError`` naming the file (or flag), the
 line and the field.
 """

@@ -44,8 +44,8 @@ from sgmodel.data.loader import (RUN_SPLITS, DataError, Shard, check_first_sampl
                                  read_split)
 from sgmodel.distributed import World, all_sum, barrier, close_world, init_world
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
-from sgmodel.layers import amp_autocast
-from sgmodel.model import encode_pair
+from sgmodel.model.layers import amp_autocast
+from sgmodel.model.network import encode_pair
 
 class PairChunks(Dataset):
     """Item j: up to a batch of consecutive pairs of one shard, ``(shard number, keys, left [n,3,S,S], right)``,

@@ -1,7 +1,7 @@
 """``sgmodel eval``: render every stored target of a split and measure it as the paper does.
 
 Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned prediction
-(``--method naive-gs|forward-splat``, sgmodel.baselines through sgmodel.inference: pixels without a valid
+(``--method naive-gs|forward-splat``, sgmodel.model.baselines through sgmodel.inference: pixels without a valid
 stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Several methods or several
 ``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.table2). Metrics (SPEC
 section 7, sgmodel.metrics): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
@@ -37,8 +37,8 @@ from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from sgmodel.inference import Reconstructor
 from sgmodel.lpips import create_lpips
-from sgmodel.model import load_predictor
-from sgmodel.render import render_views
+from sgmodel.model.network import load_predictor
+from sgmodel.model.render import render_views
 from sgmodel.sheets import target_sheet
 from sgmodel.train import to_device
 

@@ -2,7 +2,7 @@
 
 ``sgmodel predict`` (a pair), its stereo video (``sgmodel.video``), ``sgmodel bench predict --video`` and
 the baselines of ``sgmodel eval`` all go through ``Reconstructor`` (a trained model, or a baseline of
-``sgmodel.baselines`` on an encoder's disparity) and ``Scenes.render``.
+``sgmodel.model.baselines`` on an encoder's disparity) and ``Scenes.render``.
 
 Pixels without a valid stereo depth (``geometry.disparity_validity``: no match, occluded, outside the
 encoder's range or beyond the depth clamps) produce no Gaussian: ``Scenes.valid`` marks the Gaussians that
@@ -24,10 +24,10 @@ import torch
 
 from scenesplat_stereo.scene.gaussians import GaussianScene
 
-from sgmodel import baselines
+from sgmodel.model import baselines
 from sgmodel.export import to_scene
-from sgmodel.geometry import depth_from_disparity, disparity_validity
-from sgmodel.render import render_views
+from sgmodel.model.geometry import depth_from_disparity, disparity_validity
+from sgmodel.model.render import render_views
 
 #: Optional stage clock of ``Reconstructor.__call__``: called with a stage name after each stage.
 Lap = Callable[[str], None]
@@ -41,7 +41,7 @@ def masked(gaussians: dict, valid: torch.Tensor) -> dict:
 @dataclass
 class Scenes:
     """A batch of reconstructions from B pairs: left [B,3,H,W] in [0,1], K [B,3,3], depth z [B,1,H,W]
-    (clipped), pixel_valid [B,1,H,W] bool; gaussians (the dict of sgmodel.render, [B,N]) and valid [B,N]
+    (clipped), pixel_valid [B,1,H,W] bool; gaussians (the dict of sgmodel.model.render, [B,N]) and valid [B,N]
     bool, both None for forward-splat, which has no Gaussians."""
 
     left: torch.Tensor

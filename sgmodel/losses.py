@@ -16,7 +16,7 @@ import os
 import torch
 from torch import Tensor
 
-from sgmodel.layers import amp_autocast
+from sgmodel.model.layers import amp_autocast
 from sgmodel.lpips import LPIPS, create_lpips, vgg16_missing_message
 from sgmodel.metrics import ssim_map
 

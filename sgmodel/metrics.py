@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sgmodel.layers import triton_installed
+from sgmodel.model.layers import triton_installed
 from sgmodel.lpips import LPIPS
 
 #: SSIM constants of Wang et al. 2004 as skimage uses them (SPEC section 7 "Metrics").

@@ -50,13 +50,14 @@ from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene.scene_files import FORMATS
 
-from sgmodel import baselines, export, rig, stereo_check, video
+from sgmodel import export, rig, stereo_check, video
+from sgmodel.model import baselines
 from sgmodel.args import add_device_argument, device_from_flag
 from sgmodel.bench import synced_clock
 from sgmodel.calib import Calibration
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
-from sgmodel.geometry import Z_MAX, Z_MIN
+from sgmodel.model.geometry import Z_MAX, Z_MIN
 from sgmodel.inference import Reconstructor
 from sgmodel.pairs import prepare_pairs, read_calibration, read_pair, rectify_pair
 from sgmodel.stereo_pair import SIZE_MULTIPLE, Pair, PredictError, model_size, to_tensor
@@ -125,7 +126,7 @@ def make_encoder(name: str | None, weights: str | None, repo: str | None, device
 def make_reconstructor(args: argparse.Namespace, device: torch.device) -> tuple[Reconstructor, int]:
     """The model of ``--checkpoint`` or the baseline of ``--method`` on its encoder, and the short side."""
     if args.checkpoint:
-        from sgmodel.model import load_predictor
+        from sgmodel.model.network import load_predictor
 
         predictor = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
         return Reconstructor(predictor=predictor), args.resolution or predictor.resolution

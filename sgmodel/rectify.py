@@ -179,7 +179,7 @@ def predict_from_rig(predictor, left, right, rig: StereoRig, short_side: int | N
     """The Python API of ``sgmodel predict --rig``: a raw pair of ``rig``'s cameras -> a scene in the raw
     left camera's frame.
 
-    predictor: ``sgmodel.model.load_predictor(checkpoint)``; left, right: RGB images [H,W,3] (uint8, or float
+    predictor: ``sgmodel.model.network.load_predictor(checkpoint)``; left, right: RGB images [H,W,3] (uint8, or float
     in [0, 1]) or tensors [1,3,H,W] in [0, 1]; the pair is rectified, checked (``stereo_check``; StereoCheckError
     when it warns and ``strict``), resized to the model's size (short side ``short_side`` or the checkpoint's,
     sides multiples of 16) and predicted; the Gaussians are turned back into the raw left camera's frame.

@@ -1,7 +1,7 @@
 """Training: a step function (``train_step``), validation (``validate``) and the loop (``train``).
 
 The loop reads shards through ``sgmodel.data.loader``, predicts Gaussians with the model, renders every target
-through ``sgmodel.render`` (our Warp rasteriser and its hand-written backward), and minimises
+through ``sgmodel.model.render`` (our Warp rasteriser and its hand-written backward), and minimises
 MSE + 0.05 LPIPS-VGG (or MSE + 0.05 (1 - SSIM) without the VGG weights) with AdamW and OneCycleLR
 (SPEC section 7). Every ``val_every`` steps it validates on the whole validation split, writes a contact
 sheet (input, depth, targets, renders) and keeps the checkpoint with the highest validation PSNR.
@@ -9,7 +9,7 @@ sheet (input, depth, targets, renders) and keeps the checkpoint with the highest
 Files in RUN (only rank 0 writes, every file atomically): ``config.json`` (all settings, the encoder and
 its weights hash, the loss used), ``metrics.jsonl`` (one record per ``log_every`` steps: step, loss, psnr,
 lr, step_ms; one per validation: step, val_psnr, val_psnr_masked, val_targets; whole lines only),
-``checkpoints/last.pt`` and ``best.pt`` (``sgmodel.checkpoint``), ``sheets/val_<step>.png``, and ``.lock``
+``checkpoints/last.pt`` and ``best.pt`` (``sgmodel.model.checkpoint``), ``sheets/val_<step>.png``, and ``.lock``
 while a process trains in it (a second one is refused). An interrupted or killed run resumes from
 ``last.pt`` exactly: weights, optimiser, scheduler, RNG and the data order (a function of seed and step);
 a torn last line of ``metrics.jsonl`` is dropped with a warning.
@@ -44,15 +44,15 @@ from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, a
 from scenesplat_stereo.common.text import format_table
 
 from sgmodel import metrics
-from sgmodel.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
+from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
 from sgmodel.distributed import World, all_sum, broadcast_flag, close_world, init_world
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
-from sgmodel.layers import amp_autocast, compiles
+from sgmodel.model.layers import amp_autocast, compiles
 from sgmodel.losses import create_objective
-from sgmodel.model import StereoGaussians, create_model
-from sgmodel.render import render_views
+from sgmodel.model.network import StereoGaussians, create_model
+from sgmodel.model.render import render_views
 from sgmodel.sheets import validation_sheet
 
 log = logging.getLogger(__name__)

@@ -66,14 +66,14 @@ def refusal(main, argv: list, capsys) -> tuple[int, str]:
 
 
 def model_checkpoint(path: Path, params=None, nan: bool = False, **fields) -> Path:
-    """A checkpoint of an untrained model (``sgmodel.checkpoint`` format) of ``params`` (default: the
+    """A checkpoint of an untrained model (``sgmodel.model.checkpoint`` format) of ``params`` (default: the
     cpu-small preset at 32x32, padding 2); ``nan`` puts a NaN in one weight; ``fields`` override the
     checkpoint's fields (e.g. ``format``)."""
     import torch
 
-    from sgmodel.checkpoint import save_checkpoint
+    from sgmodel.model.checkpoint import save_checkpoint
     from sgmodel.config import PRESETS, ModelParams
-    from sgmodel.model import create_model
+    from sgmodel.model.network import create_model
 
     if params is None:
         params = ModelParams.from_dict(PRESETS["cpu-small"]["model"])

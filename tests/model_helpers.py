@@ -91,7 +91,7 @@ def layers_case() -> tuple:
     weight drawn at std 0.2 (no zero-initialised head), and inputs for ``model.layers``:
     (model, left, z, features, K)."""
     from sgmodel.config import ModelParams
-    from sgmodel.model import StereoGaussians
+    from sgmodel.model.network import StereoGaussians
 
     torch.manual_seed(0)
     p = ModelParams(resolution=32, padding=4)

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import torch
 
-from sgmodel.baselines import forward_splat, naive_gs
-from sgmodel.geometry import depth_from_disparity, unproject
-from sgmodel.render import render_views
+from sgmodel.model.baselines import forward_splat, naive_gs
+from sgmodel.model.geometry import depth_from_disparity, unproject
+from sgmodel.model.render import render_views
 
 C0 = 0.28209479177387814
 

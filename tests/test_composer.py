@@ -1,7 +1,7 @@
-"""sgmodel.composer against an independent float64 implementation of the paper's appendix A.
+"""sgmodel.model.composer against an independent float64 implementation of the paper's appendix A.
 
 The reference below is written from SPEC section 7 ("Composer") and appendix A with per-pixel Python loops
-and its own copies of the paper's constants; it shares no code with sgmodel.composer.
+and its own copies of the paper's constants; it shares no code with sgmodel.model.composer.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from sgmodel import composer as comp
+from sgmodel.model import composer as comp
 
 C0 = 0.28209479177387814
 
@@ -90,7 +90,7 @@ def ref_gaussian(x: np.ndarray, zl: float, u: int, v: int, K: np.ndarray, rgb: n
 
 
 def ref_compose(front, back, dz, z, rgb, K, baseline, back_layer=True, edge_mask="none", composer=True):
-    """numpy float64 in, dict of numpy arrays out, layout as sgmodel.composer.compose."""
+    """numpy float64 in, dict of numpy arrays out, layout as sgmodel.model.composer.compose."""
     B, _, H, W = front.shape
     out = {k: [] for k in ("means", "quats", "scales", "opacities", "sh")}
     for b in range(B):

@@ -10,11 +10,11 @@ import copy
 import pytest
 import torch
 
-from sgmodel import decoder as decoder_module
-from sgmodel import predictor as predictor_module
+from sgmodel.model import decoder as decoder_module
+from sgmodel.model import predictor as predictor_module
 from sgmodel.config import PredictorParams
-from sgmodel.layers import cat_channels
-from sgmodel.predictor import GaussianPredictor
+from sgmodel.model.layers import cat_channels
+from sgmodel.model.predictor import GaussianPredictor
 from tests.model_helpers import layers_case
 
 CL = torch.channels_last

@@ -22,7 +22,7 @@ from sgmodel import train as train_mod
 from sgmodel.data.loader import DataError, make_loader
 from sgmodel.encoders import ENCODERS
 from sgmodel.losses import create_objective
-from sgmodel.model import create_model, encode_pair
+from sgmodel.model.network import create_model, encode_pair
 from tests.model_helpers import StandInEncoder, sgmodel_status
 from tests.test_train import tiny_model_params, tiny_schedule
 

@@ -19,7 +19,7 @@ from foundation_standins import (FFS_CFG, FFS_REPO, FS_CFG, FS_REPO, PRUNED_WIDT
 
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams
 from sgmodel.encoders import create_encoder
-from sgmodel.model import create_model
+from sgmodel.model.network import create_model
 from sgmodel.weights import WeightsError
 
 CHECKOUT_NAMES = ("core", "Utils", "depth_anything", "dinov2", "foundation_stereo_ori")

@@ -1,4 +1,4 @@
-"""sgmodel.layers against the PyTorch operations they replace (float64, values and gradients), including
+"""sgmodel.model.layers against the PyTorch operations they replace (float64, values and gradients), including
 degenerate sizes; the fused predictor branches against plain PyTorch branches; the CUDA layout (channels-last
 activations, channels padded to multiples of 8) against NCHW on the CPU; and, on CUDA with Triton, the
 fused GroupNorm + GELU kernels against PyTorch in float64."""
@@ -8,12 +8,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sgmodel import decoder, layers, predictor
+from sgmodel.model import decoder
+from sgmodel.model import layers
+from sgmodel.model import predictor
 from sgmodel.config import PredictorParams
-from sgmodel.layers import (GroupNorm, ReplicateConv2d, cat_channels, compute_dtype, channels_last_kernels_run,
+from sgmodel.model.layers import (GroupNorm, ReplicateConv2d, cat_channels, compute_dtype, channels_last_kernels_run,
                             group_norm_gelu, group_norm_gelu_parts, replicate_conv3x3, replicate_pad,
                             triton_installed, upsample_bilinear)
-from sgmodel.predictor import GaussianPredictor, fused_branches
+from sgmodel.model.predictor import GaussianPredictor, fused_branches
 from tests.model_helpers import layers_case
 
 CL = torch.channels_last

@@ -309,7 +309,7 @@ def test_compiled_trunk_matches_eager_on_cuda(vgg_path, lin_path, amp):
 
 
 def test_training_compiles_the_trunk_only_on_cuda_with_triton(monkeypatch):
-    from sgmodel import layers
+    from sgmodel.model import layers
 
     cuda, cpu = torch.device("cuda"), torch.device("cpu")
     monkeypatch.setattr(layers, "triton_installed", lambda: True)

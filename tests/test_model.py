@@ -5,12 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sgmodel import canvas
+from sgmodel.model import canvas
 from sgmodel.config import ComposerParams, DecoderParams, ModelParams, PredictorParams
-from sgmodel.decoder import DPTDecoder
-from sgmodel.model import create_model
-from sgmodel.predictor import CHANNELS, LAYER_CHANNELS, GaussianPredictor
-from sgmodel.render import render_views
+from sgmodel.model.decoder import DPTDecoder
+from sgmodel.model.network import create_model
+from sgmodel.model.predictor import CHANNELS, LAYER_CHANNELS, GaussianPredictor
+from sgmodel.model.render import render_views
 from tests.model_helpers import StandInEncoder, record_compile, textured_batch
 
 
@@ -197,8 +197,8 @@ def test_compiled_composer_matches_eager_on_cuda(composer, back_layer, edge_mask
     """The compiled composer against the eager one on the predictor's bf16 outputs (37 of 40 channels, as the
     branches give them): every attribute within float32 rounding, the gradients of every input within one bf16
     ulp of the largest (they are rounded to the inputs' bf16)."""
-    from sgmodel.layers import triton_installed
-    from sgmodel.model import _compose_float
+    from sgmodel.model.layers import triton_installed
+    from sgmodel.model.network import _compose_float
     if not triton_installed():
         pytest.skip("Triton is not installed")
     torch.manual_seed(0)

@@ -22,8 +22,8 @@ from sgmodel import pairs as pairs_mod
 from sgmodel.calib import read_calib
 from sgmodel.config import PRESETS, ModelParams
 from sgmodel.encoders import create_encoder
-from sgmodel.geometry import depth_from_disparity
-from sgmodel.model import Predictor, create_model
+from sgmodel.model.geometry import depth_from_disparity
+from sgmodel.model.network import Predictor, create_model
 from sgmodel.rectify import Rectification, predict_from_rig
 from sgmodel.rig import RigError, read_rig
 from tests.model_helpers import predict_status as _run_predict

@@ -13,7 +13,7 @@ from sgmodel import train as train_mod
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
 from sgmodel.losses import create_objective
-from sgmodel.model import create_model
+from sgmodel.model.network import create_model
 from tests.model_helpers import StandInEncoder, textured_batch
 
 

@@ -19,7 +19,7 @@ from scripts.video_demo import read_frames, render_clip
 from sgmodel import predict as predict_mod
 from sgmodel import video
 from sgmodel.export import offset_camera, orbit_camera
-from sgmodel.render import render_views
+from sgmodel.model.render import render_views
 from tests.model_helpers import predict_status as run
 
 W, H, FRAMES = 96, 64, 6

@@ -16,7 +16,7 @@ import torch
 from scenesplat_stereo.common.files import atomic_write_bytes
 
 if TYPE_CHECKING:
-    from sgmodel.model import Predictor
+    from sgmodel.model.network import Predictor
 
 
 def synced_clock(device: torch.device) -> Callable[[], float]:

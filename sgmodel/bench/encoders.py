@@ -22,7 +22,7 @@ from sgmodel.args import add_device_argument, device_from_flag
 from sgmodel.data.loader import make_loader
 from sgmodel.encoders import StereoEncoder
 from sgmodel.encoders.flags import build_encoder, encoder_label, parse_encoder_spec
-from sgmodel.geometry import depth_from_disparity
+from sgmodel.model.geometry import depth_from_disparity
 from sgmodel.train import to_device
 from sgmodel.bench import report, synced_clock
 

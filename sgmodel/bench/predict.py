@@ -31,10 +31,10 @@ from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
 
 from sgmodel import export
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
-from sgmodel.geometry import depth_from_disparity
-from sgmodel.layers import amp_autocast
-from sgmodel.model import Predictor, create_model, load_predictor
-from sgmodel.render import SH_DEGREE, render_views
+from sgmodel.model.geometry import depth_from_disparity
+from sgmodel.model.layers import amp_autocast
+from sgmodel.model.network import Predictor, create_model, load_predictor
+from sgmodel.model.render import SH_DEGREE, render_views
 from sgmodel.bench import describe, report, synced_clock, synthetic_pair
 
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")

@@ -28,7 +28,7 @@ from scenesplat_stereo.common.text import markdown_table
 
 from sgmodel.calib import Calibration
 from sgmodel.inference import Reconstructor
-from sgmodel.model import Predictor
+from sgmodel.model.network import Predictor
 from sgmodel.pairs import prepare_pairs
 from sgmodel.stereo_pair import Pair, to_tensor
 from sgmodel.video import CODECS, StereoSource, Trajectory, VideoSink, stream

@@ -30,12 +30,12 @@ from scenesplat_stereo.common.text import markdown_table
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from sgmodel.data.loader import make_loader
 from sgmodel.data.encoder_cache import open_cache, precision_of
-from sgmodel.geometry import depth_from_disparity
-from sgmodel.layers import amp_autocast, compiles
+from sgmodel.model.geometry import depth_from_disparity
+from sgmodel.model.layers import amp_autocast, compiles
 from sgmodel.losses import Objective, create_objective
 from sgmodel.lpips import random_lpips, vgg16_missing_message
-from sgmodel.model import create_model
-from sgmodel.render import render_views
+from sgmodel.model.network import create_model
+from sgmodel.model.render import render_views
 from sgmodel.train import cached_encoding, create_optimizer, to_device, train_step
 from sgmodel.bench import report, synced_clock
 

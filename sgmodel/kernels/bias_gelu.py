@@ -1,4 +1,4 @@
-"""Triton kernels of GELU(x + bias) on channels-last tensors (``sgmodel.layers.bias_gelu``: a convolution's
+"""Triton kernels of GELU(x + bias) on channels-last tensors (``sgmodel.model.layers.bias_gelu``: a convolution's
 bias and the GELU after it, in the decoder).
 
 Imported only on CUDA with Triton present; ``layers.bias_gelu`` runs ``F.gelu(x + bias)`` everywhere else,

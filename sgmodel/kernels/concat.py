@@ -1,4 +1,4 @@
-"""Triton kernels of the channel concatenation with edge replication (``sgmodel.layers.cat_channels``): the
+"""Triton kernels of the channel concatenation with edge replication (``sgmodel.model.layers.cat_channels``): the
 predictor's inputs written onto the canvas in one pass.
 
 Imported only on CUDA with Triton present; elsewhere ``cat_channels`` pads with ``layers.replicate_pad`` and

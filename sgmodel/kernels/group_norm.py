@@ -1,4 +1,4 @@
-"""Triton kernels of the fused GroupNorm (+ GELU) on channels-last tensors (``sgmodel.layers.group_norm_gelu``).
+"""Triton kernels of the fused GroupNorm (+ GELU) on channels-last tensors (``sgmodel.model.layers.group_norm_gelu``).
 
 Imported only on CUDA with Triton present; ``layers.group_norm_gelu`` runs PyTorch's own operations
 everywhere else, and that path is the reference the kernels are tested against (tests/test_layers.py).

@@ -1,4 +1,4 @@
-"""Triton kernels of the 2x bilinear upsampling of channels-last tensors (``sgmodel.layers.upsample_bilinear``).
+"""Triton kernels of the 2x bilinear upsampling of channels-last tensors (``sgmodel.model.layers.upsample_bilinear``).
 
 Imported only on CUDA with Triton present; elsewhere ``layers.upsample_bilinear`` runs ``F.interpolate``,
 which is also the reference the kernels are tested against (tests/test_layers.py).

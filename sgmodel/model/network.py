@@ -16,15 +16,15 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from sgmodel import canvas
-from sgmodel.composer import compose, gaussian_validity
+from sgmodel.model import canvas
+from sgmodel.model.composer import compose, gaussian_validity
 from sgmodel.config import ModelParams
-from sgmodel.decoder import DPTDecoder
+from sgmodel.model.decoder import DPTDecoder
 from sgmodel.encoders import StereoEncoder
 from sgmodel.encoders.flags import build_encoder, merge_encoder
-from sgmodel.geometry import depth_from_disparity, disparity_validity
-from sgmodel.layers import amp_autocast
-from sgmodel.predictor import GaussianPredictor
+from sgmodel.model.geometry import depth_from_disparity, disparity_validity
+from sgmodel.model.layers import amp_autocast
+from sgmodel.model.predictor import GaussianPredictor
 
 
 @dataclass
@@ -199,7 +199,7 @@ def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", e
     ``encoder_repo`` over them (``--encoder-weights``, ``--encoder-repo``; ``encoder``, the ``--encoder`` flag,
     may only repeat the checkpoint's). A checkpoint that is not ours, of another version, of weights that do
     not fit its model or that hold NaN raises ``CheckpointError`` naming the file."""
-    from sgmodel.checkpoint import load_checkpoint, load_weights, model_params_of
+    from sgmodel.model.checkpoint import load_checkpoint, load_weights, model_params_of
 
     ckpt = load_checkpoint(checkpoint)
     params = model_params_of(ckpt, checkpoint)

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from sgmodel.config import ConfigurationError
-from sgmodel.layers import GroupNorm, activation_format, cat_channels, compute_dtype, conv_gelu, upsample_bilinear
+from sgmodel.model.layers import GroupNorm, activation_format, cat_channels, compute_dtype, conv_gelu, upsample_bilinear
 
 
 class ResidualConvUnit(nn.Module):

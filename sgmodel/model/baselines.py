@@ -2,7 +2,7 @@
 encoder's depth; selected with ``--method naive-gs|forward-splat``.
 
 * naive-GS: one isotropic Gaussian per left pixel at the stereo depth, with the composer's base footprint,
-  identity rotation, the pixel's colour and opacity 0.99; rendered by ``sgmodel.render.render_views``.
+  identity rotation, the pixel's colour and opacity 0.99; rendered by ``sgmodel.model.render.render_views``.
 * forward-splat: the left image warped into each target by its depth with a z-buffer (the nearest surface
   wins, holes stay empty).
 
@@ -10,15 +10,15 @@ Pixels without a valid stereo depth (``geometry.disparity_validity``) make no Ga
 ``sgmodel.inference`` passes their mask (naive-GS keeps N = H W and the caller drops or hides them).
 
 Everything in the left camera frame (OpenCV axes, metres, pixel centres at +0.5), z = z-depth in metres
-(``sgmodel.geometry.depth_from_disparity``).
+(``sgmodel.model.geometry.depth_from_disparity``).
 """
 
 from __future__ import annotations
 
 import torch
 
-from sgmodel.geometry import unproject
-from sgmodel.render import SH_COEFFS
+from sgmodel.model.geometry import unproject
+from sgmodel.model.render import SH_COEFFS
 
 METHODS = ("naive-gs", "forward-splat")
 #: Real SH constant of degree 0 (SPEC section 1): colour = C0 * DC + 0.5.

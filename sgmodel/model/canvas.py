@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from sgmodel.layers import replicate_pad
+from sgmodel.model.layers import replicate_pad
 
 
 @dataclass
