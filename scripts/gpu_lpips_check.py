@@ -1,4 +1,4 @@
-"""Parity of our LPIPS-VGG (sgmodel.lpips) with the ``lpips`` package, for a machine where torchvision and
+"""Parity of our LPIPS-VGG (sgmodel.metrics.lpips) with the ``lpips`` package, for a machine where torchvision and
 ``lpips`` import (the GPU machine; ``lpips`` is pure Python: carry its wheel, ``lpips==0.1.4``, and install
 it with ``pip install --no-deps --target DIR`` or point ``--lpips-src`` at the unpacked wheel).
 
@@ -40,7 +40,7 @@ def main() -> int:
     import lpips as lpips_pkg
     import torchvision
 
-    from sgmodel.lpips import create_lpips, find_vgg16_weights
+    from sgmodel.metrics.lpips import create_lpips, find_vgg16_weights
 
     tv_vgg16 = torchvision.models.vgg16  # before lpips's reference to it is replaced below
     vgg_file = find_vgg16_weights(args.vgg)

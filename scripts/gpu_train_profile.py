@@ -26,7 +26,7 @@ from sgmodel.bench.train import synthetic_batch  # noqa: E402
 from sgmodel.config import ModelParams  # noqa: E402
 from sgmodel.model.layers import amp_autocast, compiles  # noqa: E402
 from sgmodel.losses import Objective  # noqa: E402
-from sgmodel.lpips import random_lpips  # noqa: E402
+from sgmodel.metrics.lpips import random_lpips  # noqa: E402
 from sgmodel.model.network import create_model, encode_pair  # noqa: E402
 from sgmodel.train import create_optimizer, train_step  # noqa: E402
 

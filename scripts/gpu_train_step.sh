@@ -97,7 +97,7 @@ tests)
 bench)
   run "${bench[@]}" --lpips-random-vgg --out /tmp/bench_new.md && cat /tmp/bench_new.md >> "$OUT/bench.md"
   if [[ -n $base ]]; then  # the code before: its bench times one loss per call; random VGG16 in torchvision's format
-    run python3 -c "import torch; from sgmodel.lpips import VGG16Trunk
+    run python3 -c "import torch; from sgmodel.metrics.lpips import VGG16Trunk
 torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.pth')"
     run in_base "${bench[@]}" --out /tmp/bench_base.md \
       && { echo "## before"; cat /tmp/bench_base.md; } >> "$OUT/bench.md"
@@ -131,7 +131,7 @@ curve)
 lpips)  # the LPIPS term's VGG16 compiled (the default) and eager: the step, then training runs of each
   run "${bench[@]}" --lpips-random-vgg --no-compile-lpips --out /tmp/bench_eager.md \
     && { echo "## the LPIPS term's VGG16 eager (--no-compile-lpips)"; cat /tmp/bench_eager.md; } >> "$OUT/bench.md"
-  run python3 -c "import torch; from sgmodel.lpips import VGG16Trunk
+  run python3 -c "import torch; from sgmodel.metrics.lpips import VGG16Trunk
 torch.manual_seed(0); torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.pth')"
   compiled_and_eager "$OUT/lpips_curves.md" lpips --no-compile-lpips --lpips-vgg /tmp/vgg16-random.pth ;;
 composer)  # training runs with the composer compiled (the default on CUDA) and eager, SEEDS each

@@ -19,7 +19,7 @@ from sgmodel.calib import read_calib
 from sgmodel.export import depth_png, novel_view_cameras
 from sgmodel.model.network import load_predictor
 from sgmodel.model.render import render_views
-from sgmodel.sheets import labelled_row, stack_rows, tile
+from sgmodel.metrics.sheets import labelled_row, stack_rows, tile
 
 
 def _read(path: str, device: str) -> torch.Tensor:

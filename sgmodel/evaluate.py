@@ -4,7 +4,7 @@ Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned 
 (``--method naive-gs|forward-splat``, sgmodel.model.baselines through sgmodel.inference: pixels without a valid
 stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Several methods or several
 ``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.table2). Metrics (SPEC
-section 7, sgmodel.metrics): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
+section 7, sgmodel.metrics.image): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
 when the VGG16 weights are available; each over the full image and over the valid mask.
 
 Writes REPORT/ after every input is checked (the data split, the checkpoint or encoder, the LPIPS weights,
@@ -30,16 +30,16 @@ from tqdm import tqdm
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import markdown_table, whole_number
 
-from sgmodel import metrics
+from sgmodel.metrics import image as metrics
 from sgmodel.config import EncoderParams
 from sgmodel.data.loader import eval_batches, read_split
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from sgmodel.inference import Reconstructor
-from sgmodel.lpips import create_lpips
+from sgmodel.metrics.lpips import create_lpips
 from sgmodel.model.network import load_predictor
 from sgmodel.model.render import render_views
-from sgmodel.sheets import target_sheet
+from sgmodel.metrics.sheets import target_sheet
 from sgmodel.train import to_device
 
 METHODS = ("naive-gs", "forward-splat")

@@ -3,7 +3,7 @@
 ``MSE(target, render) + 0.05 * LPIPS-VGG(target, render)`` over the full target images (no masks, the
 input views are not supervised). LPIPS needs torchvision's ImageNet VGG16 weights, which cannot be
 downloaded here; without them the objective is ``MSE + 0.05 * (1 - SSIM)`` (skimage-style SSIM,
-``sgmodel.metrics.ssim_map``) and says so in ``Objective.description`` (for the first log lines and
+``sgmodel.metrics.image.ssim_map``) and says so in ``Objective.description`` (for the first log lines and
 ``config.json``). Renders are not clipped: gradients must reach colours that leave [0, 1]. In training on
 CUDA the LPIPS network runs under bf16 autocast like the model's convolutions (VGG16 on 2 x 128 images of
 256x256 per step is otherwise the largest cost of a step); the MSE and the SSIM term stay float32.
@@ -17,8 +17,8 @@ import torch
 from torch import Tensor
 
 from sgmodel.model.layers import amp_autocast
-from sgmodel.lpips import LPIPS, create_lpips, vgg16_missing_message
-from sgmodel.metrics import ssim_map
+from sgmodel.metrics.lpips import LPIPS, create_lpips, vgg16_missing_message
+from sgmodel.metrics.image import ssim_map
 
 #: weight of the perceptual term (paper section 4, "Training objective").
 PERCEPTUAL_WEIGHT = 0.05

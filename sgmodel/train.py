@@ -43,7 +43,7 @@ from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, a
                                      check_writable, read_json, read_json_lines, remove_temp_files)
 from scenesplat_stereo.common.text import format_table
 
-from sgmodel import metrics
+from sgmodel.metrics import image as metrics
 from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
@@ -53,7 +53,7 @@ from sgmodel.model.layers import amp_autocast, compiles
 from sgmodel.losses import create_objective
 from sgmodel.model.network import StereoGaussians, create_model
 from sgmodel.model.render import render_views
-from sgmodel.sheets import validation_sheet
+from sgmodel.metrics.sheets import validation_sheet
 
 log = logging.getLogger(__name__)
 

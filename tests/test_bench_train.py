@@ -9,7 +9,7 @@ import torch
 from sgmodel.bench.train import layer_flops, synthetic_batch
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams
-from sgmodel.lpips import CHANNELS, random_lpips
+from sgmodel.metrics.lpips import CHANNELS, random_lpips
 from sgmodel.model.network import create_model
 from sgmodel.train import create_optimizer
 from tests.model_helpers import StandInEncoder

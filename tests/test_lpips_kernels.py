@@ -1,4 +1,4 @@
-"""LPIPS's tap distance on CUDA (``sgmodel.lpips._KernelTapDistance``, the Triton kernels of
+"""LPIPS's tap distance on CUDA (``sgmodel.metrics.lpips._KernelTapDistance``, the Triton kernels of
 ``sgmodel.kernels.lpips_tap``) against the float64 ``_TapDistance`` (itself checked against autograd through the
 plain operations in tests/test_lpips.py), and the LPIPS term built on it against the PyTorch path. CUDA only
 (Triton's GPU kernels); the CPU's path is ``_TapDistance``, tested there."""
@@ -9,8 +9,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from sgmodel import lpips as lpips_module
-from sgmodel.lpips import _KernelTapDistance, _TapDistance, random_lpips, tap_distance
+from sgmodel.metrics import lpips as lpips_module
+from sgmodel.metrics.lpips import _KernelTapDistance, _TapDistance, random_lpips, tap_distance
 
 CL = torch.channels_last
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the Triton tap-distance kernels)")

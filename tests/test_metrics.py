@@ -1,4 +1,4 @@
-"""PSNR and SSIM (sgmodel.metrics) against scikit-image on random images, sizes and masks."""
+"""PSNR and SSIM (sgmodel.metrics.image) against scikit-image on random images, sizes and masks."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from sgmodel.metrics import image_metrics, psnr, ssim, ssim_map
+from sgmodel.metrics.image import image_metrics, psnr, ssim, ssim_map
 
 SK = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1)
 
@@ -117,7 +117,7 @@ def test_ssim_map_without_border_is_the_full_maps_interior(dtype):
     """The training loss's SSIM term filters no padded border (``border=False``): the interior of the full
     map, the same values and gradients up to the convolution's summation order, for images of 11 px (one
     interior pixel) and larger."""
-    from sgmodel.metrics import SSIM_RADIUS as r
+    from sgmodel.metrics.image import SSIM_RADIUS as r
     for shape in ((2, 3, 11, 11), (1, 2, 3, 20, 17)):
         a, b = (torch.from_numpy(x).to(dtype).requires_grad_(True) for x in pair(shape, seed=shape[-1]))
         inner = ssim_map(a, b, border=False)
@@ -144,7 +144,7 @@ def test_interior_ssim_backward_is_finite_and_right_on_hard_images(case):
         x, y = x * 3 - 1.5, -y * 0.01
     else:
         y = torch.zeros_like(y)
-    from sgmodel.metrics import SSIM_RADIUS as r
+    from sgmodel.metrics.image import SSIM_RADIUS as r
     xa, ya = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
     xb, yb = x.clone().requires_grad_(True), y.clone().requires_grad_(True)
     ssim_map(xa, ya, border=False).mean().backward()

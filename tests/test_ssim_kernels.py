@@ -1,4 +1,4 @@
-"""The Triton interior SSIM (``sgmodel.metrics._KernelSSIM``, ``sgmodel.kernels.ssim``: the training loss's SSIM
+"""The Triton interior SSIM (``sgmodel.metrics.image._KernelSSIM``, ``sgmodel.kernels.ssim``: the training loss's SSIM
 term on CUDA) against the float64 ``_InteriorSSIM``, which tests/test_metrics.py checks against autograd
 through the full map and skimage. CUDA only (Triton's GPU kernels)."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sgmodel.metrics import _InteriorSSIM, _KernelSSIM, ssim_map
+from sgmodel.metrics.image import _InteriorSSIM, _KernelSSIM, ssim_map
 
 
 def _kernel_ssim_case(shape, layout, case, seed):

@@ -1,4 +1,4 @@
-"""Triton kernels of LPIPS's tap distance and its gradient (``sgmodel.lpips.tap_distance``) for CUDA feature
+"""Triton kernels of LPIPS's tap distance and its gradient (``sgmodel.metrics.lpips.tap_distance``) for CUDA feature
 maps in float32, float16 or bfloat16, of any strides.
 
 Imported only on CUDA with Triton present; elsewhere ``lpips._TapDistance`` computes the same map with PyTorch

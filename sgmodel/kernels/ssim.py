@@ -1,4 +1,4 @@
-"""Triton kernels of the interior SSIM map and its gradient (``sgmodel.metrics.ssim_map(..., border=False)``,
+"""Triton kernels of the interior SSIM map and its gradient (``sgmodel.metrics.image.ssim_map(..., border=False)``,
 the training loss's SSIM term) for float32 CUDA images of any strides.
 
 Imported only on CUDA with Triton present; elsewhere ``metrics._InteriorSSIM`` computes the same map with

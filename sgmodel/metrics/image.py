@@ -15,7 +15,7 @@ it); ``ssim_map`` does not clip, so that ``1 - SSIM`` can serve as a differentia
   window radius). With a mask it is the full map (borders included, as skimage's ``full=True``) averaged
   over valid pixels and channels. Images with H or W below 11 (the window) raise ``ValueError``, as
   skimage does.
-- LPIPS: ``sgmodel.lpips.LPIPS`` on inputs scaled to [-1, 1]; without a mask the layer maps are
+- LPIPS: ``sgmodel.metrics.lpips.LPIPS`` on inputs scaled to [-1, 1]; without a mask the layer maps are
   averaged spatially (``lpips`` default), with a mask the per-pixel map (``spatial=True``) is averaged
   over valid pixels.
 A mask with no valid pixel gives NaN for that image (average with ``nanmean``).
@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from sgmodel.model.layers import triton_installed
-from sgmodel.lpips import LPIPS
+from sgmodel.metrics.lpips import LPIPS
 
 #: SSIM constants of Wang et al. 2004 as skimage uses them (SPEC section 7 "Metrics").
 SSIM_SIGMA = 1.5
