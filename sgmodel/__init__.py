@@ -2,7 +2,7 @@
 canvas + residual attribute composer, trained by rendering targets through
 ``scenesplat_stereo.raster.rasterization`` (the same function the dataset uses).
 
-Entry points: ``sgmodel.model.network.create_model`` / ``load_predictor``, ``sgmodel.train.train``, and the
+Entry points: ``sgmodel.model.network.create_model`` / ``load_predictor``, ``sgmodel.train.loop.train``, and the
 ``sgmodel`` command (train, eval, predict, ablate, weights, bench). The rooms are listed in docs/model.md.
 """
 

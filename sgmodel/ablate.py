@@ -30,7 +30,7 @@ from scenesplat_stereo.common.text import markdown_table
 from sgmodel import evaluate
 from sgmodel.config import ConfigurationError, ModelParams, TrainParams
 from sgmodel.encoders.flags import build_encoder
-from sgmodel.train import open_run_cache, read_split_checked, train
+from sgmodel.train.loop import open_run_cache, read_split_checked, train
 
 
 def variants(base: ModelParams) -> list[tuple[str, str, ModelParams]]:

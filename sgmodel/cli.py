@@ -28,7 +28,7 @@ USER_ERRORS = {torch.cuda.OutOfMemoryError: "out of GPU memory: lower --batch-si
 
 
 def _add_train(sub) -> None:
-    from sgmodel import train
+    from sgmodel.train import loop as train
 
     p = sub.add_parser("train", help="train the model on SceneSplat-Stereo shards", description=train.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -163,7 +163,8 @@ def _add_bench(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sgmodel import encode, predict, rectify
+    from sgmodel import predict, rectify
+    from sgmodel.train import encode_cache as encode
 
     parser = Parser(prog="sgmodel", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version="sgmodel 0.1.0")

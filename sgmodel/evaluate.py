@@ -40,7 +40,7 @@ from sgmodel.metrics.lpips import create_lpips
 from sgmodel.model.network import load_predictor
 from sgmodel.model.render import render_views
 from sgmodel.metrics.sheets import target_sheet
-from sgmodel.train import to_device
+from sgmodel.train.loop import to_device
 
 METHODS = ("naive-gs", "forward-splat")
 METRICS = ("psnr", "ssim", "lpips")

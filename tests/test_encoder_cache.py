@@ -16,12 +16,12 @@ import pytest
 import torch
 
 from scenesplat_stereo.common.commandline import Interrupted
-from sgmodel import encode as encode_mod
+from sgmodel.train import encode_cache as encode_mod
 from sgmodel.data import encoder_cache as cache_mod
-from sgmodel import train as train_mod
+from sgmodel.train import loop as train_mod
 from sgmodel.data.loader import DataError, make_loader
 from sgmodel.encoders import ENCODERS
-from sgmodel.losses import create_objective
+from sgmodel.train.losses import create_objective
 from sgmodel.model.network import create_model, encode_pair
 from tests.model_helpers import StandInEncoder, sgmodel_status
 from tests.test_train import tiny_model_params, tiny_schedule

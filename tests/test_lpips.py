@@ -1,4 +1,4 @@
-"""LPIPS-VGG (sgmodel.metrics.lpips) and the objective (sgmodel.losses) against a float64 reference written here.
+"""LPIPS-VGG (sgmodel.metrics.lpips) and the objective (sgmodel.train.losses) against a float64 reference written here.
 
 The real LPIPS v0.1 linear layers (fetched from the ``lpips`` wheel) with random VGG16 weights saved in
 torchvision's key layout: the ImageNet VGG16 file cannot be downloaded here. The reference rebuilds the
@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from sgmodel import weights
-from sgmodel.losses import create_objective
+from sgmodel.train.losses import create_objective
 from sgmodel.metrics.lpips import LPIPS, create_lpips, find_vgg16_weights, tap_distance
 from sgmodel.weights import WeightsError
 from tests.model_helpers import record_compile

@@ -9,10 +9,10 @@ import re
 import pytest
 import torch
 
-from sgmodel import train as train_mod
+from sgmodel.train import loop as train_mod
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
-from sgmodel.losses import create_objective
+from sgmodel.train.losses import create_objective
 from sgmodel.model.network import create_model
 from tests.model_helpers import StandInEncoder, textured_batch
 

@@ -18,7 +18,7 @@ import torch
 from bad_input import refusal
 
 from scenesplat_stereo.common.files import LOCK_FILE, read_json_lines
-from sgmodel import train as train_mod
+from sgmodel.train import loop as train_mod
 from sgmodel.cli import main
 
 STEPS = 30

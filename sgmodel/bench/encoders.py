@@ -23,7 +23,7 @@ from sgmodel.data.loader import make_loader
 from sgmodel.encoders import StereoEncoder
 from sgmodel.encoders.flags import build_encoder, encoder_label, parse_encoder_spec
 from sgmodel.model.geometry import depth_from_disparity
-from sgmodel.train import to_device
+from sgmodel.train.loop import to_device
 from sgmodel.bench import report, synced_clock
 
 

@@ -32,11 +32,11 @@ from sgmodel.data.loader import make_loader
 from sgmodel.data.encoder_cache import open_cache, precision_of
 from sgmodel.model.geometry import depth_from_disparity
 from sgmodel.model.layers import amp_autocast, compiles
-from sgmodel.losses import Objective, create_objective
+from sgmodel.train.losses import Objective, create_objective
 from sgmodel.metrics.lpips import random_lpips, vgg16_missing_message
 from sgmodel.model.network import create_model
 from sgmodel.model.render import render_views
-from sgmodel.train import cached_encoding, create_optimizer, to_device, train_step
+from sgmodel.train.loop import cached_encoding, create_optimizer, to_device, train_step
 from sgmodel.bench import report, synced_clock
 
 STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation forward", "loss", "backward",

@@ -6,7 +6,7 @@ beside the CPU torch wheel. Two weight files, both loaded strictly:
 - VGG16's ImageNet convolutions in torchvision's layout (``features.N.weight`` / ``features.N.bias``,
   the file ``vgg16-397923af.pth``), from ``--lpips-vgg PATH`` or torch's hub cache
   (``$TORCH_HOME/hub/checkpoints``, default ``~/.cache/torch/hub/checkpoints``). They cannot be downloaded
-  here: without them ``create_lpips`` returns None and the objective falls back (``sgmodel.losses``).
+  here: without them ``create_lpips`` returns None and the objective falls back (``sgmodel.train.losses``).
 - The five 1x1 linear layers of LPIPS v0.1 (``lin0..lin4.model.1.weight``, shipped in the ``lpips`` wheel),
   through ``sgmodel.weights.resolve("lpips-vgg")`` (``sgmodel weights fetch lpips-vgg``).
 

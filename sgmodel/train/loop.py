@@ -47,10 +47,10 @@ from sgmodel.metrics import image as metrics
 from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
-from sgmodel.distributed import World, all_sum, broadcast_flag, close_world, init_world
+from sgmodel.train.distributed import World, all_sum, broadcast_flag, close_world, init_world
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
 from sgmodel.model.layers import amp_autocast, compiles
-from sgmodel.losses import create_objective
+from sgmodel.train.losses import create_objective
 from sgmodel.model.network import StereoGaussians, create_model
 from sgmodel.model.render import render_views
 from sgmodel.metrics.sheets import validation_sheet

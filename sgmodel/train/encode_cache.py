@@ -42,7 +42,7 @@ from sgmodel.args import add_device_argument, device_from_flag, preset_params
 from sgmodel.config import PRESETS
 from sgmodel.data.loader import (RUN_SPLITS, DataError, Shard, check_first_sample, init_loader_worker, load_pair,
                                  read_split)
-from sgmodel.distributed import World, all_sum, barrier, close_world, init_world
+from sgmodel.train.distributed import World, all_sum, barrier, close_world, init_world
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import encode_pair
