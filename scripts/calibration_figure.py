@@ -5,7 +5,7 @@
 On the raw rig pair of scripts/rig_pair.py (radtan lenses): top, the raw images with SIFT matches of the left
 image and, in the right image, each one's epipolar curve (its ray from 0.3 m to 30 m, through the rig's
 calibration and lens model: curves, not lines, because of the distortion); bottom, the pair after
-``sgmodel.rectify``: the same matches on one image row (green lines). Then it prints the stereo check's
+``sgmodel.pairs.rectify``: the same matches on one image row (green lines). Then it prints the stereo check's
 figures on that pair and on altered copies, and the time of the check and of the rectification at a larger
 size for each ``max_side`` (the check's speed/accuracy knob), on this machine's CPU.
 """
@@ -23,9 +23,9 @@ import numpy as np
 from scenesplat_stereo.shards.encode import decode_image, encode_png, to_uint8
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scripts.rig_pair import BASELINE, H, W, render, write_rig
-from sgmodel.rectify import Rectification
-from sgmodel.rig import FISHEYE, StereoRig, read_rig
-from sgmodel.stereo_check import matches, measure
+from sgmodel.pairs.rectify import Rectification
+from sgmodel.pairs.rig import FISHEYE, StereoRig, read_rig
+from sgmodel.pairs.stereo_check import matches, measure
 
 ZOOM = 2  # the figure shows every image at twice its size
 N_POINTS = 10
@@ -84,7 +84,7 @@ def figure(folder: Path) -> tuple[np.ndarray, dict]:
     before, after = measure(*raw), measure(*rectified, rectified_here=True)
     labels = ["raw left: radtan lens, its own K and rotation",
               f"raw right: epipolar curves; white: the left rows (|dy| {before.dy_median:.1f} px median)",
-              "rectified left (sgmodel.rectify): white lines = the points' rows",
+              "rectified left (sgmodel.pairs.rectify): white lines = the points' rows",
               f"rectified right: on the left points' rows (|dy| {after.dy_median:.2f} px median)"]
     titled = []
     for tile, text in zip(tiles, labels):

@@ -163,7 +163,8 @@ def _add_bench(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sgmodel import predict, rectify
+    from sgmodel import predict
+    from sgmodel.pairs import rectify
     from sgmodel.train import encode_cache as encode
 
     parser = Parser(prog="sgmodel", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -28,10 +28,10 @@ replaces OUT as a whole at the end (``scenesplat_stereo.common.files.StagedFolde
 prediction is left beside new ones. Errors in the inputs raise ``PredictError`` (or ``CalibError``, a
 ``StereoCheckError``), which the command line turns into one line and exit status 2.
 
-With ``--rig`` the pair (or every video frame) is raw: it is rectified first (``sgmodel.rectify``, the pair
-transform of ``sgmodel.pairs``), the scene files are then in the raw left camera's frame (the viewer files
+With ``--rig`` the pair (or every video frame) is raw: it is rectified first (``sgmodel.pairs.rectify``, the pair
+transform of ``sgmodel.pairs.prepare``), the scene files are then in the raw left camera's frame (the viewer files
 hold the rectified left camera in that frame), while ``depth.png`` and the views stay images of the rectified
-left camera (the model's input). Before the model runs, ``sgmodel.stereo_check`` measures the pair's (the
+left camera (the model's input). Before the model runs, ``sgmodel.pairs.stereo_check`` measures the pair's (the
 first frame's) vertical disparity and the sign of its disparity and warns (``--strict``: exit 2); the
 summary repeats its figures.
 """
@@ -50,17 +50,19 @@ from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene.scene_files import FORMATS
 
-from sgmodel import export, rig, stereo_check, video
+from sgmodel import export, video
+from sgmodel.pairs import rig
+from sgmodel.pairs import stereo_check
 from sgmodel.model import baselines
 from sgmodel.args import add_device_argument, device_from_flag
 from sgmodel.bench import synced_clock
-from sgmodel.calib import Calibration
+from sgmodel.pairs.calib import Calibration
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
 from sgmodel.model.geometry import Z_MAX, Z_MIN
 from sgmodel.inference import Reconstructor
-from sgmodel.pairs import prepare_pairs, read_calibration, read_pair, rectify_pair
-from sgmodel.stereo_pair import SIZE_MULTIPLE, Pair, PredictError, model_size, to_tensor
+from sgmodel.pairs.prepare import prepare_pairs, read_calibration, read_pair, rectify_pair
+from sgmodel.pairs.stereo_pair import SIZE_MULTIPLE, Pair, PredictError, model_size, to_tensor
 from sgmodel.viewers import write_viewer_files
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).

@@ -1,6 +1,6 @@
 """Stereo video to a rendered novel-view video (and one scene per frame): ``sgmodel predict --video``.
 
-    decode (reader thread) -> batches of raw ``Pair`` s -> the pair transform (``sgmodel.pairs``) ->
+    decode (reader thread) -> batches of raw ``Pair`` s -> the pair transform (``sgmodel.pairs.prepare``) ->
     ``inference.Reconstructor`` (the path of a still pair) -> one novel view per frame -> encode (writer thread)
 
 Input: one side-by-side video (left eye in the left half) or a left and a right video of one size and frame
@@ -36,12 +36,12 @@ from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS
 
 from sgmodel.bench import synced_clock
-from sgmodel.calib import Calibration
+from sgmodel.pairs.calib import Calibration
 from sgmodel.export import offset_camera, orbit_camera, write_scene
 from sgmodel.inference import Reconstructor
-from sgmodel.pairs import PairTransform
-from sgmodel.stereo_pair import Pair, PredictError, to_tensor
-from sgmodel.rectify import Rectification
+from sgmodel.pairs.prepare import PairTransform
+from sgmodel.pairs.stereo_pair import Pair, PredictError, to_tensor
+from sgmodel.pairs.rectify import Rectification
 
 
 @dataclass(frozen=True)

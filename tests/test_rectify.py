@@ -18,14 +18,14 @@ import torch
 from scenesplat_stereo.shards.encode import decode_image, encode_png
 from scenesplat_stereo.scene.gaussians import load_ply
 from scripts.rig_pair import BASELINE, H, W, distort, render
-from sgmodel import pairs as pairs_mod
-from sgmodel.calib import read_calib
+from sgmodel.pairs import prepare as pairs_mod
+from sgmodel.pairs.calib import read_calib
 from sgmodel.config import PRESETS, ModelParams
 from sgmodel.encoders import create_encoder
 from sgmodel.model.geometry import depth_from_disparity
 from sgmodel.model.network import Predictor, create_model
-from sgmodel.rectify import Rectification, predict_from_rig
-from sgmodel.rig import RigError, read_rig
+from sgmodel.pairs.rectify import Rectification, predict_from_rig
+from sgmodel.pairs.rig import RigError, read_rig
 from tests.model_helpers import predict_status as _run_predict
 
 MODELS = ["radtan", "equidistant"]

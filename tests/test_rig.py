@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from scripts.rig_pair import W, H, kalibr_yaml, make_rig, opencv_yaml
-from sgmodel.rig import FISHEYE, PINHOLE, RigError, read_rig
+from sgmodel.pairs.rig import FISHEYE, PINHOLE, RigError, read_rig
 
 
 def storage(values: dict, ext: str = ".yml") -> bytes:

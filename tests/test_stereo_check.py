@@ -14,7 +14,7 @@ import pytest
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scripts.rig_pair import BASELINE, H, W, render
 from sgmodel.cli import main as sgmodel_main
-from sgmodel.stereo_check import DY_MEDIAN_MAX, StereoCheckError, matches, measure, run_check
+from sgmodel.pairs.stereo_check import DY_MEDIAN_MAX, StereoCheckError, matches, measure, run_check
 from tests.model_helpers import predict_status as _predict
 
 K = np.array([[250.0, 0, W / 2], [0, 250.0, H / 2], [0, 0, 1]])
@@ -151,7 +151,7 @@ def test_mismatches_far_off_the_rows_are_dropped_but_a_real_spread_is_kept(monke
     p1 = rng.uniform([0, 0], [W, H], (60, 2))
     p2 = p1 - [12.0, 0.0] + rng.normal(0, 0.1, (60, 2))
     p2[:3, 1] += [120.0, -90.0, 140.0]
-    monkeypatch.setattr("sgmodel.stereo_check.matches", lambda left, right, max_side: (p1, p2))
+    monkeypatch.setattr("sgmodel.pairs.stereo_check.matches", lambda left, right, max_side: (p1, p2))
     check = measure(None, None)
     assert check.matches == 57 and check.warnings == () and check.dy_p95 < 0.5
     p2[:, 1] = p1[:, 1] + np.tan(np.radians(3)) * (p1[:, 0] - W / 2)     # a 3 degree roll: |dy| up to 8 px

@@ -26,11 +26,11 @@ import torch
 from scenesplat_stereo.shards.encode import to_uint8
 from scenesplat_stereo.common.text import markdown_table
 
-from sgmodel.calib import Calibration
+from sgmodel.pairs.calib import Calibration
 from sgmodel.inference import Reconstructor
 from sgmodel.model.network import Predictor
-from sgmodel.pairs import prepare_pairs
-from sgmodel.stereo_pair import Pair, to_tensor
+from sgmodel.pairs.prepare import prepare_pairs
+from sgmodel.pairs.stereo_pair import Pair, to_tensor
 from sgmodel.video import CODECS, StereoSource, Trajectory, VideoSink, stream
 from sgmodel.bench import describe, report, synced_clock, synthetic_pair
 

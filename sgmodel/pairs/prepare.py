@@ -2,12 +2,12 @@
 
 ``sgmodel predict`` reads a pair (``--left/--right``) or a stereo video (``sgmodel.video``) into raw
 ``Pair`` s, then turns each into a model-ready one with one function, ``PairTransform`` (``prepare_pairs``):
-a raw rig's pair is rectified first (``--rig``, ``rectify_pair``: ``sgmodel.rectify``), then resized to the
+a raw rig's pair is rectified first (``--rig``, ``rectify_pair``: ``sgmodel.pairs.rectify``), then resized to the
 model's size with K (and doffs) scaled (``resize_pair``); still pairs and video frames take the same steps.
 
 Images are [B,3,H,W] float32 in [0,1]; K in pixels of those images (OpenCV axes, pixel centres at +0.5).
-The ``Pair`` record, reading one image and resizing a pair live one level below, in ``sgmodel.stereo_pair``
-(which ``sgmodel.rectify`` uses too). Errors in the inputs raise ``PredictError`` (or ``CalibError``), naming
+The ``Pair`` record, reading one image and resizing a pair live one level below, in ``sgmodel.pairs.stereo_pair``
+(which ``sgmodel.pairs.rectify`` uses too). Errors in the inputs raise ``PredictError`` (or ``CalibError``), naming
 the file or flag; a principal point outside the images is refused, one far from their centre warned about.
 """
 
@@ -16,10 +16,10 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 
-from sgmodel import rig
-from sgmodel.calib import Calibration, calib_from_flags, read_calib
-from sgmodel.rectify import Rectification
-from sgmodel.stereo_pair import Pair, PredictError, read_image, resize_pair
+from sgmodel.pairs import rig
+from sgmodel.pairs.calib import Calibration, calib_from_flags, read_calib
+from sgmodel.pairs.rectify import Rectification
+from sgmodel.pairs.stereo_pair import Pair, PredictError, read_image, resize_pair
 
 #: Raw pair -> model-ready pair (``prepare_pairs``).
 PairTransform = Callable[[Pair], Pair]

@@ -1,5 +1,5 @@
 """A stereo rig as calibration tools deliver it (``--rig``): two cameras with their own intrinsics and lens
-distortion, and the rotation and translation between them. ``sgmodel.rectify`` turns it into a rectified
+distortion, and the rotation and translation between them. ``sgmodel.pairs.rectify`` turns it into a rectified
 pair.
 
 Two file formats (detected from the content):
@@ -30,7 +30,7 @@ Two file formats (detected from the content):
   fov distortion model are refused.
 
 Conventions: OpenCV camera axes (x right, y down, z forward). Intrinsics as both tools write them, pixel
-centres at integer coordinates (``sgmodel.rectify`` converts the rectified K to this project's +0.5 centres).
+centres at integer coordinates (``sgmodel.pairs.rectify`` converts the rectified K to this project's +0.5 centres).
 Translations in metres unless ``--rig-units mm|cm`` says otherwise (Kalibr writes metres; OpenCV writes the
 unit of the calibration target's square size). Every problem raises ``RigError`` (a ``CalibError``) naming
 the file and the field.
@@ -49,7 +49,7 @@ import numpy as np
 
 from scenesplat_stereo.scene.cameras import intrinsics_matrix
 
-from sgmodel.calib import CalibError
+from sgmodel.pairs.calib import CalibError
 
 #: Metres per unit of ``--rig-units``.
 UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}

@@ -3,8 +3,8 @@
 ``read_image`` decodes a user's image with OpenImageIO (any format it reads; grey repeated, alpha dropped,
 turned upright by the EXIF Orientation tag) and refuses one smaller than ``MIN_IMAGE_SIDE`` pixels a side;
 ``resize_pair`` brings a pair to the model's size (``model_size``: the short side given, aspect kept, sides
-multiples of ``SIZE_MULTIPLE``) with K and doffs scaled per axis. This module sits below ``sgmodel.pairs``
-(calibration flags, a raw rig's rectification, the pair transform) and ``sgmodel.rectify``, and imports
+multiples of ``SIZE_MULTIPLE``) with K and doffs scaled per axis. This module sits below ``sgmodel.pairs.prepare``
+(calibration flags, a raw rig's rectification, the pair transform) and ``sgmodel.pairs.rectify``, and imports
 neither. Images are [B,3,H,W] float32 in [0,1]; K in pixels of those images (pixel centres at +0.5).
 """
 
@@ -20,10 +20,10 @@ import torch.nn.functional as F
 
 from scenesplat_stereo.shards.encode import decode_image
 
-from sgmodel.calib import Calibration
+from sgmodel.pairs.calib import Calibration
 
 if TYPE_CHECKING:
-    from sgmodel.rectify import Rectification
+    from sgmodel.pairs.rectify import Rectification
 
 #: Model input sides are multiples of this (the decoder's coarsest feature stride).
 SIZE_MULTIPLE = 16
