@@ -163,7 +163,7 @@ def _add_bench(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sgmodel import predict
+    from sgmodel.predict import command as predict
     from sgmodel.pairs import rectify
     from sgmodel.train import encode_cache as encode
 

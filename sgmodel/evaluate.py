@@ -1,7 +1,7 @@
 """``sgmodel eval``: render every stored target of a split and measure it as the paper does.
 
 Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned prediction
-(``--method naive-gs|forward-splat``, sgmodel.model.baselines through sgmodel.inference: pixels without a valid
+(``--method naive-gs|forward-splat``, sgmodel.model.baselines through sgmodel.predict.inference: pixels without a valid
 stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Several methods or several
 ``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.table2). Metrics (SPEC
 section 7, sgmodel.metrics.image): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
@@ -35,7 +35,7 @@ from sgmodel.config import EncoderParams
 from sgmodel.data.loader import eval_batches, read_split
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
-from sgmodel.inference import Reconstructor
+from sgmodel.predict.inference import Reconstructor
 from sgmodel.metrics.lpips import create_lpips
 from sgmodel.model.network import load_predictor
 from sgmodel.model.render import render_views

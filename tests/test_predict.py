@@ -17,10 +17,10 @@ from scenesplat_stereo.shards.encode import decode_image, encode_png
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
 from scripts.guitar_pair import H, W, render_pair
-from sgmodel import predict as predict_mod
+from sgmodel.predict import command as predict_mod
 from sgmodel.model.baselines import naive_gs
 from sgmodel.cli import main as sgmodel_main
-from sgmodel.export import depth_png, orbit_cameras, to_scene, write_scene
+from sgmodel.predict.export import depth_png, orbit_cameras, to_scene, write_scene
 from tests.model_helpers import predict_status as run
 
 

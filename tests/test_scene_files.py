@@ -19,7 +19,7 @@ from scenesplat_stereo.scene.compressed_ply import morton_order
 from scenesplat_stereo.scene.gaussians import PlyError, load_ply, save_ply
 from scenesplat_stereo.scene.scene_files import FORMATS, load_scene, save_scene
 from scenesplat_stereo.scene.spz import encode_spz
-from sgmodel.viewers import supersplat_settings
+from sgmodel.predict.viewers import supersplat_settings
 
 VIEWER = Path(__file__).resolve().parents[1] / "scripts" / "viewer"
 SPLAT_TRANSFORM = VIEWER / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"

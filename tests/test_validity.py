@@ -14,7 +14,7 @@ from sgmodel.model.baselines import forward_splat
 from sgmodel.model.composer import BACK_POOL, gaussian_validity
 from sgmodel.config import ModelParams
 from sgmodel.model.geometry import Z_MAX, Z_MIN, disparity_validity
-from sgmodel.inference import Reconstructor, masked
+from sgmodel.predict.inference import Reconstructor, masked
 from sgmodel.model.network import Predictor, create_model
 from sgmodel.model.render import render_views
 from tests.model_helpers import StandInEncoder

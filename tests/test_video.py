@@ -16,9 +16,9 @@ import torch
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.scene.gaussians import load_ply
 from scripts.video_demo import read_frames, render_clip
-from sgmodel import predict as predict_mod
-from sgmodel import video
-from sgmodel.export import offset_camera, orbit_camera
+from sgmodel.predict import command as predict_mod
+from sgmodel.predict import video
+from sgmodel.predict.export import offset_camera, orbit_camera
 from sgmodel.model.render import render_views
 from tests.model_helpers import predict_status as run
 

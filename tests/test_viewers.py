@@ -1,4 +1,4 @@
-"""sgmodel.viewers: the SuperSplat settings camera sees every scene point where the left camera does (a float64
+"""sgmodel.predict.viewers: the SuperSplat settings camera sees every scene point where the left camera does (a float64
 model of the viewer's camera written here from its source: the scene turned 180 degrees about z, a look-at
 camera with world +y up, fov horizontal in a landscape window), and cameras.json reads back through the
 teachers' INRIA reader. (tests/test_scene_files.py validates settings.json with the viewer's own validator.)"""
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from scenesplat_stereo.scene.teachers import _read_inria_cameras
-from sgmodel.viewers import horizontal_fov, supersplat_settings, write_viewer_files
+from sgmodel.predict.viewers import horizontal_fov, supersplat_settings, write_viewer_files
 
 
 def viewer_pixels(settings: dict, points: np.ndarray, width: int, height: int) -> np.ndarray:

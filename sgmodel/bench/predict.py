@@ -29,7 +29,7 @@ from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
 
-from sgmodel import export
+from sgmodel.predict import export
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from sgmodel.model.geometry import depth_from_disparity
 from sgmodel.model.layers import amp_autocast

@@ -2,7 +2,7 @@
 
 A synthetic side-by-side video (``--frames`` frames of one eye's ``--size``, a smooth texture panning by
 one pixel a frame with a 4-pixel disparity; MPEG-4 part 2 in ``.mp4``, the codec OpenCV's wheel encodes)
-goes through the path of ``sgmodel predict --video`` (``sgmodel.video.stream``): decode (reader thread),
+goes through the path of ``sgmodel predict --video`` (``sgmodel.predict.video.stream``): decode (reader thread),
 the pair transform, the model, one novel view per frame, encode (mp4v, writer thread).
 
 * model alone: ``Reconstructor`` on a batch of ``--batch-size`` model-ready pairs already on the device
@@ -27,11 +27,11 @@ from scenesplat_stereo.shards.encode import to_uint8
 from scenesplat_stereo.common.text import markdown_table
 
 from sgmodel.pairs.calib import Calibration
-from sgmodel.inference import Reconstructor
+from sgmodel.predict.inference import Reconstructor
 from sgmodel.model.network import Predictor
 from sgmodel.pairs.prepare import prepare_pairs
 from sgmodel.pairs.stereo_pair import Pair, to_tensor
-from sgmodel.video import CODECS, StereoSource, Trajectory, VideoSink, stream
+from sgmodel.predict.video import CODECS, StereoSource, Trajectory, VideoSink, stream
 from sgmodel.bench import describe, report, synced_clock, synthetic_pair
 
 #: The novel view of the end-to-end run: the left camera moved 5 cm to the right.

@@ -7,7 +7,7 @@ encoder's depth; selected with ``--method naive-gs|forward-splat``.
   wins, holes stay empty).
 
 Pixels without a valid stereo depth (``geometry.disparity_validity``) make no Gaussian and splat nothing:
-``sgmodel.inference`` passes their mask (naive-GS keeps N = H W and the caller drops or hides them).
+``sgmodel.predict.inference`` passes their mask (naive-GS keeps N = H W and the caller drops or hides them).
 
 Everything in the left camera frame (OpenCV axes, metres, pixel centres at +0.5), z = z-depth in metres
 (``sgmodel.model.geometry.depth_from_disparity``).

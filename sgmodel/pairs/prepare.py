@@ -1,6 +1,6 @@
 """A user's stereo input made model-ready: the images, their calibration, and the pair transform.
 
-``sgmodel predict`` reads a pair (``--left/--right``) or a stereo video (``sgmodel.video``) into raw
+``sgmodel predict`` reads a pair (``--left/--right``) or a stereo video (``sgmodel.predict.video``) into raw
 ``Pair`` s, then turns each into a model-ready one with one function, ``PairTransform`` (``prepare_pairs``):
 a raw rig's pair is rectified first (``--rig``, ``rectify_pair``: ``sgmodel.pairs.rectify``), then resized to the
 model's size with K (and doffs) scaled (``resize_pair``); still pairs and video frames take the same steps.

@@ -113,7 +113,7 @@ class Rectification:
         return out[0], out[1]
 
     def rectify_tensors(self, left: torch.Tensor, right: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The same for batches of float images [B,3,H,W] on the CPU (``sgmodel.predict``'s layout; a video's
+        """The same for batches of float images [B,3,H,W] on the CPU (``sgmodel.predict.command``'s layout; a video's
         frames reuse the maps)."""
         pairs = [self.rectify(*(np.ascontiguousarray(x[b].permute(1, 2, 0).numpy(), dtype=np.float32)
                                 for x in (left, right))) for b in range(left.shape[0])]
@@ -151,7 +151,7 @@ class RigPrediction:
     """``predict_from_rig``'s result: gaussians (the Gaussians dict, batch 1) in the raw left camera's frame;
     depth z [1,1,h,w] metres, an image of the rectified left camera at the model's size, whose K and baseline
     are ``calibration``; the rectification; the stereo check; valid [1,N] bool, the Gaussians that stand on
-    a stereo depth (``sgmodel.export.to_scene(gaussians, 0, valid[0])`` keeps only those)."""
+    a stereo depth (``sgmodel.predict.export.to_scene(gaussians, 0, valid[0])`` keeps only those)."""
 
     gaussians: dict[str, torch.Tensor]
     depth: torch.Tensor

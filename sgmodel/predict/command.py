@@ -8,7 +8,7 @@ A pair (``--left L --right R``) writes ``OUT/scene.<format>`` (``--format ply`` 
 ``OUT/views/*.png`` (novel views around the left camera) and ``OUT/orbit.gif``. ``--method forward-splat``
 has no Gaussians: no scene or viewer files, its views are the z-buffered warp of the left image.
 
-A stereo video (``--video SBS`` side by side, or ``--left-video L --right-video R``; ``sgmodel.video``)
+A stereo video (``--video SBS`` side by side, or ``--left-video L --right-video R``; ``sgmodel.predict.video``)
 writes ``OUT/novel_view.<mp4|avi|mkv>`` (``--codec``), the novel view of every frame along ``--trajectory``,
 the viewer files, and with ``--frames`` ``OUT/frames/NNNNNN.<format>`` (default spz), one scene per frame.
 
@@ -50,7 +50,8 @@ from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene.scene_files import FORMATS
 
-from sgmodel import export, video
+from sgmodel.predict import export
+from sgmodel.predict import video
 from sgmodel.pairs import rig
 from sgmodel.pairs import stereo_check
 from sgmodel.model import baselines
@@ -60,10 +61,10 @@ from sgmodel.pairs.calib import Calibration
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
 from sgmodel.model.geometry import Z_MAX, Z_MIN
-from sgmodel.inference import Reconstructor
+from sgmodel.predict.inference import Reconstructor
 from sgmodel.pairs.prepare import prepare_pairs, read_calibration, read_pair, rectify_pair
 from sgmodel.pairs.stereo_pair import SIZE_MULTIPLE, Pair, PredictError, model_size, to_tensor
-from sgmodel.viewers import write_viewer_files
+from sgmodel.predict.viewers import write_viewer_files
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
 DEFAULT_RESOLUTION = 256

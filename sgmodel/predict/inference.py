@@ -1,6 +1,6 @@
 """From model-ready stereo pairs to Gaussians and rendered views: the one prediction path.
 
-``sgmodel predict`` (a pair), its stereo video (``sgmodel.video``), ``sgmodel bench predict --video`` and
+``sgmodel predict`` (a pair), its stereo video (``sgmodel.predict.video``), ``sgmodel bench predict --video`` and
 the baselines of ``sgmodel eval`` all go through ``Reconstructor`` (a trained model, or a baseline of
 ``sgmodel.model.baselines`` on an encoder's disparity) and ``Scenes.render``.
 
@@ -25,7 +25,7 @@ import torch
 from scenesplat_stereo.scene.gaussians import GaussianScene
 
 from sgmodel.model import baselines
-from sgmodel.export import to_scene
+from sgmodel.predict.export import to_scene
 from sgmodel.model.geometry import depth_from_disparity, disparity_validity
 from sgmodel.model.render import render_views
 

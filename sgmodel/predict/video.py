@@ -37,8 +37,8 @@ from scenesplat_stereo.scene.scene_files import FORMATS
 
 from sgmodel.bench import synced_clock
 from sgmodel.pairs.calib import Calibration
-from sgmodel.export import offset_camera, orbit_camera, write_scene
-from sgmodel.inference import Reconstructor
+from sgmodel.predict.export import offset_camera, orbit_camera, write_scene
+from sgmodel.predict.inference import Reconstructor
 from sgmodel.pairs.prepare import PairTransform
 from sgmodel.pairs.stereo_pair import Pair, PredictError, to_tensor
 from sgmodel.pairs.rectify import Rectification
