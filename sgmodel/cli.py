@@ -105,7 +105,7 @@ def _add_weights(sub) -> None:
 
 
 def _add_eval(sub) -> None:
-    from sgmodel import evaluate
+    from sgmodel.evaluation import evaluate
 
     p = sub.add_parser("eval", help="PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split",
                        description=evaluate.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -115,7 +115,7 @@ def _add_eval(sub) -> None:
     def run(args) -> int:
         methods = evaluate.methods_of(args)
         if len(args.data) > 1 or len(methods) > 1:  # a table in the layout of the paper's Table 2
-            from sgmodel import table2
+            from sgmodel.evaluation import table2
 
             return table2.run_table(args, methods, device_from_flag(args.device))
         return evaluate.run(args, methods[0], device_from_flag(args.device))
@@ -132,7 +132,7 @@ def _add_module(sub, name: str, summary: str, module) -> None:
 
 
 def _add_ablate(sub) -> None:
-    from sgmodel import ablate
+    from sgmodel.evaluation import ablate
 
     p = sub.add_parser("ablate", help="train and evaluate the Table 4 variants with one schedule",
                        description=ablate.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

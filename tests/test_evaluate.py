@@ -9,7 +9,7 @@ import json
 import pytest
 
 from sgmodel.train import loop as train_mod
-from sgmodel.ablate import ablate, variants
+from sgmodel.evaluation.ablate import ablate, variants
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
 

@@ -1,4 +1,4 @@
-"""``sgmodel eval`` over several benchmarks and methods: the paper's Table 2 (sgmodel/table2.py), on the CPU,
+"""``sgmodel eval`` over several benchmarks and methods: the paper's Table 2 (sgmodel/evaluation/table2.py), on the CPU,
 with the StereoNVS fixture import (full-image metrics) and a ReplicaGS-style build (masked metrics)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import pytest
 
 from scenesplat_stereo.shards.benchmark_file import BENCHMARK_NAME
 from sgmodel.data.loader import DataError
-from sgmodel.evaluate import benchmark_flag, summarise
-from sgmodel.table2 import Column, Row, cell, columns, table_markdown
+from sgmodel.evaluation.evaluate import benchmark_flag, summarise
+from sgmodel.evaluation.table2 import Column, Row, cell, columns, table_markdown
 from tests.model_helpers import sgmodel_status
 
 

@@ -29,7 +29,7 @@ from scenesplat_stereo.common.files import atomic_write_bytes, check_apart, chec
 from scenesplat_stereo.common.text import key_safe_name, markdown_table
 
 from sgmodel.data.loader import read_split
-from sgmodel.evaluate import OWNER, eval_inputs, evaluate, method_of
+from sgmodel.evaluation.evaluate import OWNER, eval_inputs, evaluate, method_of
 
 TABLE_MD, TABLE_JSON = "table2.md", "table2.json"
 #: Row order and labels of the paper's Table 2 ("Stereo geometry without learned prediction", then ours).

@@ -3,7 +3,7 @@
 Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned prediction
 (``--method naive-gs|forward-splat``, sgmodel.model.baselines through sgmodel.predict.inference: pixels without a valid
 stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Several methods or several
-``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.table2). Metrics (SPEC
+``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.evaluation.table2). Metrics (SPEC
 section 7, sgmodel.metrics.image): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
 when the VGG16 weights are available; each over the full image and over the valid mask.
 
@@ -194,7 +194,7 @@ def check_report_folder(out: Path, inputs: dict[str, Path | None]) -> None:
 def methods_of(args: argparse.Namespace) -> list[str]:
     """What ``sgmodel eval`` measures: "checkpoint" (``--checkpoint``) and the ``--method`` baselines, in
     order, each once; ValueError when there is none. Several methods or ``--data`` folders make a table
-    (``sgmodel.table2.run_table``), one of each a report (``run``)."""
+    (``sgmodel.evaluation.table2.run_table``), one of each a report (``run``)."""
     methods = (["checkpoint"] if args.checkpoint else []) + list(dict.fromkeys(args.method or []))
     if not methods:
         raise ValueError("--checkpoint / --method: give a checkpoint, a baseline, or both")

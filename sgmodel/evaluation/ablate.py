@@ -27,7 +27,7 @@ from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, a
                                      check_writable, read_json)
 from scenesplat_stereo.common.text import markdown_table
 
-from sgmodel import evaluate
+from sgmodel.evaluation import evaluate
 from sgmodel.config import ConfigurationError, ModelParams, TrainParams
 from sgmodel.encoders.flags import build_encoder
 from sgmodel.train.loop import open_run_cache, read_split_checked, train
