@@ -266,7 +266,8 @@ def sample_images(sel: VariantSelection, ref: Reference):
     """The ``encode.SampleImages`` of one stored reference pair (at least one target; images read from the
     IRS folder)."""
     from scenesplat_stereo.shards.encode import SampleImages
-    from scenesplat_stereo.build.protocol import SampleMeta, SamplePlan, sample_key
+    from scenesplat_stereo.build.protocol import SamplePlan
+    from scenesplat_stereo.shards.sample import SampleMeta, sample_key
 
     frames, w, h = sel.poses["frames"], sel.poses["width"], sel.poses["height"]
     f = frames[ref.index]

@@ -23,7 +23,7 @@ from sgmodel.data.encoder_cache import open_cache, precision_of
 from sgmodel.encoders.flags import build_encoder
 from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import encode_pair
-from sgmodel.train.loop import to_device
+from sgmodel.data.loader import to_device
 
 
 def compare(stats: dict, name: str, got: torch.Tensor, want: torch.Tensor) -> None:

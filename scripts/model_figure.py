@@ -16,7 +16,8 @@ import torch
 from scenesplat_stereo.shards.encode import decode_image, encode_png
 from scenesplat_stereo.common.files import atomic_write_bytes
 from sgmodel.pairs.calib import read_calib
-from sgmodel.predict.export import depth_png, novel_view_cameras
+from sgmodel.predict.export import novel_view_cameras
+from sgmodel.metrics.sheets import depth_png
 from sgmodel.model.network import load_predictor
 from sgmodel.model.render import render_views
 from sgmodel.metrics.sheets import labelled_row, stack_rows, tile

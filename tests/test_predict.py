@@ -20,7 +20,8 @@ from scripts.guitar_pair import H, W, render_pair
 from sgmodel.predict import command as predict_mod
 from sgmodel.model.baselines import naive_gs
 from sgmodel.cli import main as sgmodel_main
-from sgmodel.predict.export import depth_png, orbit_cameras, to_scene, write_scene
+from sgmodel.predict.export import orbit_cameras, to_scene, write_scene
+from sgmodel.metrics.sheets import depth_png
 from tests.model_helpers import predict_status as run
 
 

@@ -11,21 +11,10 @@ import pytest
 
 import scenesplat_stereo.build.protocol as protocol
 from scenesplat_stereo.scene.cameras import intrinsics_matrix, look_at
-from scenesplat_stereo.build.protocol import (
-    JPEG_QUALITY,
-    MASK_ALPHA_THRESHOLD,
-    MIN_TEACHER_PSNR,
-    NUM_TARGETS,
-    TIERS,
-    VAL_SCENES,
-    VAL_TARGETS,
-    filter_teachers,
-    keep_teacher,
-    plan_scene,
-    split_scenes,
-    tier_for_psnr,
-    validation_frames,
-)
+from scenesplat_stereo.build.protocol import (MASK_ALPHA_THRESHOLD, MIN_TEACHER_PSNR, NUM_TARGETS, TIERS, VAL_SCENES,
+                                              VAL_TARGETS, filter_teachers, keep_teacher, plan_scene, split_scenes,
+                                              tier_for_psnr, validation_frames)
+from scenesplat_stereo.shards.sample import JPEG_QUALITY
 from scenesplat_stereo.scene.teachers import OrbitSpec, Teacher
 
 

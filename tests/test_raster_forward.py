@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo.raster.reference import SH_C1, reference_rasterization, sh_basis
+from scenesplat_stereo.raster.reference import reference_rasterization
+from scenesplat_stereo.raster.sh import SH_C1, sh_basis
 from scenes import (assert_matches_reference, camera_rig, knife_edge_pixels, orbit_cameras, random_scene,
                     render_both)
 

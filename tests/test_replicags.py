@@ -12,7 +12,8 @@ from scenesplat_stereo.build.run import settings_from_args
 from scenesplat_stereo.build.settings import PRESETS
 from scenesplat_stereo.cli import build_parser
 from scenesplat_stereo.build.inspection import inspect_dataset
-from scenesplat_stereo.build.protocol import SampleMeta, test_frames
+from scenesplat_stereo.build.protocol import test_frames
+from scenesplat_stereo.shards.sample import SampleMeta
 from scenesplat_stereo.shards.webdataset import iter_shard
 
 

@@ -8,7 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from scenesplat_stereo.build.protocol import SampleMeta, SampleMetaError, SamplePlan
+from scenesplat_stereo.build.protocol import SamplePlan
+from scenesplat_stereo.shards.sample import SampleMeta, SampleMetaError
 from scenesplat_stereo.shards.webdataset import iter_shard
 
 

@@ -18,7 +18,7 @@ from scenesplat_stereo.build.demo import make_room
 from scenesplat_stereo.shards.encode import decode_image, encode_jpeg
 from scenesplat_stereo.build.inspection import inspect_dataset
 from scenesplat_stereo.captured.llff import LlffError, llff_to_opencv, opencv_to_llff, read_poses_bounds
-from scenesplat_stereo.build.protocol import SampleMeta
+from scenesplat_stereo.shards.sample import SampleMeta
 from scenesplat_stereo.shards.webdataset import iter_shard
 from sgmodel.data.loader import eval_batches
 

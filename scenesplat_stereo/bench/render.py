@@ -20,8 +20,6 @@ import argparse
 import importlib.util
 import math
 import os
-import statistics
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -32,6 +30,7 @@ from scenesplat_stereo.bench.render_batch import batch_table
 from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
 from scenesplat_stereo.common.commandline import Parser
 from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.measure import median_seconds, psnr_from_mse
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.raster.reference import as_renderer_sees, reference_rasterization
 
@@ -89,27 +88,9 @@ def guitar_scene(device: str, width: int, height: int) -> tuple[dict, torch.Tens
     return scene.to_torch(device), viewmats.to(device), K.to(device)
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-
-
-def median_seconds(fn, device: str, repeats: int, warmup: int = 2) -> float:
-    for _ in range(warmup):
-        fn()
-    _sync(device)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(((a.double() - b.double()) ** 2).mean())
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+    """PSNR (dB, range 1) of two renders, in float64, unclipped."""
+    return psnr_from_mse(float(((a.double() - b.double()) ** 2).mean()))
 
 
 def _render_fn(impl, scene, viewmats, Ks, s: Setting, max_alpha: float, deterministic: bool = False):

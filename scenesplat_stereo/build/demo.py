@@ -15,6 +15,7 @@ camera convention), spanning the PSNR tiers and SH degrees 0..3.
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import shutil
@@ -27,6 +28,7 @@ from tqdm import tqdm
 
 from scenesplat_stereo.scene.cameras import OPENGL_TO_OPENCV, intrinsics_matrix, look_at
 from scenesplat_stereo.common.files import atomic_write_json
+from scenesplat_stereo.common.text import argtype, parse_size, whole_number
 from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene.ply import SH_C0
 from scenesplat_stereo.build.protocol import TIERS
@@ -341,3 +343,23 @@ def write_demo_teachers(out: Path, n_scenes: int = 4, seed: int = 0, num_gaussia
             raise
         folders.append(final)
     return folders
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("out", type=Path, help="output folder; one sub-folder per scene")
+    p.add_argument("--scenes", type=whole_number("--scenes"), default=4, help="number of scenes (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--gaussians", type=whole_number("--gaussians"), default=DEFAULT_NUM_GAUSSIANS,
+                   help=f"Gaussians per room (default {DEFAULT_NUM_GAUSSIANS})")
+    p.add_argument("--frames", type=whole_number("--frames"), default=12, help="trajectory frames per scene (default 12)")
+    p.add_argument("--size", type=argtype(parse_size, "--size"), default="256x192", metavar="WxH",
+                   help="native image size in pixels (default 256x192)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    width, height = args.size
+    folders = write_demo_teachers(args.out, n_scenes=args.scenes, seed=args.seed, num_gaussians=args.gaussians,
+                                  n_frames=args.frames, width=width, height=height, progress=not args.no_progress)
+    print(f"wrote {len(folders)} demo teachers to {args.out}")
+    return 0

@@ -28,7 +28,8 @@ from tqdm import tqdm
 from scenesplat_stereo.shards import webdataset as shards
 from scenesplat_stereo.scene.cameras import fibonacci_directions, right_camera, rigid_error, translation
 from scenesplat_stereo.shards.encode import decode_image, encode_png
-from scenesplat_stereo.build.protocol import NUM_TARGETS, SampleMeta, SampleMetaError, sample_key, tier_for_psnr
+from scenesplat_stereo.build.protocol import NUM_TARGETS, tier_for_psnr
+from scenesplat_stereo.shards.sample import SampleMeta, SampleMetaError, sample_key
 from scenesplat_stereo.common.text import whole_number
 
 POSE_TOLERANCE = 1e-6  # world units / unitless, for poses stored as float64 JSON

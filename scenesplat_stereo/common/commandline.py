@@ -7,6 +7,9 @@ shortened flag is refused instead of silently landing on another (``--rig`` is n
 parsers made through ``add_subparsers`` inherit the class, so every level refuses abbreviations, accepts
 ``--debug`` and prints argparse's own refusals as one line.
 
+A command line is a table (``Command``): each entry names a sub-command and the module that holds it, with
+``add_arguments(parser)`` and ``run(args)``; ``add_commands`` builds the parsers from it.
+
 ``run_command(parser, argv)`` parses, calls ``args.func(args)`` and turns every way a command can end into
 one exit status and at most one line on stderr, ``<command>: error: <what>``:
 
@@ -29,12 +32,14 @@ from __future__ import annotations
 
 import argparse
 import errno
+import importlib
 import logging
 import os
 import sys
 import tarfile
 import traceback
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 EXIT_OK, EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 DEBUG_ENV = "STEREOGAUSSIANS_DEBUG"  # set to anything but "" or "0" for tracebacks
@@ -78,6 +83,34 @@ class Parser(argparse.ArgumentParser):
     def error(self, message: str):
         """argparse's refusals: one line naming the flag, exit 2."""
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
+@dataclass(frozen=True)
+class Command:
+    """A sub-command: ``module`` (dotted name) holds ``add_arguments(parser)`` and ``run(args) -> int``; or, with
+    ``commands``, a group of sub-commands (``dest`` names the namespace attribute that records which one ran).
+    ``help`` defaults to the first line of the module's docstring."""
+
+    name: str
+    help: str = ""
+    module: str = ""
+    commands: tuple[Command, ...] = ()
+    dest: str = ""
+
+
+def add_commands(parser: argparse.ArgumentParser, commands: tuple[Command, ...], dest: str = "command") -> None:
+    """One sub-parser per entry of ``commands`` (module docstrings as descriptions), groups recursively."""
+    sub = parser.add_subparsers(dest=dest, required=True)
+    for command in commands:
+        if command.commands:
+            group = sub.add_parser(command.name, help=command.help, description=command.help)
+            add_commands(group, command.commands, command.dest or f"{command.name}_command")
+            continue
+        module = importlib.import_module(command.module)
+        p = sub.add_parser(command.name, help=command.help or module.__doc__.strip().splitlines()[0],
+                           description=module.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        module.add_arguments(p)
+        p.set_defaults(func=module.run)
 
 
 def debugging(args: argparse.Namespace | None = None) -> bool:

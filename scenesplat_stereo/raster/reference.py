@@ -29,19 +29,8 @@ import math
 
 import torch
 
-# SPEC section 1: the standard real spherical-harmonics constants (degrees 0..3).
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (
-    -0.5900435899266435,
-    2.890611442640554,
-    -0.4570457994644658,
-    0.3731763325901154,
-    -0.4570457994644658,
-    1.445305721320277,
-    -0.5900435899266435,
-)
+from scenesplat_stereo.raster.sh import sh_basis
+
 # SPEC section 2, step 3: tx/z, ty/z are clamped to the field of view widened by 0.15 W/fx (0.15 H/fy) per side.
 FOV_CLAMP_MARGIN = 0.15
 # SPEC section 2, step 6: a Gaussian touches a pixel when o exp(-sigma) >= 1/255.
@@ -87,34 +76,6 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
         torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
     ]
     return torch.stack(rows, -2)
-
-
-def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
-    """Real SH basis [..., (degree+1)^2] at unit directions [..., 3], in the INRIA / gsplat order and signs."""
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, SH_C0)]
-    if degree >= 1:
-        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [
-            SH_C2[0] * x * y,
-            SH_C2[1] * y * z,
-            SH_C2[2] * (2 * zz - xx - yy),
-            SH_C2[3] * x * z,
-            SH_C2[4] * (xx - yy),
-        ]
-    if degree >= 3:
-        out += [
-            SH_C3[0] * y * (3 * xx - yy),
-            SH_C3[1] * x * y * z,
-            SH_C3[2] * y * (4 * zz - xx - yy),
-            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
-            SH_C3[4] * x * (4 * zz - xx - yy),
-            SH_C3[5] * z * (xx - yy),
-            SH_C3[6] * x * (xx - 3 * yy),
-        ]
-    return torch.stack(out, -1)
 
 
 def sh_colors(degree: int, dirs: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:

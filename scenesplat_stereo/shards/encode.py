@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import OpenImageIO as oiio
 
-from scenesplat_stereo.build.protocol import JPEG_QUALITY
+from scenesplat_stereo.shards.sample import JPEG_QUALITY
 
 JPEG_ENCODERS = ("cpu", "nvjpeg")  # where JPEGs are encoded: encoder workers, or the GPU (``nvjpeg``)
 

@@ -35,7 +35,7 @@ from concurrent.futures.process import BrokenProcessPool
 import numpy as np
 
 from scenesplat_stereo.shards import encode
-from scenesplat_stereo.build.protocol import JPEG_QUALITY
+from scenesplat_stereo.shards.sample import JPEG_QUALITY
 
 ENCODER_MODES = ("auto", "threads", "processes")
 

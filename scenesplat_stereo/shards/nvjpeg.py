@@ -39,7 +39,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import torch
 
 from scenesplat_stereo.common.commandline import NotAvailable
-from scenesplat_stereo.build.protocol import JPEG_QUALITY
+from scenesplat_stereo.shards.sample import JPEG_QUALITY
 
 # nvjpeg.h constants
 _CSS = {"4:4:4": 0, "4:2:2": 1, "4:2:0": 2}  # nvjpegChromaSubsampling_t

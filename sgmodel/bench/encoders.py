@@ -23,8 +23,9 @@ from sgmodel.data.loader import make_loader
 from sgmodel.encoders import StereoEncoder
 from sgmodel.encoders.flags import build_encoder, encoder_label, parse_encoder_spec
 from sgmodel.model.geometry import depth_from_disparity
-from sgmodel.train.loop import to_device
-from sgmodel.bench import report, synced_clock
+from sgmodel.data.loader import to_device
+from scenesplat_stereo.common.measure import synced_clock
+from sgmodel.bench import report
 
 
 def disparity_errors(disparity: torch.Tensor, depth: torch.Tensor, fx: torch.Tensor, baseline: torch.Tensor

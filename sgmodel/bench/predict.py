@@ -35,7 +35,8 @@ from sgmodel.model.geometry import depth_from_disparity
 from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import Predictor, create_model, load_predictor
 from sgmodel.model.render import SH_DEGREE, render_views
-from sgmodel.bench import describe, report, synced_clock, synthetic_pair
+from scenesplat_stereo.common.measure import synced_clock
+from sgmodel.bench import describe, report, synthetic_pair
 
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
 

@@ -32,7 +32,8 @@ from sgmodel.model.network import Predictor
 from sgmodel.pairs.prepare import prepare_pairs
 from sgmodel.pairs.stereo_pair import Pair, to_tensor
 from sgmodel.predict.video import CODECS, StereoSource, Trajectory, VideoSink, stream
-from sgmodel.bench import describe, report, synced_clock, synthetic_pair
+from scenesplat_stereo.common.measure import synced_clock
+from sgmodel.bench import describe, report, synthetic_pair
 
 #: The novel view of the end-to-end run: the left camera moved 5 cm to the right.
 OFFSET = (0.05, 0.0, 0.0)

@@ -36,8 +36,10 @@ from sgmodel.train.losses import Objective, create_objective
 from sgmodel.metrics.lpips import random_lpips, vgg16_missing_message
 from sgmodel.model.network import create_model
 from sgmodel.model.render import render_views
-from sgmodel.train.loop import cached_encoding, create_optimizer, to_device, train_step
-from sgmodel.bench import report, synced_clock
+from sgmodel.train.loop import cached_encoding, create_optimizer, train_step
+from sgmodel.data.loader import to_device
+from scenesplat_stereo.common.measure import synced_clock
+from sgmodel.bench import report
 
 STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation forward", "loss", "backward",
           "optimiser")

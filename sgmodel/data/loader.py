@@ -38,7 +38,7 @@ import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from scenesplat_stereo.shards.encode import decode_image
-from scenesplat_stereo.build.protocol import SampleMeta, SampleMetaError
+from scenesplat_stereo.shards.sample import SampleMeta, SampleMetaError
 from scenesplat_stereo.shards.webdataset import INDEX_NAME, iter_shard
 from sgmodel.data import sample_order
 from sgmodel.data.square_crop import ImageTooSmall, SquareCrop
@@ -379,3 +379,12 @@ def make_loader(root: Path, split: str, batch_size: int, resolution: int = RESOL
                    persistent_workers=not train) if num_workers > 0 else {}
     return DataLoader(dataset, batch_size=batch_size, collate_fn=collate, num_workers=num_workers,
                       pin_memory=pin_memory, **workers)
+
+
+def to_device(batch: dict, device: torch.device) -> dict:
+    """The batch's tensors (and lists of tensors) on ``device``; other values as they are."""
+    def move(v):
+        if torch.is_tensor(v):
+            return v.to(device, non_blocking=True)
+        return [move(x) for x in v] if isinstance(v, list) and v and torch.is_tensor(v[0]) else v
+    return {k: move(v) for k, v in batch.items()}

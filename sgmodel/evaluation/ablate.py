@@ -27,6 +27,8 @@ from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, a
                                      check_writable, read_json)
 from scenesplat_stereo.common.text import markdown_table
 
+from sgmodel.args import (add_device_argument, add_model_arguments, add_train_arguments, device_from_flag,
+                          params_from_args)
 from sgmodel.evaluation import evaluate
 from sgmodel.config import ConfigurationError, ModelParams, TrainParams
 from sgmodel.encoders.flags import build_encoder
@@ -165,3 +167,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--encoder-cache", type=Path, metavar="CACHE",
                    help="the encoder's outputs on --data (`sgmodel encode`), read by every variant's run")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_device_argument(p)
+    add_model_arguments(p)
+    add_train_arguments(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    model, tp = params_from_args(args)
+    print(ablate(model, tp, args.data, args.out, device_from_flag(args.device), args.lpips_vgg, args.only,
+                 not args.no_progress, args.encoder_cache))
+    return 0

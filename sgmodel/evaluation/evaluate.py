@@ -1,18 +1,5 @@
-"""``sgmodel eval``: render every stored target of a split and measure it as the paper does.
-
-Methods: a trained checkpoint (``--checkpoint``), or a baseline without learned prediction
-(``--method naive-gs|forward-splat``, sgmodel.model.baselines through sgmodel.predict.inference: pixels without a valid
-stereo depth make no Gaussian and splat nothing) on any encoder's disparity. Several methods or several
-``--data`` folders make one table in the layout of the paper's Table 2 (sgmodel.evaluation.table2). Metrics (SPEC
-section 7, sgmodel.metrics.image): PSNR on images clipped to [0, 1], skimage-style SSIM, LPIPS-VGG on [-1, 1]
-when the VGG16 weights are available; each over the full image and over the valid mask.
-
-Writes REPORT/ after every input is checked (the data split, the checkpoint or encoder, the LPIPS weights,
-and REPORT itself: absent, empty or an earlier report, apart from the data): ``metrics.json`` (means,
-target count, encoder, method or checkpoint, split), ``targets.csv`` (one row per target), ``scenes.md`` (a
-table per scene), and ``sheet.png`` (the worst and the best targets by PSNR: target | render). The report
-is built in a staging folder that replaces REPORT as a whole (``scenesplat_stereo.common.files.StagedFolder``).
-"""
+"""Measuring one method on one split of one dataset (``evaluate``) and its report folder; the command that
+runs it, and what it writes, is ``sgmodel.evaluation.command``."""
 
 from __future__ import annotations
 
@@ -40,7 +27,7 @@ from sgmodel.metrics.lpips import create_lpips
 from sgmodel.model.network import load_predictor
 from sgmodel.model.render import render_views
 from sgmodel.metrics.sheets import target_sheet
-from sgmodel.train.loop import to_device
+from sgmodel.data.loader import to_device
 
 METHODS = ("naive-gs", "forward-splat")
 METRICS = ("psnr", "ssim", "lpips")
@@ -194,7 +181,7 @@ def check_report_folder(out: Path, inputs: dict[str, Path | None]) -> None:
 def methods_of(args: argparse.Namespace) -> list[str]:
     """What ``sgmodel eval`` measures: "checkpoint" (``--checkpoint``) and the ``--method`` baselines, in
     order, each once; ValueError when there is none. Several methods or ``--data`` folders make a table
-    (``sgmodel.evaluation.table2.run_table``), one of each a report (``run``)."""
+    (``sgmodel.evaluation.table2.run_table``), one of each a report (``report``)."""
     methods = (["checkpoint"] if args.checkpoint else []) + list(dict.fromkeys(args.method or []))
     if not methods:
         raise ValueError("--checkpoint / --method: give a checkpoint, a baseline, or both")
@@ -217,7 +204,7 @@ def method_of(name: str, args: argparse.Namespace, device: str) -> Method:
     return baseline_method(name, encoder_params(args), args.resolution, device)
 
 
-def run(args: argparse.Namespace, method_name: str, device: str) -> int:
+def report(args: argparse.Namespace, method_name: str, device: str) -> int:
     """``sgmodel eval`` with one ``--data`` folder and one method: REPORT is ``--out``."""
     check_report_folder(args.out, eval_inputs(args))
     method = method_of(method_name, args, device)

@@ -23,10 +23,11 @@ import torch
 import triton
 import triton.language as tl
 
+from sgmodel.kernels import CAT_KERNEL_SOURCES
+
 _BLOCK_P = 32  # output pixels of one forward program
 _BLOCK_C = 64  # channels of one chunk
 _BLOCK_X = 32  # source pixels (along a row) of one backward program
-_SOURCES = 3  # the source slots of _concat_kernel (layers.CAT_KERNEL_SOURCES: what cat_channels sends here)
 
 
 @triton.jit
@@ -100,8 +101,8 @@ def forward(tensors: list[torch.Tensor], pads: list[int], total: int) -> torch.T
     """``tensors`` [B, C_k, H_k, W_k] (at most three, one dtype, any strides), each edge-replicated by
     ``pads[k]`` to one size Hd x Wd, concatenated along channels and followed by ``total - sum C_k``
     appended channels (the first ones, the rest zero) -> [B, total, Hd, Wd] channels-last."""
-    if len(tensors) > _SOURCES:
-        raise ValueError(f"concat_kernels.forward reads at most {_SOURCES} sources, got {len(tensors)}")
+    if len(tensors) > CAT_KERNEL_SOURCES:
+        raise ValueError(f"kernels.concat.forward reads at most {CAT_KERNEL_SOURCES} sources, got {len(tensors)}")
     x = tensors[0]
     B, Hd, Wd = x.shape[0], x.shape[2] + 2 * pads[0], x.shape[3] + 2 * pads[0]
     out = torch.empty(B, total, Hd, Wd, device=x.device, dtype=x.dtype, memory_format=torch.channels_last)
@@ -111,9 +112,9 @@ def forward(tensors: list[torch.Tensor], pads: list[int], total: int) -> torch.T
         args += [lo, t.shape[1], p, t.shape[2], t.shape[3], sb, sc, sy, sx]
         lo += t.shape[1]
     unused = [lo, 0, 0, 1, 1, 0, 0, 0, 0]  # owns no channel
-    for _ in range(_SOURCES - len(tensors)):
+    for _ in range(CAT_KERNEL_SOURCES - len(tensors)):
         args += unused
-    srcs = list(tensors) + [out] * (_SOURCES - len(tensors))
+    srcs = list(tensors) + [out] * (CAT_KERNEL_SOURCES - len(tensors))
     _concat_kernel[(triton.cdiv(Hd * Wd, _BLOCK_P), B)](out, *srcs, Hd, Wd, total, lo, *args,
                                                          BLOCK_P=_BLOCK_P, BLOCK_C=_BLOCK_C)
     return out

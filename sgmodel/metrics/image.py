@@ -29,7 +29,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from sgmodel.model.layers import triton_installed
+from scenesplat_stereo.common.measure import psnr_from_mse
+
+from sgmodel.kernels import triton_installed
 from sgmodel.metrics.lpips import LPIPS
 
 #: SSIM constants of Wang et al. 2004 as skimage uses them (SPEC section 7 "Metrics").
@@ -63,8 +65,7 @@ def _masked_mean(values: Tensor, mask: Tensor | None) -> Tensor:
 def psnr(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
     """PSNR in dB per image [...], images clipped to [0, 1], data range 1."""
     _check(pred, target, mask)
-    mse = _masked_mean((pred.clamp(0, 1) - target.clamp(0, 1)).pow(2), mask)
-    return 10 * torch.log10(1 / mse)
+    return psnr_from_mse(_masked_mean((pred.clamp(0, 1) - target.clamp(0, 1)).pow(2), mask))
 
 
 @functools.cache

@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from sgmodel.model.layers import triton_kernels_run
+from sgmodel.kernels import triton_kernels_run
 from sgmodel.weights import WeightsError, resolve, sha256_file
 
 #: torchvision's file name for the ImageNet VGG16 weights; its 8 hex digits are the sha256 prefix.

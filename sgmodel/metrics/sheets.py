@@ -13,10 +13,30 @@ import torch
 
 from scenesplat_stereo.shards.encode import encode_png
 
-from sgmodel.predict.export import depth_png
 
 GAP = 2  # pixels between tiles
 LABEL_H = 14  # pixels of the caption band above each row
+
+
+def depth_png(z: np.ndarray, near: float | None = None, far: float | None = None,
+              valid: np.ndarray | None = None) -> np.ndarray:
+    """z-depth [H,W] metres -> uint8 RGB [H,W,3], turbo colour map on inverse depth.
+
+    Legend: red = near, through yellow and green, to dark blue = far; black = no stereo depth (where
+    ``valid`` [H,W] bool is False). near/far default to the 2nd and 98th percentiles of the valid z (values
+    outside are clipped). Inverse depth spreads the colours like disparity does.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    known = z[valid] if valid is not None and valid.any() else z.ravel()
+    near = float(np.percentile(known, 2)) if near is None else near
+    far = float(np.percentile(known, 98)) if far is None else far
+    far = max(far, near * (1 + 1e-6))
+    t = (1.0 / np.clip(z, near, far) - 1.0 / far) / (1.0 / near - 1.0 / far)
+    bgr = cv2.applyColorMap(np.rint(t * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    rgb = np.ascontiguousarray(bgr[..., ::-1])
+    if valid is not None:
+        rgb[~valid] = 0
+    return rgb
 
 
 def tile(t: torch.Tensor) -> np.ndarray:

@@ -36,20 +36,17 @@ On the CPU (no autocast) every block computes exactly what its PyTorch counterpa
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from sgmodel.kernels import CAT_KERNEL_SOURCES, channels_last_kernels_run, triton_installed
+
 #: channel counts of concatenated inputs and convolution outputs are padded to this multiple on CUDA
 #: (cuDNN's NHWC tensor-core kernels; a 259 -> 384 channel 3x3 convolution at the canvas size took 36.6 ms
 #: forward + backward with 259 input channels and 28.9 ms with 264, H100, bf16, batch 32).
 CUDA_CHANNEL_MULTIPLE = 8
-#: the most tensors ``cat_channels`` concatenates in one Triton launch (``sgmodel.kernels.concat``' source
-#: slots; that module cannot import this one: no import cycles)
-CAT_KERNEL_SOURCES = 3
 
 
 def amp_autocast(x: torch.Tensor, amp: bool = True) -> torch.autocast:
@@ -308,25 +305,6 @@ class _GroupNormGELU(torch.autograd.Function):
         dx, dw, db = group_norm_kernels.backward(list(grads), x, mean, rstd, ctx.groups, weight, bias, ctx.gelu,
                                                  ctx.needs_input_grad[0])
         return dx, dw, db, None, None, None, None
-
-
-def triton_kernels_run(x: torch.Tensor) -> bool:
-    """Whether our Triton kernels of 4D activations take ``x``: a 4D CUDA tensor in float32, float16 or
-    bfloat16, with Triton installed (``channels_last_kernels_run``; LPIPS's tap distance in any strides)."""
-    return (x.is_cuda and x.dim() == 4 and x.dtype in (torch.float32, torch.float16, torch.bfloat16)
-            and triton_installed())
-
-
-def channels_last_kernels_run(x: torch.Tensor) -> bool:
-    """Whether the Triton kernels for channels-last activations (``group_norm_gelu``, ``bias_gelu``,
-    ``upsample_bilinear``'s 2x) run for ``x``: ``triton_kernels_run`` and channels-last."""
-    return triton_kernels_run(x) and x.is_contiguous(memory_format=torch.channels_last)
-
-
-@functools.cache
-def triton_installed() -> bool:
-    """Whether Triton can be imported (the fused GroupNorm kernels; torch.compile's GPU code)."""
-    return importlib.util.find_spec("triton") is not None
 
 
 def compiles(device: torch.device, wanted: bool = True) -> bool:

@@ -3,7 +3,7 @@
 ``rotate_gaussians(g, R)`` returns the scene with every point p expressed as R p: means R m, rotations
 R Rot(q) (quaternion q(R) * q, wxyz), scales and opacities unchanged, and each SH band rotated so that the
 colour seen along a direction d of the new frame is the colour the old scene showed along R^T d. The SH basis
-is the rasteriser's (INRIA / gsplat order and signs: ``scenesplat_stereo.raster.reference.sh_basis``), degrees 0..3.
+is the rasteriser's (INRIA / gsplat order and signs: ``scenesplat_stereo.raster.sh.sh_basis``), degrees 0..3.
 
 Band l of the real SH basis is closed under rotation: Y_l(R^T d) = M_l Y_l(d) for a (2l+1) x (2l+1) matrix
 M_l. ``sh_rotation`` finds M_l in float64 by least squares on a fixed set of directions (exact up to
@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.scene.cameras import fibonacci_directions
-from scenesplat_stereo.raster.reference import sh_basis
+from scenesplat_stereo.raster.sh import sh_basis
 
 #: Directions the band matrices are fitted on (more than the 7 unknowns per row of band 3, well spread).
 _FIT_DIRECTIONS = 64

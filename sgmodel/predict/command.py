@@ -51,12 +51,13 @@ from scenesplat_stereo.common.files import StagedFolder, check_apart, check_repl
 from scenesplat_stereo.scene.scene_files import FORMATS
 
 from sgmodel.predict import export
+from sgmodel.metrics.sheets import depth_png
 from sgmodel.predict import video
 from sgmodel.pairs import rig
 from sgmodel.pairs import stereo_check
 from sgmodel.model import baselines
 from sgmodel.args import add_device_argument, device_from_flag
-from sgmodel.bench import synced_clock
+from scenesplat_stereo.common.measure import synced_clock
 from sgmodel.pairs.calib import Calibration
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
@@ -289,7 +290,7 @@ def _predict_pair(args, raw: Pair, reconstructor: Reconstructor, short: int, dev
             + (", in the raw left camera's frame" if frame is not None else ""))
         write_viewer_files(tmp, pair.calib.K, w, h, focus, c2w)
     z, valid = scenes.depth[0, 0].cpu().numpy(), scenes.pixel_valid[0, 0].cpu().numpy()
-    (tmp / "depth.png").write_bytes(encode_png(export.depth_png(z, valid=valid)))
+    (tmp / "depth.png").write_bytes(encode_png(depth_png(z, valid=valid)))
     timer.lap("depth and viewer files")
     named = export.novel_view_cameras(VIEW_RADIUS * focus, focus)
     orbit = export.orbit_cameras(ORBIT_FRAMES, VIEW_RADIUS * focus, focus)

@@ -10,7 +10,6 @@ import math
 import os
 from pathlib import Path
 
-import cv2
 import numpy as np
 import OpenImageIO as oiio
 import torch
@@ -53,27 +52,6 @@ def write_scene(scene: GaussianScene, path: str | Path, format: str = "ply") -> 
     """Write ``scene`` in a ``scene_files.FORMATS`` format (atomically, without fsync: a prediction is cheap to
     make again and the fsync would cost more than the rest of the write, docs/benchmarks.md)."""
     return save_scene(scene, path, format, durable=False)
-
-
-def depth_png(z: np.ndarray, near: float | None = None, far: float | None = None,
-              valid: np.ndarray | None = None) -> np.ndarray:
-    """z-depth [H,W] metres -> uint8 RGB [H,W,3], turbo colour map on inverse depth.
-
-    Legend: red = near, through yellow and green, to dark blue = far; black = no stereo depth (where
-    ``valid`` [H,W] bool is False). near/far default to the 2nd and 98th percentiles of the valid z (values
-    outside are clipped). Inverse depth spreads the colours like disparity does.
-    """
-    z = np.asarray(z, dtype=np.float64)
-    known = z[valid] if valid is not None and valid.any() else z.ravel()
-    near = float(np.percentile(known, 2)) if near is None else near
-    far = float(np.percentile(known, 98)) if far is None else far
-    far = max(far, near * (1 + 1e-6))
-    t = (1.0 / np.clip(z, near, far) - 1.0 / far) / (1.0 / near - 1.0 / far)
-    bgr = cv2.applyColorMap(np.rint(t * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-    rgb = np.ascontiguousarray(bgr[..., ::-1])
-    if valid is not None:
-        rgb[~valid] = 0
-    return rgb
 
 
 def _look_at(centre: np.ndarray, focus: np.ndarray) -> np.ndarray:

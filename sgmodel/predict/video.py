@@ -35,7 +35,7 @@ from scenesplat_stereo.shards.encode import to_uint8
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS
 
-from sgmodel.bench import synced_clock
+from scenesplat_stereo.common.measure import synced_clock
 from sgmodel.pairs.calib import Calibration
 from sgmodel.predict.export import offset_camera, orbit_camera, write_scene
 from sgmodel.predict.inference import Reconstructor

@@ -1,30 +1,5 @@
-"""Training: a step function (``train_step``), validation (``validate``) and the loop (``train``).
-
-The loop reads shards through ``sgmodel.data.loader``, predicts Gaussians with the model, renders every target
-through ``sgmodel.model.render`` (our Warp rasteriser and its hand-written backward), and minimises
-MSE + 0.05 LPIPS-VGG (or MSE + 0.05 (1 - SSIM) without the VGG weights) with AdamW and OneCycleLR
-(SPEC section 7). Every ``val_every`` steps it validates on the whole validation split, writes a contact
-sheet (input, depth, targets, renders) and keeps the checkpoint with the highest validation PSNR.
-
-Files in RUN (only rank 0 writes, every file atomically): ``config.json`` (all settings, the encoder and
-its weights hash, the loss used), ``metrics.jsonl`` (one record per ``log_every`` steps: step, loss, psnr,
-lr, step_ms; one per validation: step, val_psnr, val_psnr_masked, val_targets; whole lines only),
-``checkpoints/last.pt`` and ``best.pt`` (``sgmodel.model.checkpoint``), ``sheets/val_<step>.png``, and ``.lock``
-while a process trains in it (a second one is refused). An interrupted or killed run resumes from
-``last.pt`` exactly: weights, optimiser, scheduler, RNG and the data order (a function of seed and step);
-a torn last line of ``metrics.jsonl`` is dropped with a warning.
-
-Nothing is written before every input is checked: the flags, ``--out`` (a folder that can be written, not
-inside ``--data``, empty, or a run of the same settings), both splits (their first samples decoded at
-the run's size), the encoder and LPIPS weights, ``--init-from``, ``--encoder-cache`` (``sgmodel.data.encoder_cache``:
-it must fit the encoder, the resolution, the precision and the data). A RUN that holds an earlier attempt of
-other settings without any checkpoint is started afresh (nothing of value is lost).
-
-Divergence: the loss is checked every step (``train_step``; its ``.item()`` syncs anyway); the gradients
-every step with one fused norm on the device (no sync), read together with the weights' norm at every log
-and checkpoint step. A NaN or infinity stops training with ``TrainingDiverged``, before any checkpoint
-holds it; ``--init-from last.pt`` starts a new run with other settings from the last finite weights.
-"""
+"""The training loop: a step function (``train_step``), validation (``validate``) and the loop (``train``); what
+a run does and writes is the command's description (``sgmodel.train.command``)."""
 
 from __future__ import annotations
 
@@ -46,7 +21,7 @@ from scenesplat_stereo.common.text import format_table
 from sgmodel.metrics import image as metrics
 from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from sgmodel.config import ModelParams, TrainParams
-from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split
+from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split, to_device
 from sgmodel.train.distributed import World, all_sum, broadcast_flag, close_world, init_world
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
 from sgmodel.model.layers import amp_autocast, compiles
@@ -170,15 +145,6 @@ def mean_over_ranks(world: World, stats: dict) -> dict:
 def cached_encoding(batch: dict) -> tuple[torch.Tensor, list[torch.Tensor]] | None:
     """The batch's frozen-encoder outputs read from an encoder cache (disparity, features), or None."""
     return (batch["encoder_disparity"], batch["encoder_features"]) if "encoder_disparity" in batch else None
-
-
-def to_device(batch: dict, device: torch.device) -> dict:
-    """The batch's tensors (and lists of tensors) on ``device``; other values as they are."""
-    def move(v):
-        if torch.is_tensor(v):
-            return v.to(device, non_blocking=True)
-        return [move(x) for x in v] if isinstance(v, list) and v and torch.is_tensor(v[0]) else v
-    return {k: move(v) for k, v in batch.items()}
 
 
 def all_finite(tensors: list[torch.Tensor]) -> torch.Tensor:
