@@ -36,7 +36,7 @@ from pathlib import Path
 from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION_ERROR, MAX_SCALE_IQR_FRACTION,
                            MIN_REGISTERED_FRAMES, Filters, VariantConfig, run_dataset, summary_table)
 from scenesplat_stereo.captured.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera, RecoveryOptions,
-                                      image_size, recover_poses, recovery_json)
+                                               image_size, recover_poses, recovery_json)
 from scenesplat_stereo.common.commandline import Parser, run_command
 from scenesplat_stereo.common.files import atomic_write_json, check_writable
 from scenesplat_stereo.common.text import argtype, parse_size, positive_number, whole_number

@@ -41,9 +41,9 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.irs import IRS_FOCAL_BASELINE, depth_from_disparity, read_disparity
-from scenesplat_stereo.scene.cameras import rotation_angle_deg
 from scenesplat_stereo.common.commandline import Parser, run_command
 from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
+from scenesplat_stereo.scene.cameras import rotation_angle_deg
 
 # Paper appendix F, "IRS target selection and training".
 REFERENCE_MIN_TRANSLATION = 0.05  # metres since the last reference frame ...
@@ -265,8 +265,8 @@ def kept_variants(poses_dir: Path) -> list[str]:
 def sample_images(sel: VariantSelection, ref: Reference):
     """The ``encode.SampleImages`` of one stored reference pair (at least one target; images read from the
     IRS folder)."""
-    from scenesplat_stereo.shards.encode import SampleImages
     from scenesplat_stereo.build.protocol import SamplePlan
+    from scenesplat_stereo.shards.encode import SampleImages
     from scenesplat_stereo.shards.sample import SampleMeta, sample_key
 
     frames, w, h = sel.poses["frames"], sel.poses["width"], sel.poses["height"]
@@ -300,13 +300,11 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
 
     from tqdm import tqdm
 
-    from scenesplat_stereo.common.files import atomic_write_json
-    from scenesplat_stereo.shards.encode_pool import SampleEncoder
     from scenesplat_stereo.build.protocol import split_scenes
-    from scenesplat_stereo.shards.webdataset import (ShardWriter, collect_stats, finished_shards, remove_shard, write_index,
-                                          write_stats)
-
-    from scenesplat_stereo.common.files import check_writable
+    from scenesplat_stereo.common.files import atomic_write_json, check_writable
+    from scenesplat_stereo.shards.encode_pool import SampleEncoder
+    from scenesplat_stereo.shards.webdataset import (ShardWriter, collect_stats, finished_shards, remove_shard,
+                                                     write_index, write_stats)
 
     if samples_per_shard < 1:
         raise ValueError(f"--samples-per-shard {samples_per_shard}: must be >= 1")

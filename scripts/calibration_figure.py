@@ -20,8 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scenesplat_stereo.shards.encode import decode_image, encode_png, to_uint8
 from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.shards.encode import decode_image, encode_png, to_uint8
 from scripts.rig_pair import BASELINE, H, W, render, write_rig
 from sgmodel.pairs.rectify import Rectification
 from sgmodel.pairs.rig import FISHEYE, StereoRig, read_rig

@@ -1,5 +1,5 @@
 """Several GPUs, measured and checked in one go (the recipe behind ``scripts/gpu_ddp.sh``; also run on the CPU
-with gloo by ``tests/test_distributed.py``).
+with gloo by ``tests/sgmodel/train/test_distributed.py``).
 
     python scripts/ddp_check.py --data DATASET --work DIR --ranks 2 [--device cuda] [--steps 200]
                                 [--out report.md] [-- extra `sgmodel train` flags]

@@ -13,7 +13,7 @@ No weights are downloaded and nothing of theirs is copied: the files are made by
 
     python scripts/foundation_releases.py --fs-repo FS --ffs-repo FFS --out OUT
 
-``save_fs_release`` / ``save_ffs_release`` also make the tests' stand-in releases (tests/foundation_standins.py).
+``save_fs_release`` / ``save_ffs_release`` also make the tests' stand-in releases (tests/support/foundation_standins.py).
 """
 
 from __future__ import annotations

@@ -22,8 +22,8 @@ if [[ $what == parity || $what == all ]]; then
   python3 scripts/gpu_parity.py 2>&1 | tee "$out/parity.txt" || rc=1
 fi
 if [[ $what == tests || $what == all ]]; then
-  python3 -m pytest -q -p no:cacheprovider tests/test_raster_backward.py tests/test_raster_batch.py \
-    tests/test_raster_binning.py tests/test_warp_glue.py tests/test_build.py tests/test_encode.py -k cuda 2>&1 \
+  python3 -m pytest -q -p no:cacheprovider tests/scenesplat_stereo/raster/test_raster_backward.py tests/scenesplat_stereo/raster/test_raster_batch.py \
+    tests/scenesplat_stereo/raster/test_raster_binning.py tests/scenesplat_stereo/raster/test_warp_glue.py tests/scenesplat_stereo/build/test_build.py tests/scenesplat_stereo/shards/test_encode.py -k cuda 2>&1 \
     | tee "$out/tests.txt" | tail -15 || rc=1
 fi
 if [[ $what == profile || $what == all ]]; then

@@ -18,12 +18,11 @@ import argparse
 import torch
 
 from sgmodel.config import EncoderParams
-from sgmodel.data.loader import make_loader
 from sgmodel.data.encoder_cache import open_cache, precision_of
+from sgmodel.data.loader import make_loader, to_device
 from sgmodel.encoders.flags import build_encoder
 from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import encode_pair
-from sgmodel.data.loader import to_device
 
 
 def compare(stats: dict, name: str, got: torch.Tensor, want: torch.Tensor) -> None:

@@ -24,11 +24,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sgmodel.bench.train import synthetic_batch  # noqa: E402
 from sgmodel.config import ModelParams  # noqa: E402
-from sgmodel.model.layers import amp_autocast, compiles  # noqa: E402
-from sgmodel.train.losses import Objective  # noqa: E402
 from sgmodel.metrics.lpips import random_lpips  # noqa: E402
+from sgmodel.model.layers import amp_autocast, compiles  # noqa: E402
 from sgmodel.model.network import create_model, encode_pair  # noqa: E402
 from sgmodel.train.loop import create_optimizer, train_step  # noqa: E402
+from sgmodel.train.losses import Objective  # noqa: E402
 
 #: kernel kinds, first match of a name fragment wins.
 KINDS = (("convolution (cuDNN)", ("xmma", "cutlass", "implicit_gemm", "conv2d_c1_k1", "sm90_", "sm80_")),

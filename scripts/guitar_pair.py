@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.scene.cameras import orbit_poses, right_camera
-from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import atomic_write_bytes
-from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.scene.cameras import orbit_poses, right_camera
+from scenesplat_stereo.scene.gaussians import load_ply
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
 
 W, H, FX = 320, 256, 280.0  # pixels
 BASELINE = 0.3  # guitar units: about 20 px of disparity at 4 units

@@ -13,14 +13,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.shards.encode import decode_image, encode_png
 from scenesplat_stereo.common.files import atomic_write_bytes
-from sgmodel.pairs.calib import read_calib
-from sgmodel.predict.export import novel_view_cameras
-from sgmodel.metrics.sheets import depth_png
+from scenesplat_stereo.shards.encode import decode_image, encode_png
+from sgmodel.metrics.sheets import depth_png, labelled_row, stack_rows, tile
 from sgmodel.model.network import load_predictor
 from sgmodel.model.render import render_views
-from sgmodel.metrics.sheets import labelled_row, stack_rows, tile
+from sgmodel.pairs.calib import read_calib
+from sgmodel.predict.export import novel_view_cameras
 
 
 def _read(path: str, device: str) -> torch.Tensor:

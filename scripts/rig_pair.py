@@ -3,7 +3,7 @@
 ``python scripts/rig_pair.py OUT [radtan|equidistant]`` writes OUT/left.png, OUT/right.png (what the two raw
 cameras see, lens distortion included), OUT/opencv.yml (one OpenCV FileStorage file as ``stereoCalibrate``'s
 results are written), OUT/intrinsics.yml + OUT/extrinsics.yml (the two files of OpenCV's stereo_calib
-sample) and OUT/camchain.yaml (Kalibr). tests/test_rig.py and scripts/calibration_figure.py use it.
+sample) and OUT/camchain.yaml (Kalibr). tests/sgmodel/pairs/test_rig.py and scripts/calibration_figure.py use it.
 
 The rig: a rectified pair (left camera on ``room_trajectory``, right camera ``BASELINE`` m to its right)
 "un-rectified": each raw camera is turned by its own small rotation about its centre (Q0, Q1: a point p in
@@ -27,9 +27,9 @@ import torch
 import yaml
 
 from scenesplat_stereo.build.demo import make_room, room_trajectory
-from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
 
 W, H = 320, 240  # pixels, both raw cameras
 BASELINE = 0.1  # metres

@@ -5,7 +5,7 @@ sheet of its frames (the README's video demo, docs/images/video_demo.png).
 
 ``render_clip`` renders a rectified stereo camera (baseline 0.1 m) moving slowly through
 ``scenesplat_stereo.build.demo``'s room 0 with the project's rasteriser and writes ``left.mkv``, ``right.mkv``
-and ``sbs.mkv`` (FFV1, lossless, so a decoded frame is the rendered one) and ``K.txt``; tests/test_video.py
+and ``sbs.mkv`` (FFV1, lossless, so a decoded frame is the rendered one) and ``K.txt``; tests/sgmodel/predict/test_video.py
 uses it too. The demo then predicts naive-GS scenes on SGBM depth (no checkpoint needed) and renders a slow
 orbit; the sheet shows, for four frames, the left input above the novel view.
 """
@@ -19,11 +19,11 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.scene.cameras import right_camera
 from scenesplat_stereo.build.demo import make_room, room_trajectory
-from scenesplat_stereo.shards.encode import encode_png, to_uint8
-from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.common.text import parse_size
+from scenesplat_stereo.raster import rasterization
+from scenesplat_stereo.scene.cameras import right_camera
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from sgmodel.cli import main as sgmodel
 
 BASELINE = 0.1  # metres

@@ -38,21 +38,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.build.settings import BuildSettings
-from scenesplat_stereo.scene.cameras import intrinsics_matrix
 from scenesplat_stereo.build.demo import make_room, room_trajectory
 from scenesplat_stereo.build.effects import CameraEffects
-from scenesplat_stereo.shards.encode import JPEG_ENCODERS, decode_image, encode_jpeg
-from scenesplat_stereo.shards.encode_pool import ENCODER_MODES, SampleEncoder, default_encoder_workers
+from scenesplat_stereo.build.protocol import SamplePlan, plan_scene
+from scenesplat_stereo.build.render_pairs import start_render, stream_samples
+from scenesplat_stereo.build.settings import BuildSettings
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.common.measure import psnr_from_mse, synced_clock
-from scenesplat_stereo.shards.nvjpeg import NvJpegEncoder
-from scenesplat_stereo.build.protocol import SamplePlan, plan_scene
-from scenesplat_stereo.shards.sample import JPEG_QUALITY
 from scenesplat_stereo.raster import rasterization
-from scenesplat_stereo.build.render_pairs import start_render, stream_samples
-from scenesplat_stereo.shards.webdataset import ShardWriter
+from scenesplat_stereo.scene.cameras import intrinsics_matrix
 from scenesplat_stereo.scene.teachers import Teacher
+from scenesplat_stereo.shards.encode import JPEG_ENCODERS, decode_image, encode_jpeg
+from scenesplat_stereo.shards.encode_pool import ENCODER_MODES, SampleEncoder, default_encoder_workers
+from scenesplat_stereo.shards.nvjpeg import NvJpegEncoder
+from scenesplat_stereo.shards.sample import JPEG_QUALITY
+from scenesplat_stereo.shards.webdataset import ShardWriter
 
 # Paper appendix B ("Scene splits and counts", "Rendering and valid masks"): training pairs per subset at
 # the subsets' native resolutions.

@@ -32,13 +32,13 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from scenesplat_stereo.shards import encode
+from scenesplat_stereo.build.protocol import NUM_TARGETS
 from scenesplat_stereo.common.commandline import Parser
+from scenesplat_stereo.common.text import parse_size
+from scenesplat_stereo.shards import encode
 from scenesplat_stereo.shards.encode import SampleImages
 from scenesplat_stereo.shards.encode_pool import SampleEncoder
-from scenesplat_stereo.build.protocol import NUM_TARGETS
 from scenesplat_stereo.shards.webdataset import ShardWriter
-from scenesplat_stereo.common.text import parse_size
 
 BENCH_MODES = ("threads", "processes", "threads-oiio1")
 

@@ -27,12 +27,12 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.bench.render_batch import batch_table
-from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
 from scenesplat_stereo.common.commandline import Parser
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.common.measure import median_seconds, psnr_from_mse
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.raster.reference import as_renderer_sees, reference_rasterization
+from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
 
 # The real guitar teacher beside a checkout (../shared/data), or where SCENESPLAT_GUITAR_PLY points.
 GUITAR = Path(os.environ.get("SCENESPLAT_GUITAR_PLY", Path(__file__).resolve().parents[2].parent

@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from scenesplat_stereo.scene.cameras import OPENGL_TO_OPENCV, intrinsics_matrix, look_at
+from scenesplat_stereo.build.protocol import TIERS
 from scenesplat_stereo.common.files import atomic_write_json
 from scenesplat_stereo.common.text import argtype, parse_size, whole_number
+from scenesplat_stereo.scene.cameras import OPENGL_TO_OPENCV, intrinsics_matrix, look_at
 from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene.ply import SH_C0
-from scenesplat_stereo.build.protocol import TIERS
 
 ROOM_SIZE = (4.0, 5.0, 2.6)  # metres: x width, y depth, z height
 DEFAULT_NUM_GAUSSIANS = 36_000  # per room: a 256x192 build of 4 rooms stays a few minutes on 2 CPU cores

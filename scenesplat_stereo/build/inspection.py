@@ -25,12 +25,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from scenesplat_stereo.shards import webdataset as shards
-from scenesplat_stereo.scene.cameras import fibonacci_directions, right_camera, rigid_error, translation
-from scenesplat_stereo.shards.encode import decode_image, encode_png
 from scenesplat_stereo.build.protocol import NUM_TARGETS, tier_for_psnr
-from scenesplat_stereo.shards.sample import SampleMeta, SampleMetaError, sample_key
 from scenesplat_stereo.common.text import whole_number
+from scenesplat_stereo.scene.cameras import fibonacci_directions, right_camera, rigid_error, translation
+from scenesplat_stereo.shards import webdataset as shards
+from scenesplat_stereo.shards.encode import decode_image, encode_png
+from scenesplat_stereo.shards.sample import SampleMeta, SampleMetaError, sample_key
 
 POSE_TOLERANCE = 1e-6  # world units / unitless, for poses stored as float64 JSON
 THUMB_WIDTH = 128  # pixels, contact-sheet thumbnails

@@ -19,12 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from scenesplat_stereo.build.protocol import MASK_ALPHA_THRESHOLD, SamplePlan
+from scenesplat_stereo.raster import rasterization, tile_size_for
 from scenesplat_stereo.scene.cameras import viewmats_from_c2w
 from scenesplat_stereo.shards.encode import SampleImages, jpeg_members
 from scenesplat_stereo.shards.nvjpeg import NvJpegEncoder
-from scenesplat_stereo.build.protocol import MASK_ALPHA_THRESHOLD, SamplePlan
 from scenesplat_stereo.shards.sample import SampleMeta
-from scenesplat_stereo.raster import rasterization, tile_size_for
 
 _copy_streams: dict[torch.device, torch.cuda.Stream] = {}
 

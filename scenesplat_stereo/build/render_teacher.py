@@ -20,13 +20,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.scene.cameras import scale_intrinsics, viewmats_from_c2w
-from scenesplat_stereo.shards.encode import encode_png
 from scenesplat_stereo.common.files import atomic_write_bytes
-from scenesplat_stereo.scene.gaussians import load_ply
-from scenesplat_stereo.raster import check_device, rasterization, tile_size_for
-from scenesplat_stereo.scene.teachers import OrbitSpec, Teacher, discover_teachers, resolve_trajectory
 from scenesplat_stereo.common.text import argtype, parse_size, whole_number
+from scenesplat_stereo.raster import check_device, rasterization, tile_size_for
+from scenesplat_stereo.scene.cameras import scale_intrinsics, viewmats_from_c2w
+from scenesplat_stereo.scene.gaussians import load_ply
+from scenesplat_stereo.scene.teachers import OrbitSpec, Teacher, discover_teachers, resolve_trajectory
+from scenesplat_stereo.shards.encode import encode_png
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

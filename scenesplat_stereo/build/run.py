@@ -28,26 +28,20 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from scenesplat_stereo.shards import webdataset as shards
-from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
+from scenesplat_stereo.build.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_PER_SCENE, VAL_SCENES, SamplePlan,
+                                              filter_teachers, plan_scene, split_scenes)
+from scenesplat_stereo.build.render_pairs import start_render, stream_samples
 from scenesplat_stereo.build.settings import SPLITS_OF_MODE, BuildSettings, add_arguments, settings_from_args
 from scenesplat_stereo.common.commandline import NotAvailable
-from scenesplat_stereo.shards.encode_pool import SampleEncoder
 from scenesplat_stereo.common.files import read_json
-from scenesplat_stereo.scene.gaussians import load_ply
-from scenesplat_stereo.shards.nvjpeg import NvJpegEncoder
-from scenesplat_stereo.build.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_PER_SCENE, VAL_SCENES, SamplePlan,
-                                        filter_teachers, plan_scene, split_scenes)
-from scenesplat_stereo.build.render_pairs import start_render, stream_samples
-from scenesplat_stereo.scene.teachers import (
-    Discovery,
-    Rejection,
-    Teacher,
-    discover_teachers,
-    resolve_trajectory,
-    summary_table,
-)
 from scenesplat_stereo.common.text import format_table
+from scenesplat_stereo.scene.gaussians import load_ply
+from scenesplat_stereo.scene.teachers import (Discovery, Rejection, Teacher, discover_teachers, resolve_trajectory,
+                                              summary_table)
+from scenesplat_stereo.shards import webdataset as shards
+from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
+from scenesplat_stereo.shards.encode_pool import SampleEncoder
+from scenesplat_stereo.shards.nvjpeg import NvJpegEncoder
 
 __all__ = ["BuildSettings", "BuildReport", "add_arguments", "build", "run", "settings_from_args", "summary"]
 

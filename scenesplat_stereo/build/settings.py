@@ -12,16 +12,16 @@ from pathlib import Path
 
 import torch
 
-from scenesplat_stereo.shards import nvjpeg
 from scenesplat_stereo.build.effects import CameraEffects
-from scenesplat_stereo.shards.encode import JPEG_ENCODERS
-from scenesplat_stereo.shards.encode_pool import DEFAULT_ENCODER_MODE, ENCODER_MODES, default_encoder_workers
 from scenesplat_stereo.build.protocol import MIN_TEACHER_PSNR, NUM_TARGETS, TIERS
-from scenesplat_stereo.shards.sample import JPEG_QUALITY
+from scenesplat_stereo.common.text import (argtype, parse_counts, parse_number_or_none, parse_size, positive_number,
+                                           whole_number)
 from scenesplat_stereo.raster import check_device
 from scenesplat_stereo.scene.teachers import OrbitSpec
-from scenesplat_stereo.common.text import (argtype, parse_counts, parse_number_or_none, parse_size, positive_number,
-                                   whole_number)
+from scenesplat_stereo.shards import nvjpeg
+from scenesplat_stereo.shards.encode import JPEG_ENCODERS
+from scenesplat_stereo.shards.encode_pool import DEFAULT_ENCODER_MODE, ENCODER_MODES, default_encoder_workers
+from scenesplat_stereo.shards.sample import JPEG_QUALITY
 
 SPLITS_OF_MODE = {"trainval": ("train", "val"), "test": ("test",)}
 #: ``--preset NAME``: settings a preset sets (exactly these; a flag given on the command line wins).

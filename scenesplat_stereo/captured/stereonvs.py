@@ -50,16 +50,16 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
-from scenesplat_stereo.scene.cameras import right_camera, rotation_angle_deg
 from scenesplat_stereo.captured.colmap import image_size
-from scenesplat_stereo.shards.encode import SampleImages, decode_image, encode_jpeg, encode_sample
-from scenesplat_stereo.common.files import atomic_write_json, check_writable
 from scenesplat_stereo.captured.llff import read_poses_bounds
+from scenesplat_stereo.common.files import atomic_write_json, check_writable
+from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
+from scenesplat_stereo.scene.cameras import right_camera, rotation_angle_deg
+from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
+from scenesplat_stereo.shards.encode import SampleImages, decode_image, encode_jpeg, encode_sample
 from scenesplat_stereo.shards.sample import SampleMeta, sample_key
 from scenesplat_stereo.shards.webdataset import (INDEX_NAME, ShardWriter, collect_stats, remove_unplanned, write_index,
-                                      write_stats)
-from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
+                                                 write_stats)
 
 SUBSET = "StereoNVS"
 SPLIT = "test"

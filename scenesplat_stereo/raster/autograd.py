@@ -26,6 +26,7 @@ from scenesplat_stereo.raster.projection_backward import project_gaussians_backw
 from scenesplat_stereo.raster.sh import eval_sh_colors
 from scenesplat_stereo.raster.sh_backward import eval_sh_colors_backward
 
+
 class ProjectGaussians(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane,

@@ -11,7 +11,7 @@ by index selection *before* any division, so they get exactly zero (never NaN) g
 
 It lives in the package (as gsplat ships ``_torch_impl.py``) so that ``bench render`` and
 scripts/gpu_parity.py find it in an installed copy too. It must never import ``scenesplat_stereo.raster``
-(tests/test_raster_forward.py checks this in a fresh interpreter).
+(tests/scenesplat_stereo/raster/test_raster_forward.py checks this in a fresh interpreter).
 
 Conventions (SPEC section 1): OpenCV cameras (x right, y down, z forward); ``viewmats`` are world-to-camera;
 intrinsics in pixels; pixel (u, v) covers [u, u+1) x [v, v+1) and its centre is (u+0.5, v+0.5);

@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from scenesplat_stereo.scene.compressed_ply import decode_compressed
 from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.scene.compressed_ply import decode_compressed
 from scenesplat_stereo.scene.ply import PlyError, PlyHeader, PlyRepairWarning, columns, read_elements, read_ply_header
 
 #: Opacities are clipped to [eps, 1 - eps] before the logit in ``save_ply`` so that 0 and 1 stay finite.

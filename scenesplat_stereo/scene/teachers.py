@@ -46,10 +46,10 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from scenesplat_stereo.scene.cameras import (intrinsics_matrix, opengl_to_opencv, orbit_poses, orthonormalize,
-                                       rigid_error, scale_intrinsics)
-from scenesplat_stereo.scene.gaussians import PlyError, read_ply_header
 from scenesplat_stereo.common.text import format_table, key_safe_name, parse_size
+from scenesplat_stereo.scene.cameras import (intrinsics_matrix, opengl_to_opencv, orbit_poses, orthonormalize,
+                                             rigid_error, scale_intrinsics)
+from scenesplat_stereo.scene.gaussians import PlyError, read_ply_header
 
 Layout = Literal["scenesplat", "inria", "plain"]
 

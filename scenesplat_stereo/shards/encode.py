@@ -195,7 +195,7 @@ def encode_depth_exr(depth: np.ndarray) -> bytes:
 
 #: EXIF Orientation (TIFF tag 274) -> how the stored pixels [H, W, C] become the upright image (1 and unknown
 #: values: as stored): 2 mirrored left-right, 3 turned 180 deg, 4 mirrored top-bottom, 5 transposed, 6 turned
-#: 90 deg clockwise, 7 transversed, 8 turned 90 deg anticlockwise (as OpenCV's imread; tests/test_bad_input_model.py).
+#: 90 deg clockwise, 7 transversed, 8 turned 90 deg anticlockwise (as OpenCV's imread; tests/commands/test_bad_input_model.py).
 _UPRIGHT = {
     2: lambda a: a[:, ::-1],
     3: lambda a: a[::-1, ::-1],

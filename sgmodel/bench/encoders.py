@@ -16,16 +16,14 @@ from pathlib import Path
 
 import torch
 
+from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.text import markdown_table
-
 from sgmodel.args import add_device_argument, device_from_flag
-from sgmodel.data.loader import make_loader
+from sgmodel.bench import report
+from sgmodel.data.loader import make_loader, to_device
 from sgmodel.encoders import StereoEncoder
 from sgmodel.encoders.flags import build_encoder, encoder_label, parse_encoder_spec
 from sgmodel.model.geometry import depth_from_disparity
-from sgmodel.data.loader import to_device
-from scenesplat_stereo.common.measure import synced_clock
-from sgmodel.bench import report
 
 
 def disparity_errors(disparity: torch.Tensor, depth: torch.Tensor, fx: torch.Tensor, baseline: torch.Tensor

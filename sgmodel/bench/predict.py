@@ -25,18 +25,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
 from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene.scene_files import FORMATS
-from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
-
-from sgmodel.predict import export
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
+from sgmodel.bench import describe, report, synthetic_pair
 from sgmodel.model.geometry import depth_from_disparity
 from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import Predictor, create_model, load_predictor
 from sgmodel.model.render import SH_DEGREE, render_views
-from scenesplat_stereo.common.measure import synced_clock
-from sgmodel.bench import describe, report, synthetic_pair
+from sgmodel.predict import export
 
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
 

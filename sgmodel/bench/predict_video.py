@@ -23,17 +23,16 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.shards.encode import to_uint8
+from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.text import markdown_table
-
-from sgmodel.pairs.calib import Calibration
-from sgmodel.predict.inference import Reconstructor
+from scenesplat_stereo.shards.encode import to_uint8
+from sgmodel.bench import describe, report, synthetic_pair
 from sgmodel.model.network import Predictor
+from sgmodel.pairs.calib import Calibration
 from sgmodel.pairs.prepare import prepare_pairs
 from sgmodel.pairs.stereo_pair import Pair, to_tensor
+from sgmodel.predict.inference import Reconstructor
 from sgmodel.predict.video import CODECS, StereoSource, Trajectory, VideoSink, stream
-from scenesplat_stereo.common.measure import synced_clock
-from sgmodel.bench import describe, report, synthetic_pair
 
 #: The novel view of the end-to-end run: the left camera moved 5 cm to the right.
 OFFSET = (0.05, 0.0, 0.0)

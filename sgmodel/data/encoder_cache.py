@@ -40,7 +40,6 @@ import torch
 
 from scenesplat_stereo.common.files import FileFormatError, read_json
 from scenesplat_stereo.shards.webdataset import INDEX_NAME, iter_shard
-
 from sgmodel.data.loader import DataError, Shard, read_split
 
 FORMAT = "sgmodel-encoder-cache/1"

@@ -24,14 +24,13 @@ import time
 from pathlib import Path
 
 from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, atomic_write_bytes, check_apart,
-                                     check_writable, read_json)
+                                            check_writable, read_json)
 from scenesplat_stereo.common.text import markdown_table
-
 from sgmodel.args import (add_device_argument, add_model_arguments, add_train_arguments, device_from_flag,
                           params_from_args)
-from sgmodel.evaluation import evaluate
 from sgmodel.config import ConfigurationError, ModelParams, TrainParams
 from sgmodel.encoders.flags import build_encoder
+from sgmodel.evaluation import evaluate
 from sgmodel.train.loop import open_run_cache, read_split_checked, train
 
 

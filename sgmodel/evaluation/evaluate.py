@@ -16,18 +16,16 @@ from tqdm import tqdm
 
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import markdown_table, whole_number
-
-from sgmodel.metrics import image as metrics
 from sgmodel.config import EncoderParams
-from sgmodel.data.loader import eval_batches, read_split
+from sgmodel.data.loader import eval_batches, read_split, to_device
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
-from sgmodel.predict.inference import Reconstructor
+from sgmodel.metrics import image as metrics
 from sgmodel.metrics.lpips import create_lpips
+from sgmodel.metrics.sheets import target_sheet
 from sgmodel.model.network import load_predictor
 from sgmodel.model.render import render_views
-from sgmodel.metrics.sheets import target_sheet
-from sgmodel.data.loader import to_device
+from sgmodel.predict.inference import Reconstructor
 
 METHODS = ("naive-gs", "forward-splat")
 METRICS = ("psnr", "ssim", "lpips")

@@ -24,10 +24,9 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from scenesplat_stereo.shards.benchmark_file import read_benchmark
 from scenesplat_stereo.common.files import atomic_write_bytes, check_apart, check_replaceable, check_writable
 from scenesplat_stereo.common.text import key_safe_name, markdown_table
-
+from scenesplat_stereo.shards.benchmark_file import read_benchmark
 from sgmodel.data.loader import read_split
 from sgmodel.evaluation.evaluate import OWNER, eval_inputs, evaluate, method_of
 

@@ -2,7 +2,7 @@
 bias and the GELU after it, in the decoder).
 
 Imported only on CUDA with Triton present; ``layers.bias_gelu`` runs ``F.gelu(x + bias)`` everywhere else,
-and that path in float64 is the reference the kernels are tested against (tests/test_layers.py).
+and that path in float64 is the reference the kernels are tested against (tests/sgmodel/model/test_layers.py).
 
 A channels-last tensor [B, C, H, W] is the row-major array [M, C] (M = B H W pixels); a program reads a
 tile of pixels x all channels. Forward: y = GELU(x + b) with a = x + b in float32 (PyTorch's separate bias

@@ -2,7 +2,7 @@
 predictor's inputs written onto the canvas in one pass.
 
 Imported only on CUDA with Triton present; elsewhere ``cat_channels`` pads with ``layers.replicate_pad`` and
-concatenates with ``torch.cat``, the reference the kernels are tested against (tests/test_concat_kernels.py).
+concatenates with ``torch.cat``, the reference the kernels are tested against (tests/sgmodel/kernels/test_concat_kernels.py).
 
 Forward: the output [B, Ctot, Hd, Wd] is channels-last. Each program writes every channel of a tile of
 output pixels, chunk by chunk; an output channel is read from the source that owns it at the pixel

@@ -1,7 +1,7 @@
 """Triton kernels of the fused GroupNorm (+ GELU) on channels-last tensors (``sgmodel.model.layers.group_norm_gelu``).
 
 Imported only on CUDA with Triton present; ``layers.group_norm_gelu`` runs PyTorch's own operations
-everywhere else, and that path is the reference the kernels are tested against (tests/test_layers.py).
+everywhere else, and that path is the reference the kernels are tested against (tests/sgmodel/model/test_layers.py).
 
 A channels-last tensor [B, C, H, W] is the row-major array [B, P, C] (P = H W pixels), so a group (G
 contiguous blocks of C / G channels) is a strided [P, C / G] slab of each image. Each kernel program reads

@@ -2,7 +2,7 @@
 maps in float32, float16 or bfloat16, of any strides.
 
 Imported only on CUDA with Triton present; elsewhere ``lpips._TapDistance`` computes the same map with PyTorch
-operations, which is also the float64 reference the kernels are tested against (tests/test_lpips_kernels.py).
+operations, which is also the float64 reference the kernels are tested against (tests/sgmodel/kernels/test_lpips_kernels.py).
 Conventions as ``_TapDistance``'s: features a, b [N, C, h, w], the layer's linear weights w [C] (float32);
 the map d [N, 1, h, w] = sum_c w_c (a_c / n_a - b_c / n_b)^2 with n_f = |f| + 1e-10, |f| the L2 norm over
 channels.

@@ -3,7 +3,7 @@ the training loss's SSIM term) for float32 CUDA images of any strides.
 
 Imported only on CUDA with Triton present; elsewhere ``metrics._InteriorSSIM`` computes the same map with
 PyTorch's depthwise convolutions, which is also the float64 reference the kernels are tested against
-(tests/test_ssim_kernels.py). Conventions as ``_InteriorSSIM``'s: x, y [N, C, H, W]; the interior map
+(tests/sgmodel/kernels/test_ssim_kernels.py). Conventions as ``_InteriorSSIM``'s: x, y [N, C, H, W]; the interior map
 [N, C, h, w] with h = H - 2r, w = W - 2r (r = 5), the window's taps g[0..2r]; interior pixel (i, j) reads
 image pixels (i + t, j + l) with weight g[t] g[l].
 

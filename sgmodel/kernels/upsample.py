@@ -1,7 +1,7 @@
 """Triton kernels of the 2x bilinear upsampling of channels-last tensors (``sgmodel.model.layers.upsample_bilinear``).
 
 Imported only on CUDA with Triton present; elsewhere ``layers.upsample_bilinear`` runs ``F.interpolate``,
-which is also the reference the kernels are tested against (tests/test_layers.py).
+which is also the reference the kernels are tested against (tests/sgmodel/model/test_layers.py).
 
 PyTorch's bilinear resize (``align_corners=False``) from n to 2n along an axis reads, for output o, the
 source position s = max(0.5 (o + 0.5) - 0.5, 0), its pixels i0 = floor(s) and i1 = i0 + (i0 < n - 1), with

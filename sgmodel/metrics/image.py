@@ -30,7 +30,6 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from scenesplat_stereo.common.measure import psnr_from_mse
-
 from sgmodel.kernels import triton_installed
 from sgmodel.metrics.lpips import LPIPS
 

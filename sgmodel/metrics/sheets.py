@@ -13,7 +13,6 @@ import torch
 
 from scenesplat_stereo.shards.encode import encode_png
 
-
 GAP = 2  # pixels between tiles
 LABEL_H = 14  # pixels of the caption band above each row
 

@@ -24,7 +24,6 @@ from typing import Any
 import torch
 
 from scenesplat_stereo.common.files import atomic_write_bytes
-
 from sgmodel.config import ModelParams
 
 CHECKPOINT_FORMAT = "sgmodel-checkpoint-v1"

@@ -36,7 +36,6 @@ On the CPU (no autocast) every block computes exactly what its PyTorch counterpa
 
 from __future__ import annotations
 
-
 import torch
 import torch.nn.functional as F
 from torch import nn

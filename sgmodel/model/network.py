@@ -16,12 +16,12 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from sgmodel.model import canvas
-from sgmodel.model.composer import compose, gaussian_validity
 from sgmodel.config import ModelParams
-from sgmodel.model.decoder import DPTDecoder
 from sgmodel.encoders import StereoEncoder
 from sgmodel.encoders.flags import build_encoder, merge_encoder
+from sgmodel.model import canvas
+from sgmodel.model.composer import compose, gaussian_validity
+from sgmodel.model.decoder import DPTDecoder
 from sgmodel.model.geometry import depth_from_disparity, disparity_validity
 from sgmodel.model.layers import amp_autocast
 from sgmodel.model.predictor import GaussianPredictor

@@ -22,10 +22,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from sgmodel.model.composer import CHANNELS, LAYER_CHANNELS
 from sgmodel.config import ConfigurationError, PredictorParams
-from sgmodel.model.layers import (GroupNorm, ReplicateConv2d, activation_format, cat_channels, channel_multiple, compute_dtype,
-                     group_norm_gelu_parts, replicate_conv3x3)
+from sgmodel.model.composer import CHANNELS, LAYER_CHANNELS
+from sgmodel.model.layers import (GroupNorm, ReplicateConv2d, activation_format, cat_channels, channel_multiple,
+                                  compute_dtype, group_norm_gelu_parts, replicate_conv3x3)
 
 ZERO_INIT = ("scale", "sh")  # exactly zero at initialisation (appendix A)
 

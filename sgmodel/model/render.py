@@ -41,7 +41,7 @@ def render_views(gaussians: dict, viewmats: torch.Tensor, Ks: torch.Tensor, widt
                  backgrounds: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Render each scene of the batch into its T cameras, SH degree 2, in the rasteriser's default "classic"
     mode (SPEC section 7 names no other; in "antialiased" mode a grid of pixel-footprint Gaussians covers a
-    surface to alpha 0.83 only, tests/test_baselines.py).
+    surface to alpha 0.83 only, tests/sgmodel/model/test_baselines.py).
 
     viewmats [B,T,4,4] world(= left camera)-to-target; Ks [B,T,3,3] pixels; backgrounds [B,T,3] or None
     (black). Returns rgb [B,T,3,H,W] (not clipped) and alpha [B,T,1,H,W], differentiable.

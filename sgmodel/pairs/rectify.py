@@ -27,10 +27,9 @@ import cv2
 import numpy as np
 import torch
 
+from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
 from scenesplat_stereo.scene.cameras import rotation_angle_deg
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
-from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
-
 from sgmodel.pairs import rig as rig_mod
 from sgmodel.pairs import stereo_check
 from sgmodel.pairs.calib import Calibration, foundation_stereo_text

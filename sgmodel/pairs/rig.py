@@ -48,7 +48,6 @@ import cv2
 import numpy as np
 
 from scenesplat_stereo.scene.cameras import intrinsics_matrix
-
 from sgmodel.pairs.calib import CalibError
 
 #: Metres per unit of ``--rig-units``.

@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from scenesplat_stereo.scene.cameras import fibonacci_directions
 from scenesplat_stereo.raster.sh import sh_basis
+from scenesplat_stereo.scene.cameras import fibonacci_directions
 
 #: Directions the band matrices are fitted on (more than the 7 unknowns per row of band 3, well spread).
 _FIT_DIRECTIONS = 64

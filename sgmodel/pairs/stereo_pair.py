@@ -19,7 +19,6 @@ import torch
 import torch.nn.functional as F
 
 from scenesplat_stereo.shards.encode import decode_image
-
 from sgmodel.pairs.calib import Calibration
 
 if TYPE_CHECKING:

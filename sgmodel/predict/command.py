@@ -46,25 +46,22 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
-from scenesplat_stereo.scene.scene_files import FORMATS
-
-from sgmodel.predict import export
-from sgmodel.metrics.sheets import depth_png
-from sgmodel.predict import video
-from sgmodel.pairs import rig
-from sgmodel.pairs import stereo_check
-from sgmodel.model import baselines
-from sgmodel.args import add_device_argument, device_from_flag
 from scenesplat_stereo.common.measure import synced_clock
-from sgmodel.pairs.calib import Calibration
+from scenesplat_stereo.scene.scene_files import FORMATS
+from scenesplat_stereo.shards.encode import encode_png, to_uint8
+from sgmodel.args import add_device_argument, device_from_flag
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
+from sgmodel.metrics.sheets import depth_png
+from sgmodel.model import baselines
 from sgmodel.model.geometry import Z_MAX, Z_MIN
-from sgmodel.predict.inference import Reconstructor
+from sgmodel.pairs import rig, stereo_check
+from sgmodel.pairs.calib import Calibration
 from sgmodel.pairs.prepare import prepare_pairs, read_calibration, read_pair, rectify_pair
 from sgmodel.pairs.stereo_pair import SIZE_MULTIPLE, Pair, PredictError, model_size, to_tensor
+from sgmodel.predict import export, video
+from sgmodel.predict.inference import Reconstructor
 from sgmodel.predict.viewers import write_viewer_files
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).

@@ -17,7 +17,6 @@ import torch
 from scenesplat_stereo.scene.cameras import translation
 from scenesplat_stereo.scene.gaussians import GaussianScene, content_sh_degree
 from scenesplat_stereo.scene.scene_files import save_scene
-
 from sgmodel.model.render import check_gaussians
 
 #: Frames per second of the orbit animation.

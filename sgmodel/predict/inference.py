@@ -23,11 +23,10 @@ from dataclasses import dataclass
 import torch
 
 from scenesplat_stereo.scene.gaussians import GaussianScene
-
 from sgmodel.model import baselines
-from sgmodel.predict.export import to_scene
 from sgmodel.model.geometry import depth_from_disparity, disparity_validity
 from sgmodel.model.render import render_views
+from sgmodel.predict.export import to_scene
 
 #: Optional stage clock of ``Reconstructor.__call__``: called with a stage name after each stage.
 Lap = Callable[[str], None]

@@ -11,7 +11,7 @@ Gaussians as a scene file (the left camera frame of that frame).
 Video I/O is OpenCV's (``cv2.VideoCapture`` / ``cv2.VideoWriter``, the FFmpeg its wheel bundles): already a
 dependency, and both calls release the GIL, so decoding and encoding run in threads beside the model. PyAV
 would add a dependency for one thing OpenCV's wheel lacks, an H.264 encoder; the encoders that work in
-opencv-contrib-python-headless here are in ``CODECS`` (checked by tests/test_video.py), and an ``.mp4``
+opencv-contrib-python-headless here are in ``CODECS`` (checked by tests/sgmodel/predict/test_video.py), and an ``.mp4``
 of mp4v plays in browsers and players or converts with ``ffmpeg -i novel_view.mp4 -c:v libx264 out.mp4``.
 """
 
@@ -31,17 +31,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.shards.encode import to_uint8
+from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS
-
-from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.shards.encode import to_uint8
 from sgmodel.pairs.calib import Calibration
+from sgmodel.pairs.prepare import PairTransform
+from sgmodel.pairs.rectify import Rectification
+from sgmodel.pairs.stereo_pair import Pair, PredictError, to_tensor
 from sgmodel.predict.export import offset_camera, orbit_camera, write_scene
 from sgmodel.predict.inference import Reconstructor
-from sgmodel.pairs.prepare import PairTransform
-from sgmodel.pairs.stereo_pair import Pair, PredictError, to_tensor
-from sgmodel.pairs.rectify import Rectification
 
 
 @dataclass(frozen=True)
@@ -53,7 +52,7 @@ class Codec:
     lossless: bool
 
 
-#: ``--codec`` choices (each written and read back by tests/test_video.py).
+#: ``--codec`` choices (each written and read back by tests/sgmodel/predict/test_video.py).
 CODECS = {"mp4v": Codec("mp4v", ".mp4", False), "mjpg": Codec("MJPG", ".avi", False),
           "ffv1": Codec("FFV1", ".mkv", True)}
 #: Frame rate written when the input does not state one.

@@ -33,19 +33,19 @@ from tqdm import tqdm
 from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, atomic_write_json, check_apart,
                                             check_writable)
+from scenesplat_stereo.common.text import format_table, whole_number
 from scenesplat_stereo.shards.webdataset import (PlannedShards, iter_shard, read_done, remove_unplanned, shard_number,
                                                  write_index)
-from scenesplat_stereo.common.text import format_table, whole_number
-
-from sgmodel.data import encoder_cache as cache_format
 from sgmodel.args import add_device_argument, device_from_flag, preset_params
 from sgmodel.config import PRESETS
+from sgmodel.data import encoder_cache as cache_format
 from sgmodel.data.loader import (RUN_SPLITS, DataError, Shard, check_first_sample, init_loader_worker, load_pair,
                                  read_split)
-from sgmodel.train.distributed import World, all_sum, barrier, close_world, init_world
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import encode_pair
+from sgmodel.train.distributed import World, all_sum, barrier, close_world, init_world
+
 
 class PairChunks(Dataset):
     """Item j: up to a batch of consecutive pairs of one shard, ``(shard number, keys, left [n,3,S,S], right)``,

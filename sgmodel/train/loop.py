@@ -14,21 +14,20 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from scenesplat_stereo.common.commandline import Interrupted
-from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, append_line, atomic_write_bytes, check_apart,
-                                     check_writable, read_json, read_json_lines, remove_temp_files)
+from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, append_line, atomic_write_bytes,
+                                            check_apart, check_writable, read_json, read_json_lines, remove_temp_files)
 from scenesplat_stereo.common.text import format_table
-
-from sgmodel.metrics import image as metrics
-from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from sgmodel.config import ModelParams, TrainParams
-from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split, to_device
-from sgmodel.train.distributed import World, all_sum, broadcast_flag, close_world, init_world
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
+from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split, to_device
+from sgmodel.metrics import image as metrics
+from sgmodel.metrics.sheets import validation_sheet
+from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from sgmodel.model.layers import amp_autocast, compiles
-from sgmodel.train.losses import create_objective
 from sgmodel.model.network import StereoGaussians, create_model
 from sgmodel.model.render import render_views
-from sgmodel.metrics.sheets import validation_sheet
+from sgmodel.train.distributed import World, all_sum, broadcast_flag, close_world, init_world
+from sgmodel.train.losses import create_objective
 
 log = logging.getLogger(__name__)
 

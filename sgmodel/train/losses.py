@@ -16,9 +16,9 @@ import os
 import torch
 from torch import Tensor
 
-from sgmodel.model.layers import amp_autocast
-from sgmodel.metrics.lpips import LPIPS, create_lpips, vgg16_missing_message
 from sgmodel.metrics.image import ssim_map
+from sgmodel.metrics.lpips import LPIPS, create_lpips, vgg16_missing_message
+from sgmodel.model.layers import amp_autocast
 
 #: weight of the perceptual term (paper section 4, "Training objective").
 PERCEPTUAL_WEIGHT = 0.05
