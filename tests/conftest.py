@@ -115,11 +115,11 @@ def replicags_dataset(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def raw_rig(tmp_path_factory):
-    """``raw_rig(model)``: a raw stereo rig's pair of a demo room (scripts/rig_pair.py; "radtan" or
+    """``raw_rig(model)``: a raw stereo rig's pair of a demo room (scripts/inputs/rig_pair.py; "radtan" or
     "equidistant" lenses) written once per session: namespace(folder, rig = the ground truth, scene)."""
     import argparse
 
-    from scripts.rig_pair import room, write_rig
+    from scripts.inputs.rig_pair import room, write_rig
 
     cache, scene = {}, []
 

@@ -10,7 +10,7 @@ scales, opacities, colors (SH coefficients or plain colours) and backgrounds. Cu
 by index selection *before* any division, so they get exactly zero (never NaN) gradients.
 
 It lives in the package (as gsplat ships ``_torch_impl.py``) so that ``bench render`` and
-scripts/gpu_parity.py find it in an installed copy too. It must never import ``scenesplat_stereo.raster``
+scripts/checks/gpu_parity.py find it in an installed copy too. It must never import ``scenesplat_stereo.raster``
 (tests/scenesplat_stereo/raster/test_raster_forward.py checks this in a fresh interpreter).
 
 Conventions (SPEC section 1): OpenCV cameras (x right, y down, z forward); ``viewmats`` are world-to-camera;

@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from scripts.foundation_releases import save_ffs_release, save_fs_release
+from scripts.checks.foundation_releases import save_ffs_release, save_fs_release
 
 STANDIN = Path(__file__).parent / "standin_foundation_stereo"
 FS_REPO, FFS_REPO = STANDIN / "FoundationStereo", STANDIN / "Fast-FoundationStereo"

@@ -1,7 +1,7 @@
 """scenesplat_stereo.scene.scene_files (every format by name, read back by its first bytes), and our files checked
 against real clients: PlayCanvas splat-transform (its compressed .ply writer, Niantic's SPZ encoder through
 @adobe/spz, its readers) and the SuperSplat viewer's settings validator. The client tests need node and
-``npm install`` in scripts/viewer (docs/model.md "Scene files"); they skip with the reason otherwise."""
+``npm install`` in scripts/checks/viewer (docs/model.md "Scene files"); they skip with the reason otherwise."""
 
 from __future__ import annotations
 
@@ -20,8 +20,9 @@ from scenesplat_stereo.scene.scene_files import FORMATS, load_scene, save_scene
 from scenesplat_stereo.scene.spz import encode_spz
 from sgmodel.predict.viewers import supersplat_settings
 from tests.support.ply_helpers import random_scene
+from tests.support.paths import REPO
 
-VIEWER = Path(__file__).resolve().parents[1] / "scripts" / "viewer"
+VIEWER = REPO / "scripts" / "checks" / "viewer"
 SPLAT_TRANSFORM = VIEWER / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
 
 

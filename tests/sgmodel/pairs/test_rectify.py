@@ -1,4 +1,4 @@
-"""Rectification of a raw rig (scripts/rig_pair.py: a demo room seen by two rotated cameras with their own
+"""Rectification of a raw rig (scripts/inputs/rig_pair.py: a demo room seen by two rotated cameras with their own
 intrinsics and lens distortion) against the ground truth: the remap tables against an independent float64
 lens model, the images against renders of the rectified cameras, stereo depth against rendered depth, and
 ``sgmodel predict --rig`` / ``sgmodel rectify`` / ``predict_from_rig`` end to end, with the scene in the raw
@@ -17,7 +17,7 @@ import torch
 
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.shards.encode import decode_image, encode_png
-from scripts.rig_pair import BASELINE, H, W, distort, render
+from scripts.inputs.rig_pair import BASELINE, H, W, distort, render
 from sgmodel.config import PRESETS, ModelParams
 from sgmodel.encoders import create_encoder
 from sgmodel.model.geometry import depth_from_disparity

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from scripts.rig_pair import H, W, kalibr_yaml, make_rig, opencv_yaml
+from scripts.inputs.rig_pair import H, W, kalibr_yaml, make_rig, opencv_yaml
 from sgmodel.pairs.rig import FISHEYE, PINHOLE, RigError, read_rig
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
-from scripts.rig_pair import BASELINE, H, W, render
+from scripts.inputs.rig_pair import BASELINE, H, W, render
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.pairs.stereo_check import DY_MEDIAN_MAX, StereoCheckError, matches, measure, run_check
 from tests.support.model_helpers import predict_status as _predict

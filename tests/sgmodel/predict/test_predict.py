@@ -16,7 +16,7 @@ import torch
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.shards.encode import decode_image, encode_png
-from scripts.guitar_pair import H, W, render_pair
+from scripts.inputs.guitar_pair import H, W, render_pair
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.metrics.sheets import depth_png
 from sgmodel.model.baselines import naive_gs
@@ -41,7 +41,7 @@ class OracleEncoder:
 
 @pytest.fixture(scope="module")
 def guitar_pair(guitar_ply, tmp_path_factory):
-    """Left/right PNGs of the guitar and a FoundationStereo K.txt (scripts/guitar_pair.py), K and the left
+    """Left/right PNGs of the guitar and a FoundationStereo K.txt (scripts/inputs/guitar_pair.py), K and the left
     view's alpha."""
     folder = tmp_path_factory.mktemp("guitar_pair")
     K, _, a = render_pair(guitar_ply, folder)

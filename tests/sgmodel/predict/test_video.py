@@ -1,4 +1,4 @@
-"""``sgmodel predict --video`` on a short stereo clip rendered from a demo teacher (scripts/video_demo.py,
+"""``sgmodel predict --video`` on a short stereo clip rendered from a demo teacher (scripts/figures/video_demo.py,
 lossless FFV1): the same Gaussians as per-frame ``predict`` and the same rendered frames; side-by-side and
 left/right inputs agree; the codecs OpenCV writes here; trajectories; bad input (exit 2, nothing written)."""
 
@@ -15,7 +15,7 @@ import torch
 
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
-from scripts.video_demo import read_frames, render_clip
+from scripts.figures.video_demo import read_frames, render_clip
 from sgmodel.model.render import render_views
 from sgmodel.predict import command as predict_mod
 from sgmodel.predict import video
@@ -201,8 +201,8 @@ def test_bad_video_inputs_exit_2_and_write_nothing(bad_inputs, capsys, change, m
 def test_a_raw_rigs_video_is_rectified_frame_by_frame_like_a_pair(raw_rig, tmp_path):
     """--rig on a video: every frame takes the pair transform of a still pair (rectification, then the resize),
     and the frame's scene is in the raw left camera's frame: byte-identical to `predict --rig` on that pair."""
-    from scripts.rig_pair import H as RH
-    from scripts.rig_pair import W as RW
+    from scripts.inputs.rig_pair import H as RH
+    from scripts.inputs.rig_pair import W as RW
 
     r = raw_rig("radtan")
     for side in ("left", "right"):

@@ -1,13 +1,13 @@
 """Several ranks (``torchrun``, DDP over gloo on the CPU, as NCCL does on GPUs): two and four ranks train
 the model one process trains (the global batch of a step is the same samples and targets on any number of
 ranks, and DDP averages the ranks' gradients), only rank 0 writes, and a run stopped on one number of ranks
-resumes on another from ``last.pt``. The helpers are those of the GPU recipe, ``scripts/ddp_check.py``."""
+resumes on another from ``last.pt``. The helpers are those of the GPU recipe, ``scripts/checks/ddp_check.py``."""
 
 from __future__ import annotations
 
 import pytest
 
-from scripts.ddp_check import last_weights, records, stop_at_first_checkpoint, train, weight_difference
+from scripts.checks.ddp_check import last_weights, records, stop_at_first_checkpoint, train, weight_difference
 
 pytestmark = pytest.mark.slow
 
@@ -61,8 +61,8 @@ def test_a_run_stopped_on_some_ranks_resumes_on_others(single, demo_dataset, tmp
 
 
 def test_the_recipe_reports_throughput_and_resumes(demo_dataset, tmp_path):
-    """``scripts/ddp_check.py`` end to end on two gloo ranks (what `scripts/gpu_ddp.sh` runs on two GPUs)."""
-    from scripts.ddp_check import main
+    """``scripts/checks/ddp_check.py`` end to end on two gloo ranks (what `scripts/gpu/ddp.sh` runs on two GPUs)."""
+    from scripts.checks.ddp_check import main
 
     out = tmp_path / "report.md"
     assert main(["--data", str(demo_dataset), "--work", str(tmp_path / "w"), "--ranks", "2", "--device", "cpu",

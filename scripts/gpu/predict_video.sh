@@ -5,14 +5,14 @@
 # batches of 1, 4 and 8, bf16 autocast and float32; last, `sgmodel predict --video` on a rendered demo clip.
 #
 # Here, in /work/main (git-ignored folders; the code of the branch, the PSMNet weights):
-#   rsync -a --delete --exclude .git --exclude .venv --exclude __pycache__ --exclude scripts/viewer/node_modules \
+#   rsync -a --delete --exclude .git --exclude .venv --exclude __pycache__ --exclude scripts/checks/viewer/node_modules \
 #         /work/wt21/ .dev21/
 #   mkdir -p .dev21w && cp ~/.cache/sgmodel/psmnet_kitti2015.tar .dev21w/
 # Device call 1 (carry .gpukit/a):  bash .gpukit/a/stash.sh
 # Device call 2 (carry .dev21w):    mkdir -p /root/sgcache && cp .dev21w/* /root/sgcache/
 # Device call 3 (carry .gpukit/b, .whl, .dev21), each call within 30 s of the one before (the machine stays warm):
 #   source .gpukit/b/install.sh && python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site \
-#     .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD/.dev21 && cd .dev21 && bash scripts/gpu_predict_video.sh
+#     .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD/.dev21 && cd .dev21 && bash scripts/gpu/predict_video.sh
 # Results: $OUT/predict_video.tgz (the markdown tables and log.txt), about 4 minutes on an H100.
 # DEVICE=cpu runs the same steps tiny on a CPU (a dry run: cpu-small preset, sgbm encoder, 96x64).
 set -uo pipefail
@@ -44,7 +44,7 @@ main() {
   run python3 -m sgmodel.cli bench predict --video "${MODEL[@]}" --device $dev --size $VIDEO --frames $FRAMES \
     --batch-size 1 --warmup $WARMUP --repeats $REPEATS --no-amp --out $out/bench_video_b1_fp32.md
   # 3. the command itself on a rendered stereo clip (naive-GS: no checkpoint here), with one scene per frame
-  run python3 -c "from pathlib import Path; from scripts.video_demo import render_clip; \
+  run python3 -c "from pathlib import Path; from scripts.figures.video_demo import render_clip; \
 render_clip(Path('$out/clip'), $CLIP_FRAMES, *map(int, '$CLIP'.split('x')))"
   run python3 -m sgmodel.cli predict --video $out/clip/sbs.mkv --calib $out/clip/K.txt --method naive-gs \
     --encoder $ENCODER --resolution ${CLIP#*x} --frames --batch-size 4 --device $dev --no-progress --out $out/predict

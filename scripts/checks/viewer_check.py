@@ -3,15 +3,15 @@ screenshot; compare it with the left image (PSNR over the pixels the scene cover
 
 * ``--viewer supersplat`` (default): the SuperSplat viewer with the scene (``scene.compressed.ply`` or
   ``scene.ply``) and ``settings.json``, opened with ``?noui&noanim&webgl``;
-* ``--viewer spark``: Spark (three.js; ``scripts/viewer/spark.html``) with the scene (``scene.spz``,
+* ``--viewer spark``: Spark (three.js; ``scripts/checks/viewer/spark.html``) with the scene (``scene.spz``,
   ``scene.ply`` or ``scene.compressed.ply``) seen from the camera of ``cameras.json``.
 
 Needs npm packages and Debian's Chromium (not part of the Python package):
 
     apt-get install -y chromium
-    (cd scripts/viewer && npm install)   # supersplat-viewer, spark, three, playwright-core, splat-transform
+    (cd scripts/checks/viewer && npm install)   # supersplat-viewer, spark, three, playwright-core, splat-transform
 
-    python scripts/viewer_check.py OUT --left LEFT.png --screenshot docs/images/supersplat.png
+    python scripts/checks/viewer_check.py OUT --left LEFT.png --screenshot docs/images/supersplat.png
 
 The page's files, the scene and its viewer file are put in a temporary folder, served on 127.0.0.1 and
 opened in a window of the left image's aspect (``--scale`` times its size). Prints the PSNR; exits 1 when

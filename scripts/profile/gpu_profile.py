@@ -1,5 +1,5 @@
 """Where the rasteriser's forward time goes on the GPU: each stage timed alone (median of 20 runs,
-synchronised), for the headline workloads of ``bench render``. Used by scripts/gpu_bench.sh (profile)."""
+synchronised), for the headline workloads of ``bench render``. Used by scripts/gpu/bench.sh (profile)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The training step's speed on the lent GPU (issue 22; docs/benchmarks.md "The training step"), from the
-# repository root there. Here, once (git-ignored folders; see scripts/gpu_model.sh for the same kit):
+# repository root there. Here, once (git-ignored folders; see scripts/gpu/model.sh for the same kit):
 #   bash ../shared/tools/warp-gpu-kit .gpukit
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 \
 #     -d .whl OpenImageIO
@@ -9,16 +9,16 @@
 # Device call 1 (carry .gpukit/a):                 bash .gpukit/a/stash.sh
 # Device call 2 (carry .devdata):                  mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
 # Device call 3 (carry .gpukit/b, .whl; one call carries at most 64 MiB, each within 30 s of the one before):
-#   SGMODEL_CACHE=/root/sgcache bash scripts/gpu_train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
+#   SGMODEL_CACHE=/root/sgcache bash scripts/gpu/train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
 #   tests:   the CUDA tests of the layers, concatenation, SSIM term and composer (Triton, compiled), LPIPS (its
 #            tap-distance kernels), soft-argmin, rasteriser
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
 #            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
-#   profile: scripts/gpu_train_profile.py with each term
+#   profile: scripts/profile/gpu_train_profile.py with each term
 #   big:     512x512 (padding 32): `bench train` at batch 32, then smaller batches until one fits
 #   curve:   a small dataset (demo rooms + the guitar), then short training runs: SEEDS of this code and, with
 #            BASE, of the code before; the validation PSNR of every run side by side ($OUT/curves.md)
-#   cache:   the encoder cache: `sgmodel encode` of the curve's dataset, scripts/gpu_cache_check.py (cuDNN's
+#   cache:   the encoder cache: `sgmodel encode` of the curve's dataset, scripts/checks/gpu_cache_check.py (cuDNN's
 #            search off, then on in two processes), then
 #            `bench train --data` with the encoder run and with --encoder-cache ($OUT/cache_bench.md)
 #   cachestep: the step from the cache (real batches, both loss terms); with BASE the code before too,
@@ -107,8 +107,8 @@ torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.pth')"
       && { echo "## again"; cat /tmp/bench_new.md; } >> "$OUT/bench.md"
   fi ;;
 profile)
-  run python3 scripts/gpu_train_profile.py --out /tmp/profile.md && cat /tmp/profile.md >> "$OUT/profile.md"
-  run python3 scripts/gpu_train_profile.py --lpips-random-vgg --top 25 --out /tmp/profile.md \
+  run python3 scripts/profile/gpu_train_profile.py --out /tmp/profile.md && cat /tmp/profile.md >> "$OUT/profile.md"
+  run python3 scripts/profile/gpu_train_profile.py --lpips-random-vgg --top 25 --out /tmp/profile.md \
     && cat /tmp/profile.md >> "$OUT/profile.md" ;;
 big)
   for b in 32 24 16 12; do
@@ -139,10 +139,10 @@ composer)  # training runs with the composer compiled (the default on CUDA) and 
 cache)  # the encoder cache: `sgmodel encode` of the small dataset, its outputs against the encoder run live,
         # then the step on real batches with the encoder run and read from the cache ($OUT/cache_bench.md)
   encoder_cache
-  run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --no-search \
+  run python3 scripts/checks/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --no-search \
     | tee "$OUT/cache_check_no_search.md"
-  run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --save-live /tmp/live.pt
-  run python3 scripts/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --against-live /tmp/live.pt \
+  run python3 scripts/checks/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --save-live /tmp/live.pt
+  run python3 scripts/checks/gpu_cache_check.py --data $data/dataset --cache /tmp/enc-cache --against-live /tmp/live.pt \
     | tee "$OUT/cache_check.md"
   for mode in live cache; do
     flags=(); [[ $mode == cache ]] && flags=(--encoder-cache /tmp/enc-cache)

@@ -6,7 +6,7 @@
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 -d .whl OpenImageIO
 #   mkdir -p .devdata && cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
 # Device call 1 (carry .gpukit/a):          bash .gpukit/a/stash.sh
-# Device call 2 (carry .gpukit/b, .whl and .devdata with guitar.ply): bash scripts/gpu_bench.sh [parity|tests|profile|render|backward|vs|build|all]
+# Device call 2 (carry .gpukit/b, .whl and .devdata with guitar.ply): bash scripts/gpu/bench.sh [parity|tests|profile|render|backward|vs|build|all]
 # (all = parity, tests, profile, backward (which includes the forward tables), vs (interleaved against gsplat,
 # and host time against GPU time) and build)
 set -uo pipefail
@@ -19,7 +19,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 python3 -c "import gsplat, torch; print('gsplat', gsplat.__version__, 'torch', torch.__version__)"
 rc=0
 if [[ $what == parity || $what == all ]]; then
-  python3 scripts/gpu_parity.py 2>&1 | tee "$out/parity.txt" || rc=1
+  python3 scripts/checks/gpu_parity.py 2>&1 | tee "$out/parity.txt" || rc=1
 fi
 if [[ $what == tests || $what == all ]]; then
   python3 -m pytest -q -p no:cacheprovider tests/scenesplat_stereo/raster/test_raster_backward.py tests/scenesplat_stereo/raster/test_raster_batch.py \
@@ -27,7 +27,7 @@ if [[ $what == tests || $what == all ]]; then
     | tee "$out/tests.txt" | tail -15 || rc=1
 fi
 if [[ $what == profile || $what == all ]]; then
-  python3 scripts/gpu_profile.py 2>&1 | tee "$out/profile.txt" || rc=1
+  python3 scripts/profile/gpu_profile.py 2>&1 | tee "$out/profile.txt" || rc=1
 fi
 if [[ $what == render ]]; then
   python3 -m scenesplat_stereo.bench.render --device cuda --out "$out/bench_render.md" || rc=1
@@ -36,8 +36,8 @@ if [[ $what == backward || $what == all ]]; then  # the forward tables, then for
   python3 -m scenesplat_stereo.bench.render --device cuda --backward --out "$out/bench_render_backward.md" || rc=1
 fi
 if [[ $what == vs || $what == all ]]; then
-  python3 scripts/gpu_vs_gsplat.py --repeats 25 --out "$out/vs_gsplat.md" || rc=1
-  python3 scripts/gpu_host_time.py --out "$out/host_time.md" || rc=1
+  python3 scripts/profile/gpu_vs_gsplat.py --repeats 25 --out "$out/vs_gsplat.md" || rc=1
+  python3 scripts/profile/gpu_host_time.py --out "$out/host_time.md" || rc=1
 fi
 if [[ $what == build || $what == all ]]; then
   # host encoding alone (threads against processes, per-image cost), then the whole build, rows repeated

@@ -1,7 +1,7 @@
 // A screenshot of a splat viewer page in headless Chromium (software WebGL), once the scene has rendered:
 // the SuperSplat viewer (window.captureFrame appears on its first frame) or spark.html (window.framesRendered).
-// Used by scripts/viewer_check.py; see docs/model.md "Opening a scene in a viewer".
-//   node scripts/viewer/screenshot.mjs URL OUT.png WIDTH HEIGHT [CHROMIUM]
+// Used by scripts/checks/viewer_check.py; see docs/model.md "Opening a scene in a viewer".
+//   node scripts/checks/viewer/screenshot.mjs URL OUT.png WIDTH HEIGHT [CHROMIUM]
 import { chromium } from 'playwright-core';
 
 const [url, out, width, height, executablePath = '/usr/bin/chromium'] = process.argv.slice(2);

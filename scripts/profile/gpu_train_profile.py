@@ -3,10 +3,10 @@ paper's size (synthetic batches, as ``sgmodel bench train``; the composer and th
 compiled, as ``sgmodel train`` runs them on CUDA). Prints markdown: the top CUDA kernels per step, their
 time by kind, and the GPU's idle gaps (first kernel to last) with the host operation that was running when
 each of the largest began; then the PyTorch operations with the most GPU time of their own, by input shape
-(which elementwise kernel, copy or reduction comes from where). Used by scripts/gpu_train_step.sh
+(which elementwise kernel, copy or reduction comes from where). Used by scripts/gpu/train_step.sh
 (profile). ``--cached-encoder``: the encoder's outputs given with the batch, as ``--encoder-cache`` gives them.
 
-    python scripts/gpu_train_profile.py [--steps 3] [--lpips-random-vgg] [--cached-encoder] [--top 40] [--out FILE]
+    python scripts/profile/gpu_train_profile.py [--steps 3] [--lpips-random-vgg] [--cached-encoder] [--top 40] [--out FILE]
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from sgmodel.bench.train import synthetic_batch  # noqa: E402
 from sgmodel.config import ModelParams  # noqa: E402

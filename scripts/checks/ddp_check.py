@@ -1,7 +1,7 @@
-"""Several GPUs, measured and checked in one go (the recipe behind ``scripts/gpu_ddp.sh``; also run on the CPU
+"""Several GPUs, measured and checked in one go (the recipe behind ``scripts/gpu/ddp.sh``; also run on the CPU
 with gloo by ``tests/sgmodel/train/test_distributed.py``).
 
-    python scripts/ddp_check.py --data DATASET --work DIR --ranks 2 [--device cuda] [--steps 200]
+    python scripts/checks/ddp_check.py --data DATASET --work DIR --ranks 2 [--device cuda] [--steps 200]
                                 [--out report.md] [-- extra `sgmodel train` flags]
 
 Runs, each with the same flags and seed (``--val-every`` a quarter of ``--steps``):
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def command(ranks: int, data: Path, run: Path, flags: list[str]) -> list[str]:

@@ -1,8 +1,8 @@
 """docs/images/rectification.png and the numbers of docs/calibration.md.
 
-    python scripts/calibration_figure.py [OUT.png]
+    python scripts/figures/calibration_figure.py [OUT.png]
 
-On the raw rig pair of scripts/rig_pair.py (radtan lenses): top, the raw images with SIFT matches of the left
+On the raw rig pair of scripts/inputs/rig_pair.py (radtan lenses): top, the raw images with SIFT matches of the left
 image and, in the right image, each one's epipolar curve (its ray from 0.3 m to 30 m, through the rig's
 calibration and lens model: curves, not lines, because of the distortion); bottom, the pair after
 ``sgmodel.pairs.rectify``: the same matches on one image row (green lines). Then it prints the stereo check's
@@ -22,7 +22,7 @@ import numpy as np
 
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.shards.encode import decode_image, encode_png, to_uint8
-from scripts.rig_pair import BASELINE, H, W, render, write_rig
+from scripts.inputs.rig_pair import BASELINE, H, W, render, write_rig
 from sgmodel.pairs.rectify import Rectification
 from sgmodel.pairs.rig import FISHEYE, StereoRig, read_rig
 from sgmodel.pairs.stereo_check import matches, measure
@@ -156,9 +156,9 @@ def timing_table(scene, truth, rig: StereoRig, scale: int = 6) -> None:
 
 
 def main() -> None:
-    default = Path(__file__).resolve().parents[1] / "docs" / "images" / "rectification.png"
+    default = Path(__file__).resolve().parents[2] / "docs" / "images" / "rectification.png"
     out_png = Path(sys.argv[1]) if len(sys.argv) > 1 else default
-    from scripts.rig_pair import room
+    from scripts.inputs.rig_pair import room
 
     scene = room()
     with tempfile.TemporaryDirectory() as tmp:

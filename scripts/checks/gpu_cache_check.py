@@ -7,7 +7,7 @@ process; ``--no-search`` runs the live encoder with cuDNN's default choice, as `
 Prints a markdown table: per output, the largest and mean absolute difference, the largest relative to the
 output's largest magnitude, and the share of elements that differ at all.
 
-    python3 scripts/gpu_cache_check.py --data DATA --cache CACHE [--batches 4] [--batch-size 32] [--no-search]
+    python3 scripts/checks/gpu_cache_check.py --data DATA --cache CACHE [--batches 4] [--batch-size 32] [--no-search]
         [--save-live FILE | --against-live FILE]
 """
 

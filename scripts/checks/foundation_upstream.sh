@@ -2,14 +2,14 @@
 # The foundation-stereo and fast-foundation-stereo encoders end to end with the real upstream code and random
 # weights in their releases' layout, offline (an empty torch hub cache; every Python process below refuses network
 # access through an audit hook and records any attempt), on a tiny demo dataset:
-#   scripts/foundation_releases.py (FS 23-51-11 configuration, FFS serialised, FFS pruned)
-#   scripts/foundation_parity.py (both encoders in one process, both orders, outputs = the upstream modules')
+#   scripts/checks/foundation_releases.py (FS 23-51-11 configuration, FFS serialised, FFS pruned)
+#   scripts/checks/foundation_parity.py (both encoders in one process, both orders, outputs = the upstream modules')
 #   sgmodel predict and eval (baselines and checkpoints), bench encoders (all in one process), ablate (train,
 #   eval of the checkpoint and both baselines) with each encoder, train with the pruned one, encode (the encoder
 #   cache) then train and ablate from it with each encoder, and failures that must be one line with exit status 2. On 2 busy CPU cores this takes hours (FoundationStereo: about a minute
 #   per 32x32 forward); on a larger machine far less.
 #
-# Usage: scripts/check_foundation_upstream.sh FOUNDATIONSTEREO_CHECKOUT FAST_FOUNDATIONSTEREO_CHECKOUT [WORK]
+# Usage: scripts/checks/foundation_upstream.sh FOUNDATIONSTEREO_CHECKOUT FAST_FOUNDATIONSTEREO_CHECKOUT [WORK]
 # Run it in an environment with their requirements and this package installed (docs/encoders.md); PYTHON
 # picks the interpreter (default: python). WORK (default: a new temporary folder) receives everything.
 set -euo pipefail
@@ -18,7 +18,7 @@ FS=$(realpath "$1")
 FFS=$(realpath "$2")
 WORK=$(realpath -m "${3:-$(mktemp -d)}")
 PY=${PYTHON:-python}
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 mkdir -p "$WORK/nonet"
 export TORCH_HOME="$WORK/torch_home" PYTHONWARNINGS=ignore PYTHONPATH="$WORK/nonet${PYTHONPATH:+:$PYTHONPATH}"
 rm -rf "$TORCH_HOME" "$WORK/network_attempts.txt"
@@ -30,7 +30,7 @@ def _no_network(event, args):
     if event == "socket.getaddrinfo" or (event == "socket.connect" and isinstance(args[1], tuple)):
         with open("$WORK/network_attempts.txt", "a") as f:
             f.write(f"{event} {args[1:]} in {' '.join(sys.argv)}\n")
-        raise OSError(f"network access refused by scripts/check_foundation_upstream.sh: {event} {args[1:]}")
+        raise OSError(f"network access refused by scripts/checks/foundation_upstream.sh: {event} {args[1:]}")
 
 sys.addaudithook(_no_network)
 EOF
@@ -54,7 +54,7 @@ echo "== checkouts: FoundationStereo $(git -C "$FS" rev-parse HEAD 2>/dev/null |
 torchvision.__version__, 'timm', timm.__version__, 'omegaconf', omegaconf.__version__)"
 
 echo "== releases with random weights"
-"$PY" scripts/foundation_releases.py --fs-repo "$FS" --ffs-repo "$FFS" --out "$WORK/releases"
+"$PY" scripts/checks/foundation_releases.py --fs-repo "$FS" --ffs-repo "$FFS" --out "$WORK/releases"
 R=$WORK/releases
 FSW=$R/FoundationStereo/23-51-11/model_best_bp2.pth
 FFSW=$R/Fast-FoundationStereo/23-36-37/model_best_bp2_serialize.pth
@@ -64,7 +64,7 @@ FFSF=(--encoder fast-foundation-stereo --encoder-weights "$FFSW" --encoder-repo 
 PRF=(--encoder fast-foundation-stereo --encoder-weights "$PRW" --encoder-repo "$FFS")
 
 echo "== parity with the upstream modules, both encoders in one process"
-"$PY" scripts/foundation_parity.py --fs-repo "$FS" --ffs-repo "$FFS" --releases "$R" --size 64x32
+"$PY" scripts/checks/foundation_parity.py --fs-repo "$FS" --ffs-repo "$FFS" --releases "$R" --size 64x32
 
 echo "== a tiny demo dataset"
 "$PY" -m scenesplat_stereo.cli demo-teachers "$WORK/teachers" --scenes 2 --frames 4 --gaussians 3000 --size 64x48 \

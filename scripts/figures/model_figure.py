@@ -1,6 +1,6 @@
 """docs/images/prediction.png: one prediction of a trained model, as pictures.
 
-``python scripts/model_figure.py CKPT LEFT RIGHT CALIB OUT.png [--device cuda]``. Rows: the input pair and
+``python scripts/figures/model_figure.py CKPT LEFT RIGHT CALIB OUT.png [--device cuda]``. Rows: the input pair and
 the stereo depth; the front layer alone, the back layer alone and both, rendered from the left camera; the
 whole scene from four novel views around it (left, right, up, forward by 10% of the median depth).
 """

@@ -1,6 +1,6 @@
 """A rectified stereo pair of the real guitar teacher, for ``sgmodel predict`` (tests and the GPU run).
 
-``python scripts/guitar_pair.py GUITAR.ply OUT`` writes OUT/left.png, OUT/right.png and OUT/K.txt (the
+``python scripts/inputs/guitar_pair.py GUITAR.ply OUT`` writes OUT/left.png, OUT/right.png and OUT/K.txt (the
 FoundationStereo calibration format: K row-major on line 1, the baseline on line 2). The left camera orbits
 the median of the Gaussians at 4 units, 20 degrees up; the right camera is BASELINE units to its right.
 The guitar's units are arbitrary (it is about 4.4 units tall), so "metres" here are guitar units.
@@ -47,5 +47,5 @@ def render_pair(ply: Path, out: Path) -> tuple[np.ndarray, torch.Tensor, torch.T
 
 if __name__ == "__main__":
     if len(sys.argv) != 3:
-        raise SystemExit("usage: python scripts/guitar_pair.py GUITAR.ply OUT")
+        raise SystemExit("usage: python scripts/inputs/guitar_pair.py GUITAR.ply OUT")
     render_pair(Path(sys.argv[1]), Path(sys.argv[2]))

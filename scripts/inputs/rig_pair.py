@@ -1,9 +1,9 @@
 """A raw stereo rig's pair of a procedural demo room, with its calibration, and the ground truth behind it.
 
-``python scripts/rig_pair.py OUT [radtan|equidistant]`` writes OUT/left.png, OUT/right.png (what the two raw
+``python scripts/inputs/rig_pair.py OUT [radtan|equidistant]`` writes OUT/left.png, OUT/right.png (what the two raw
 cameras see, lens distortion included), OUT/opencv.yml (one OpenCV FileStorage file as ``stereoCalibrate``'s
 results are written), OUT/intrinsics.yml + OUT/extrinsics.yml (the two files of OpenCV's stereo_calib
-sample) and OUT/camchain.yaml (Kalibr). tests/sgmodel/pairs/test_rig.py and scripts/calibration_figure.py use it.
+sample) and OUT/camchain.yaml (Kalibr). tests/sgmodel/pairs/test_rig.py and scripts/figures/calibration_figure.py use it.
 
 The rig: a rectified pair (left camera on ``room_trajectory``, right camera ``BASELINE`` m to its right)
 "un-rectified": each raw camera is turned by its own small rotation about its centre (Q0, Q1: a point p in
@@ -209,5 +209,5 @@ def write_rig(out: Path, model: str = "radtan", scene=None) -> RawRig:
 
 if __name__ == "__main__":
     if len(sys.argv) not in (2, 3):
-        raise SystemExit("usage: python scripts/rig_pair.py OUT [radtan|equidistant]")
+        raise SystemExit("usage: python scripts/inputs/rig_pair.py OUT [radtan|equidistant]")
     write_rig(Path(sys.argv[1]), *sys.argv[2:])

@@ -1,7 +1,7 @@
 """A stereo video rendered from a demo teacher room, run through ``sgmodel predict --video``, and a contact
 sheet of its frames (the README's video demo, docs/images/video_demo.png).
 
-    python scripts/video_demo.py OUT [--frames 24] [--size 256x192] [--sheet docs/images/video_demo.png]
+    python scripts/figures/video_demo.py OUT [--frames 24] [--size 256x192] [--sheet docs/images/video_demo.png]
 
 ``render_clip`` renders a rectified stereo camera (baseline 0.1 m) moving slowly through
 ``scenesplat_stereo.build.demo``'s room 0 with the project's rasteriser and writes ``left.mkv``, ``right.mkv``

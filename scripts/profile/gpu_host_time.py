@@ -8,7 +8,7 @@ and the host time until the call returns; our forward's host time split at the b
 time approaches the wall time, the GPU is waiting for the host. ``--quick``: tiny sizes, runs on the CPU
 too (a smoke test of this script, without gsplat or the profiler table).
 
-    python3 scripts/gpu_host_time.py [--quick] [--repeats N] [--out FILE.md]
+    python3 scripts/profile/gpu_host_time.py [--quick] [--repeats N] [--out FILE.md]
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ issue 20), and the feature maps at 1/8, 1/16, 1/32 get PRUNED_FEATURE_WIDTHS thr
 ``conv16``, ``conv32`` layers their ``Feature.forward`` applies when present (each consumer rebuilt to match).
 No weights are downloaded and nothing of theirs is copied: the files are made by their own code.
 
-    python scripts/foundation_releases.py --fs-repo FS --ffs-repo FFS --out OUT
+    python scripts/checks/foundation_releases.py --fs-repo FS --ffs-repo FFS --out OUT
 
 ``save_fs_release`` / ``save_ffs_release`` also make the tests' stand-in releases (tests/support/foundation_standins.py).
 """

@@ -1,12 +1,12 @@
 """The foundation-stereo and fast-foundation-stereo adapters against the real upstream code, in one process, in
-both orders: build each encoder from the releases of ``scripts/foundation_releases.py``, check that nothing of
+both orders: build each encoder from the releases of ``scripts/checks/foundation_releases.py``, check that nothing of
 either checkout stays in ``sys.modules`` or ``sys.path`` and that logging is as before, then compare what the
 adapters return with what the upstream modules compute when called directly (disparity: the model's forward;
 image features: ``model.feature``; FoundationStereo's context features: ``model.cnet``; its recurrent features:
 the ``net`` list ``model.update_block`` returns on its last call, captured by wrapping its forward). Prints one line
 per check and exits 1 on the first mismatch.
 
-    python scripts/foundation_parity.py --fs-repo FS --ffs-repo FFS --releases OUT
+    python scripts/checks/foundation_parity.py --fs-repo FS --ffs-repo FFS --releases OUT
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--fs-repo", type=Path, required=True)
     p.add_argument("--ffs-repo", type=Path, required=True)
-    p.add_argument("--releases", type=Path, required=True, help="OUT of scripts/foundation_releases.py")
+    p.add_argument("--releases", type=Path, required=True, help="OUT of scripts/checks/foundation_releases.py")
     p.add_argument("--size", default="96x64", help="WxH of the test pair (default 96x64)")
     args = p.parse_args()
     torch.set_grad_enabled(False)

@@ -1,5 +1,5 @@
 """CUDA parity of the Warp rasteriser against the float64 reference (scenesplat_stereo/raster/reference.py), for
-scripts/gpu_bench.sh: the CPU path is covered by the test suite, this covers the CUDA build of the same
+scripts/gpu/bench.sh: the CPU path is covered by the test suite, this covers the CUDA build of the same
 kernel source.
 
 Renders random scenes in every render mode, rasterize mode and SH degree with our CUDA kernels and with the

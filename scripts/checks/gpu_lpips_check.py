@@ -9,7 +9,7 @@ by both. Compares per-image values, per-pixel maps (``spatial=True``) and input 
 of several sizes; prints the largest differences and exits 1 when one exceeds 1e-5 relative to the
 largest reference magnitude. TF32 is off so that both sides compute in true float32.
 
-    python scripts/gpu_lpips_check.py [--device cuda] [--vgg PATH] [--lpips-src DIR]
+    python scripts/checks/gpu_lpips_check.py [--device cuda] [--vgg PATH] [--lpips-src DIR]
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 TOLERANCE = 1e-5  # relative to the largest |reference| of each compared quantity
 

@@ -8,7 +8,7 @@ the model's (32 scenes x 4 targets at 256x256, SH 2, one batched call), 1M rando
 guitar teacher when ``SCENESPLAT_GUITAR_PLY`` exists. ``--quick``: tiny sizes, runs on the CPU too (a smoke
 test of this script, without gsplat).
 
-    python3 scripts/gpu_vs_gsplat.py [--quick] [--repeats N] [--out FILE.md]
+    python3 scripts/profile/gpu_vs_gsplat.py [--quick] [--repeats N] [--out FILE.md]
 """
 
 from __future__ import annotations

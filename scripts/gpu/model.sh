@@ -6,9 +6,9 @@
 #   mkdir -p .devdata && cp ~/.cache/sgmodel/* .devdata/ && cp ../shared/data/teachers/playcanvas-guitar/point_cloud.ply .devdata/guitar.ply
 # Device call 1 (carry .gpukit/a, .whl): bash .gpukit/a/stash.sh && python3 -m pip install -q --no-index --no-deps --target /root/site .whl/*.whl
 # Device call 2 (carry .devdata):        mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
-# Device call 3 (carry .gpukit/b):       bash scripts/gpu_model.sh main      (data, benches, training, eval, predict)
-# Device call 4 (carry .gpukit/b):       bash scripts/gpu_model.sh raster    (raster parity, batch bench, LPIPS parity)
-# Device call 5 (carry .gpukit/b):       bash scripts/gpu_model.sh ablate    (Table 4 with a short schedule)
+# Device call 3 (carry .gpukit/b):       bash scripts/gpu/model.sh main      (data, benches, training, eval, predict)
+# Device call 4 (carry .gpukit/b):       bash scripts/gpu/model.sh raster    (raster parity, batch bench, LPIPS parity)
+# Device call 5 (carry .gpukit/b):       bash scripts/gpu/model.sh ablate    (Table 4 with a short schedule)
 # Each phase packs its results (no checkpoints) into $OUT/<phase>.tgz.
 # STEPS, ABLATE_STEPS, FRAMES override the sizes, SKIP_BENCH=1 skips the benches; DEVICE=cpu runs the same steps tiny on a CPU (a dry run).
 set -uo pipefail
@@ -63,17 +63,17 @@ if [[ $what == main ]]; then
     run python3 -m sgmodel.cli eval --data $data/dataset --split val --method $m --encoder $ENC --resolution $S \
       --device $dev --out $out/eval-$m --no-progress
   done
-  run python3 scripts/guitar_pair.py "$guitar" $data/pair
+  run python3 scripts/inputs/guitar_pair.py "$guitar" $data/pair
   run python3 -m sgmodel.cli predict --left $data/pair/left.png --right $data/pair/right.png \
     --calib $data/pair/K.txt --checkpoint $out/run/checkpoints/best.pt --out $out/predict --device $dev
-  run python3 scripts/model_figure.py $out/run/checkpoints/best.pt $data/pair/left.png $data/pair/right.png \
+  run python3 scripts/figures/model_figure.py $out/run/checkpoints/best.pt $data/pair/left.png $data/pair/right.png \
     $data/pair/K.txt $out/prediction.png --device $dev
 fi
 if [[ $what == raster && $dev == cuda ]]; then  # the batched rasteriser against the float64 reference,
   # its model-workload bench, and LPIPS against the lpips package
-  run python3 scripts/gpu_parity.py
+  run python3 scripts/checks/gpu_parity.py
   run python3 -m scenesplat_stereo.bench.render --batch --device cuda --out "$out/bench_render_batch.md"
-  run python3 scripts/gpu_lpips_check.py
+  run python3 scripts/checks/gpu_lpips_check.py
 fi
 if [[ $what == ablate ]]; then
   dataset
