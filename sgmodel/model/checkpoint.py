@@ -9,6 +9,11 @@ A checkpoint is a plain ``torch.save`` dict (PyTorch convention; load with ``wei
 - ``optimizer``, ``scheduler``: their ``state_dict``s; ``rng``: torch/CUDA generator states
   (so a resumed run continues exactly; the data order is a function of (seed, step)).
 
+A weights-only checkpoint (``pack_checkpoint``, the ``sgmodel pack`` command; the model shipped in the package
+is one) keeps ``format``, ``model_params``, ``model`` (optionally in bfloat16 or float16: loading casts it back
+to the model's float32), ``encoder``, ``step``, ``best_val_psnr``, ``best_step`` and ``train_params`` reduced to
+``amp``; it has no optimiser, scheduler or RNG state, so a run cannot resume from it.
+
 Writes are atomic (a temporary file renamed over the old one), so an interrupted save never leaves a
 half-written ``last.pt``. Reading refuses (``CheckpointError``, naming the file) a file that is not a
 checkpoint, one of another format version, and one whose weights hold NaN or infinity (a diverged run:
@@ -91,3 +96,24 @@ def nonfinite_weights(state: dict[str, Any]) -> list[str]:
     if not isinstance(state, dict):
         return []
     return [k for k, v in state.items() if torch.is_tensor(v) and v.is_floating_point() and not torch.isfinite(v).all()]
+
+
+PACKED_FIELDS = ("model_params", "encoder", "step", "best_val_psnr", "best_step")
+PACK_DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
+
+
+def pack_checkpoint(src: str | Path, dst: str | Path, dtype: str = "fp32") -> dict[str, Any]:
+    """Write the weights-only checkpoint of ``src`` to ``dst`` (atomically), its floating-point weights in
+    ``dtype`` (a key of ``PACK_DTYPES``); returns it. CheckpointError naming the file for a bad ``src``; a
+    weight that does not fit ``dtype`` (beyond its range) is refused rather than written as infinity."""
+    ckpt = load_checkpoint(src)
+    model_params_of(ckpt, src)  # a checkpoint this version can rebuild
+    to = PACK_DTYPES[dtype]
+    weights = {k: v.to(to) if torch.is_tensor(v) and v.is_floating_point() else v for k, v in ckpt["model"].items()}
+    bad = nonfinite_weights(weights)
+    if bad:
+        raise CheckpointError(f"{src}: {len(bad)} weight tensors do not fit {dtype} (e.g. {bad[0]}): pack as fp32")
+    packed = {k: ckpt[k] for k in PACKED_FIELDS if k in ckpt}
+    packed |= {"model": weights, "train_params": {"amp": bool(ckpt.get("train_params", {}).get("amp", True))}}
+    save_checkpoint(Path(dst), packed)
+    return {"format": CHECKPOINT_FORMAT, **packed}

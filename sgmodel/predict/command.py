@@ -63,6 +63,7 @@ from sgmodel.pairs.stereo_pair import SIZE_MULTIPLE, Pair, PredictError, model_s
 from sgmodel.predict import export, video
 from sgmodel.predict.inference import Reconstructor
 from sgmodel.predict.viewers import write_viewer_files
+from sgmodel.weights import SHIPPED, checkpoint_path, describe_checkpoint
 
 #: Short side the baselines run at when neither a checkpoint nor --resolution says (SPEC section 7, S).
 DEFAULT_RESOLUTION = 256
@@ -95,9 +96,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baseline", help="baseline in metres (with --intrinsics)")
     rig.add_arguments(parser)
     stereo_check.add_arguments(parser)
-    parser.add_argument("--checkpoint", help="trained model checkpoint")
+    parser.add_argument("--checkpoint", help=f"a trained model checkpoint, or {SHIPPED.name!r}: the model shipped in the "
+                        "package (the default when neither --checkpoint nor --method is given)")
     parser.add_argument("--method", choices=baselines.METHODS,
-                        help="a baseline without learned prediction instead of --checkpoint")
+                        help="a baseline without learned prediction instead of the model")
     parser.add_argument("--out", required=True, help="output folder (created; existing files replaced)")
     parser.add_argument("--format", choices=sorted(FORMATS),
                         help=f"scene file format (default {DEFAULT_FORMAT} for a pair, {DEFAULT_FRAME_FORMAT} for "
@@ -125,11 +127,13 @@ def make_encoder(name: str | None, weights: str | None, repo: str | None, device
 
 
 def make_reconstructor(args: argparse.Namespace, device: torch.device) -> tuple[Reconstructor, int]:
-    """The model of ``--checkpoint`` or the baseline of ``--method`` on its encoder, and the short side."""
-    if args.checkpoint:
+    """The model of ``--checkpoint`` (the shipped one without it) or the baseline of ``--method`` on its encoder,
+    and the short side."""
+    if not args.method:
         from sgmodel.model.network import load_predictor
 
-        predictor = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
+        predictor = load_predictor(checkpoint_path(args.checkpoint), device, args.encoder_weights, args.encoder_repo,
+                                   args.encoder)
         return Reconstructor(predictor=predictor), args.resolution or predictor.resolution
     encoder = make_encoder(args.encoder, args.encoder_weights, args.encoder_repo, device)
     return Reconstructor(method=args.method, encoder=encoder), args.resolution or DEFAULT_RESOLUTION
@@ -163,9 +167,10 @@ def _check_args(args: argparse.Namespace) -> None:
             missing = b if getattr(args, a) else a
             raise PredictError(f"--{missing.replace('_', '-')} is missing (--{a.replace('_', '-')} and "
                                f"--{b.replace('_', '-')} go together)")
-    if bool(args.checkpoint) == bool(args.method):
-        raise PredictError("give exactly one of --checkpoint CKPT or --method {naive-gs,forward-splat}")
-    if args.checkpoint and not Path(args.checkpoint).is_file():
+    if args.checkpoint and args.method:
+        raise PredictError("give --checkpoint CKPT or --method {naive-gs,forward-splat}, not both (with neither, "
+                           f"the shipped model {SHIPPED.name!r} runs)")
+    if args.checkpoint and args.checkpoint != SHIPPED.name and not Path(args.checkpoint).is_file():
         raise PredictError(f"--checkpoint {args.checkpoint}: file not found")
     if args.resolution is not None and args.resolution < SIZE_MULTIPLE:
         raise PredictError(f"--resolution must be at least {SIZE_MULTIPLE}, got {args.resolution}")
@@ -180,8 +185,10 @@ def _check_args(args: argparse.Namespace) -> None:
     if not out.resolve().parent.is_dir():
         raise PredictError(f"--out {args.out}: parent folder {out.resolve().parent} does not exist")
     check_replaceable(out, "--out", OWNER)
-    inputs = ("--left", "--right", "--video", "--left-video", "--right-video", "--calib", "--rig", "--checkpoint")
-    check_apart(out, "--out", {f: getattr(args, f[2:].replace("-", "_")) for f in inputs}, replaced=True)
+    inputs = ("--left", "--right", "--video", "--left-video", "--right-video", "--calib", "--rig")
+    paths = {f: getattr(args, f[2:].replace("-", "_")) for f in inputs}
+    paths["--checkpoint"] = None if args.method else checkpoint_path(args.checkpoint)
+    check_apart(out, "--out", paths, replaced=True)
 
 
 def check_depth(z: torch.Tensor, calib: Calibration) -> None:
@@ -219,6 +226,7 @@ def predict(args: argparse.Namespace, log=print) -> None:
             timer.lap("read and rectify")
             first.rectification.report(log)
         reconstructor, short = make_reconstructor(args, device)
+        log(f"model: {describe_checkpoint(args.checkpoint)}" if not args.method else f"method: {args.method}")
         timer.lap("load")
         check = stereo_check.run_check(first.left, first.right, args.strict, first.calib.doffs,
                                        first.rectification is not None, log)
