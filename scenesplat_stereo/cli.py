@@ -1,6 +1,6 @@
 """``scenesplat-stereo`` command line: parse, call, print. Each command's work lives in its room.
 
-Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``inspect``,
+Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``import multiview``, ``inspect``,
 ``demo-teachers``, ``bench render``, ``bench build``, ``bench encode``. Units and conventions are stated in each
 command's ``--help``. Exit status (``scenesplat_stereo.commandline``): 0 done, 2 bad arguments or input (one line
 naming the flag or file), 130 interrupted, 1 internal error (traceback with ``--debug``); ``build`` exits 3 when
@@ -40,14 +40,20 @@ def _add_build(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_import(sub: argparse._SubParsersAction) -> None:
-    from scenesplat_stereo import stereonvs
+    from scenesplat_stereo import multiview, stereonvs
 
-    p = sub.add_parser("import", help="turn a published benchmark into test shards (StereoNVS-Real)")
+    p = sub.add_parser("import", help="turn a published benchmark into test shards (StereoNVS-Real, "
+                       "multi-view line sets)")
     sources = p.add_subparsers(dest="source", required=True)
     s = sources.add_parser("stereonvs", help="StereoNVS-Real (LLFF poses_bounds, left/right images) -> test shards",
                            description=stereonvs.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     stereonvs.add_arguments(s)
     s.set_defaults(func=stereonvs.run)
+    m = sources.add_parser("multiview", help="rectified views along one line (Middlebury 2001 nine-view sets) -> "
+                           "test shards", description=multiview.__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+    multiview.add_arguments(m)
+    m.set_defaults(func=multiview.run)
 
 
 def _add_inspect(sub: argparse._SubParsersAction) -> None:

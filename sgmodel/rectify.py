@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.cameras import rotation_angle_deg
+from scenesplat_stereo.cameras import LONG_BASELINE, rotation_angle_deg
 from scenesplat_stereo.encode import encode_png, to_uint8
 from scenesplat_stereo.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
 
@@ -40,8 +40,6 @@ from .stereo_pair import Pair, read_image, resize_pair
 
 #: OpenCV's free scaling parameter (alpha for pinhole lenses, balance for fisheye): 0 = only valid pixels.
 FREE_SCALING = 0.0
-#: A baseline longer than this (metres) is reported as a likely unit mistake (``--rig-units``).
-LONG_BASELINE = 2.0
 #: Rows of the right camera's projection allowed off zero (pixels) before a pair is not side by side.
 _VERTICAL_TOLERANCE = 1e-6
 
