@@ -21,6 +21,7 @@ COMMANDS = [
     ("scenesplat-stereo render", "render a teacher (folder or .ply) to PNG images along its trajectory or an orbit"),
     ("scenesplat-stereo build", "teacher scenes to SceneSplat-Stereo WebDataset shards (the paper's protocol)"),
     ("scenesplat-stereo import stereonvs", "the StereoNVS-Real benchmark (LLFF poses, left/right images) to test shards"),
+    ("scenesplat-stereo import multiview", "rectified views along one line (Middlebury 2001 nine-view sets) to test shards"),
     ("scenesplat-stereo inspect", "Table 6 counts, a contact sheet and integrity checks of a built dataset"),
     ("scenesplat-stereo demo-teachers", "write the bundled procedural indoor teachers"),
     ("scenesplat-stereo bench render", "rasteriser speed/accuracy knobs against gsplat and the float64 reference"),
