@@ -3,7 +3,13 @@ ground-truth disparity (``disp<L>.png``, as the import recorded it) instead of a
 rendered back into the left camera itself (its blur alone, no parallax). PSNR / SSIM per target group, over the
 full image and the valid masks, at the eval's square crop S.
 
-    python scripts/multiview_oracle.py .devdata/multiview [--resolution 256]
+    python scripts/multiview_oracle.py .devdata/multiview [--resolution 256] [--conventions]
+
+``--conventions`` also checks the camera convention: the global horizontal shift of every view against the left
+view (OpenCV phase correlation of the grey images at full size: negative = content moved left, i.e. the camera
+moved right); forward-splat (true disparity) into each target with its offset scaled by 0.6 .. 1.4, PSNR over
+the pixels it lands on (peaks at 1.0 when the offsets' sign and size are right); and naive-GS rendered back into
+the left camera with the principal point moved by -0.5 .. 0.5 px (where its own rendering sits on the grid).
 
 The disparity is brought to S x S as ``sgmodel.data`` brings the images (``SquareCrop.nearest``, times the
 horizontal scale); pixels with unknown disparity make no Gaussian and splat nothing, as in ``sgmodel.inference``.
@@ -84,12 +90,64 @@ def table(rows: list[dict]) -> str:
     return markdown_table(["method", "targets", "n", "PSNR", "SSIM", "PSNR (valid)"], body)
 
 
+SCALES = np.round(np.arange(0.6, 1.4001, 0.1), 2)
+SHIFTS = np.round(np.arange(-0.5, 0.5001, 0.25), 2)
+
+
+def _psnr(image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> float:
+    return metrics.psnr(image.clamp(0, 1)[None], target[None], mask[None]).item()
+
+
+def conventions(data: Path, size: int) -> str:
+    """The convention checks of the module docstring, one line per set and per target."""
+    import cv2
+
+    report = json.loads((data / "multiview.json").read_text())
+    lines = []
+    for row in report["sets"]:
+        views = sorted(Path(row["folder"]).glob("im*.*"), key=lambda p: int(p.stem[2:]))
+        grey = [cv2.cvtColor(decode_image(p.read_bytes(), p.suffix)[..., :3], cv2.COLOR_RGB2GRAY).astype(np.float32)
+                for p in views]
+        shifts = [cv2.phaseCorrelate(grey[report["pair"][0]], g)[0][0] for g in grey]
+        lines.append(f"{row['set']}: shift against im{report['pair'][0]} (px): "
+                     + ", ".join(f"im{k} {v:+.2f}" for k, v in enumerate(shifts)))
+    for batch in eval_batches(data, "test", 1, size):
+        disparity = true_disparity(report, batch["scenes"][0], size)
+        K, left, valid = batch["K"], batch["left"], disparity > 0
+        z = depth_from_disparity(disparity.clamp(min=1e-3), K[:, 0, 0], batch["baseline"])
+        row = next(r for r in report["sets"] if r["set"] == batch["scenes"][0])
+        for t, view in enumerate(row["target_views"]):
+            psnrs = []
+            for scale in SCALES:
+                viewmat = batch["target_viewmats"][:, t:t + 1].clone()
+                viewmat[..., 0, 3] *= scale
+                image, covered = baselines.forward_splat(left, z, K, viewmat, batch["target_Ks"][:, t:t + 1], size,
+                                                         size, valid=valid)
+                psnrs.append(_psnr(image[0, 0], batch["targets"][0, t], covered[0, 0] & batch["masks"][0, t]))
+            lines.append(f"{row['set']} im{view}: forward-splat PSNR over its landed pixels at offset x "
+                         f"{SCALES.tolist()}: " + " ".join(f"{v:.2f}" for v in psnrs)
+                         + f" (best x {SCALES[int(np.argmax(psnrs))]:g})")
+        gaussians = baselines.naive_gs(left, z, K)
+        psnrs = []
+        for shift in SHIFTS:
+            moved = K.clone()
+            moved[:, 0, 2] += float(shift)
+            image = render_views(gaussians, torch.eye(4)[None, None], moved[:, None], size, size)[0][0, 0]
+            psnrs.append(_psnr(image, left[0], torch.ones_like(valid[0])))
+        lines.append(f"{row['set']}: naive-GS into the left camera with cx moved by {SHIFTS.tolist()} px: "
+                     + " ".join(f"{v:.2f}" for v in psnrs))
+    return "\n".join(lines)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data", type=Path, help="an `import multiview` folder whose sets have disp<L>.png")
     p.add_argument("--resolution", type=int, default=256, help="S of the square crop (default 256, as eval)")
+    p.add_argument("--conventions", action="store_true", help="also the camera-convention checks (docstring)")
     args = p.parse_args()
     print(table(measure(args.data, args.resolution)))
+    if args.conventions:
+        print(conventions(args.data, args.resolution))
 
 
 if __name__ == "__main__":
