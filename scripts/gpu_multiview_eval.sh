@@ -3,7 +3,8 @@
 # the three Middlebury 2001 nine-view sets (docs/results.md "Real photographs with ground-truth novel views"),
 # the pair (im2, im6) in, the other seven views as targets, reported between / beside the pair and over all.
 #
-# Here, in the checkout (git-ignored .devdata; 2.6 MB of shards and the 21 MB PSMNet weights, under the carry's 64 MiB):
+# Here, in the checkout (git-ignored .devdata; 2.6 MB of shards and the 21 MB PSMNet weights, under the carry's 64 MiB;
+# the copy is not needed on a machine where gpu_model.sh already put the weights in /root/sgcache):
 #   python -m scenesplat_stereo.cli import multiview ../shared/data/multiview --out .devdata/multiview \
 #     --focal 450 --baseline 0.065
 #   mkdir -p .devdata/sgcache && cp ~/.cache/sgmodel/* .devdata/sgcache/
@@ -26,7 +27,9 @@ if [[ $dev == cuda ]]; then
   [[ -f .gpukit/b/install.sh ]] && { source .gpukit/b/install.sh || exit 1; }
   nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 fi
-[[ -d .devdata/sgcache ]] && export SGMODEL_CACHE=$PWD/.devdata/sgcache
+if [[ -z ${SGMODEL_CACHE:-} ]]; then  # the weights: carried in .devdata/sgcache, or where gpu_model.sh put them
+  for c in $PWD/.devdata/sgcache /root/sgcache; do [[ -d $c ]] && { export SGMODEL_CACHE=$c; break; }; done
+fi
 export PYTHONUNBUFFERED=1
 args=(--data "Middlebury2001=$data" --split test --method forward-splat --method naive-gs --resolution 256
       --out "$OUT/multiview" --device "$dev" --no-progress)
