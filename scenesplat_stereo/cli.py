@@ -1,7 +1,7 @@
 """``scenesplat-stereo`` command line: the table of commands. Each command's module (named in ``COMMANDS``) holds
 its flags (``add_arguments``) and its work (``run``).
 
-Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``inspect``,
+Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``import multiview``, ``inspect``,
 ``demo-teachers``, ``bench render``, ``bench build``, ``bench encode``. Units and conventions are stated in each
 command's ``--help``. Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2 bad arguments or input (one line
 naming the flag or file), 130 interrupted, 1 internal error (traceback with ``--debug``); ``build`` exits 3 when
@@ -20,9 +20,12 @@ COMMANDS = (
             "scenesplat_stereo.build.render_teacher"),
     Command("build", "render teacher scenes into SceneSplat-Stereo shards (stereo pairs + targets)",
             "scenesplat_stereo.build.run"),
-    Command("import", "turn a published benchmark into test shards (StereoNVS-Real)", dest="source", commands=(
-        Command("stereonvs", "StereoNVS-Real (LLFF poses_bounds, left/right images) -> test shards",
-                "scenesplat_stereo.captured.stereonvs"),)),
+    Command("import", "turn a published benchmark into test shards (StereoNVS-Real, multi-view line sets)",
+            dest="source", commands=(
+                Command("stereonvs", "StereoNVS-Real (LLFF poses_bounds, left/right images) -> test shards",
+                        "scenesplat_stereo.captured.stereonvs"),
+                Command("multiview", "rectified views along one line (Middlebury 2001 nine-view sets) -> test shards",
+                        "scenesplat_stereo.captured.multiview"))),
     Command("inspect", "Table-6 counts, a contact sheet and integrity checks of a built dataset",
             "scenesplat_stereo.build.inspection"),
     Command("demo-teachers", "write procedural indoor teacher scenes (plain layout) to OUT",

@@ -58,8 +58,8 @@ from scenesplat_stereo.scene.cameras import right_camera, rotation_angle_deg
 from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
 from scenesplat_stereo.shards.encode import SampleImages, decode_image, encode_jpeg, encode_sample
 from scenesplat_stereo.shards.sample import SampleMeta, sample_key
-from scenesplat_stereo.shards.webdataset import (INDEX_NAME, ShardWriter, collect_stats, remove_unplanned, write_index,
-                                                 write_stats)
+from scenesplat_stereo.shards.webdataset import (ShardWriter, check_import_out, collect_stats, remove_unplanned,
+                                                 write_index, write_stats)
 
 SUBSET = "StereoNVS"
 SPLIT = "test"
@@ -303,7 +303,7 @@ def import_stereonvs(root: Path, out: Path, baseline: float, scenes: list[str] |
     images = [(s, p) for s, _, _ in plans for p in s.left + s.right]
     for scene, path in tqdm(images, desc="check images", unit="image", disable=not progress):
         image_as_jpeg(path, (scene.width, scene.height))  # every image decodes, before OUT is touched
-    _check_out(Path(out))
+    check_import_out(Path(out), SPLIT, REPORT_NAME)
     check_writable(out, "--out")
     remove_unplanned(out, SPLIT, set())  # the test shards of an earlier import
     rows, reencoded = [], 0
@@ -325,15 +325,6 @@ def import_stereonvs(root: Path, out: Path, baseline: float, scenes: list[str] |
               "paper": {"scenes": PAPER_SCENES, "targets": PAPER_TARGETS}, "scenes": rows}
     atomic_write_json(Path(out) / REPORT_NAME, report)
     return report
-
-
-def _check_out(out: Path) -> None:
-    """OUT may be new, empty or an earlier import (its ``stereonvs.json``); a folder holding another test split
-    or a build is refused, so an import never replaces shards it did not write."""
-    others = [p for p in (out / SPLIT / INDEX_NAME, out / "build.json") if p.exists()]
-    if others and not (out / REPORT_NAME).exists():
-        raise StereoNvsError(f"--out {out}: holds another dataset ({others[0].name}) and no {REPORT_NAME}; use a new "
-                             "--out (an earlier import is replaced, a build never)")
 
 
 def _scene_row(scene: StereoNvsScene, calibration: Calibration, samples: list[SampleMeta]) -> dict:

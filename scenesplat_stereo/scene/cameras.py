@@ -21,6 +21,9 @@ import numpy as np
 # Right-multiplying an OpenGL c2w by this flips the camera's y and z axes: the OpenCV c2w of the same
 # camera (and vice versa: the matrix is its own inverse).
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+#: A stereo baseline longer than this (metres) is a likely unit mistake (millimetres or centimetres given as
+#: metres): ``sgmodel rectify`` warns, ``import multiview`` refuses it.
+LONG_BASELINE = 2.0
 
 
 def _as_poses(c2w: np.ndarray, name: str) -> np.ndarray:

@@ -43,8 +43,9 @@ class SampleMeta:
     index j of each stored target; member names ``target_<jj>.jpg``/``mask_<jj>.png``), ``targets`` [T,4,4]
     (c2w of each target in ``target_ids`` order, T >= 1), ``camera_convention`` (always "opencv").
     IRS shards (pipelines/irs_targets.py) add ``target_frames`` (IRS frame number of each target) and
-    ``target_coverage`` (frustum coverage of each target in [0, 1]); None elsewhere, and then not
-    written. Arrays are float64 and read-only. Equality compares the JSON bytes.
+    ``target_coverage`` (frustum coverage of each target in [0, 1]); multi-view imports
+    (scenesplat_stereo/captured/multiview.py) add ``target_groups`` (a label per target, e.g. "between" or "beside" the
+    stereo pair, that ``sgmodel eval`` reports separately); None elsewhere, and then not written. Arrays are float64 and read-only. Equality compares the JSON bytes.
 
     ``from_json`` checks types, shapes, finiteness and ranges only; whether the poses follow the
     protocol (rigid, right = T_L Trans(B,0,0), Fibonacci targets) is ``inspect``'s check.
@@ -67,6 +68,7 @@ class SampleMeta:
     camera_convention: str = CAMERA_CONVENTION
     target_frames: tuple[int, ...] | None = None
     target_coverage: tuple[float, ...] | None = None
+    target_groups: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         for name in ("K", "c2w_left", "c2w_right", "targets"):
@@ -154,13 +156,14 @@ class SampleMeta:
                    target_ids=ids, targets=targets, camera_convention=convention,
                    target_frames=f.ints("target_frames", count, low=0) if "target_frames" in doc else None,
                    target_coverage=(f.numbers("target_coverage", count, 0.0, 1.0)
-                                    if "target_coverage" in doc else None))
+                                    if "target_coverage" in doc else None),
+                   target_groups=f.labels("target_groups", count) if "target_groups" in doc else None)
 
 
 _FIELD_ORDER = ("key", "scene", "subset", "frame", "width", "height", "K", "baseline", "rho", "teacher_psnr",
                 "c2w_left", "c2w_right", "target_ids", "targets", "camera_convention", "target_frames",
-                "target_coverage")
-_OPTIONAL = frozenset({"c2w_right", "target_frames", "target_coverage"})
+                "target_coverage", "target_groups")
+_OPTIONAL = frozenset({"c2w_right", "target_frames", "target_coverage", "target_groups"})
 
 
 class _FieldReader:
@@ -207,6 +210,12 @@ class _FieldReader:
         if low is not None and value < low:
             raise self.fail(name, f"must be >= {low}, got {value!r}")
         return float(value)
+
+    def labels(self, name: str, count: int) -> tuple[str, ...]:
+        values = self._list(name, count)
+        if not all(isinstance(v, str) and _KEY_RE.match(v) for v in values):
+            raise self.fail(name, f"expected {count} non-empty labels without '.', '/' or spaces, got {values!r}")
+        return tuple(values)
 
     def numbers(self, name: str, count: int, low: float, high: float) -> tuple[float, ...]:
         values = self._list(name, count)

@@ -159,7 +159,7 @@ def load_sample(key: str, members: dict[str, bytes], source: str, size: int, tar
     ``targets`` of the stored ones drawn uniformly without replacement (``rng.choice``); without, the
     first ``targets`` in stored order (None: all). ``encoded``: the sample's frozen-encoder outputs read
     from an encoder cache, (disparity [1,S,S], [feature maps]), kept as ``encoder_disparity`` and
-    ``encoder_features``.
+    ``encoder_features``. ``target_groups``: the picked targets' labels, when the record has them.
     """
     where, meta = f"{source}:{key}", read_meta(key, members, source)
     count = meta.num_targets if targets is None else targets
@@ -183,6 +183,8 @@ def load_sample(key: str, members: dict[str, bytes], source: str, size: int, tar
         "target_Ks": torch.from_numpy(np.repeat(K[None], len(ids), axis=0)).float(),
         "target_ids": torch.tensor(ids, dtype=torch.int64), "key": key, "scene": meta.scene,
     }
+    if meta.target_groups is not None:
+        out["target_groups"] = [meta.target_groups[i] for i in pick]
     if DEPTH_MEMBER in members:
         depth = _decode(members, DEPTH_MEMBER, where, hw + (1,)).astype(np.float32)
         if not (np.isfinite(depth).all() and (depth >= 0).all()):
@@ -194,7 +196,8 @@ def load_sample(key: str, members: dict[str, bytes], source: str, size: int, tar
 
 
 def collate(samples: list[dict]) -> dict:
-    """Stack samples into the Batch dict (``keys``/``scenes`` as lists; ``depth`` only when every sample
+    """Stack samples into the Batch dict (``keys``/``scenes`` as lists; ``target_groups`` a list per sample
+    (its targets' labels, None for a sample without) when some sample has them; ``depth`` only when every sample
     has it; ``encoder_disparity`` [B,1,S,S] and ``encoder_features`` (a list, one [B,C_s,..] per scale) when
     they come from an encoder cache). DataError when the samples disagree in target count or in having depth."""
     if not samples:
@@ -213,6 +216,8 @@ def collate(samples: list[dict]) -> dict:
         batch["encoder_disparity"] = torch.stack([s["encoder_disparity"] for s in samples])
         batch["encoder_features"] = [torch.stack(maps) for maps in zip(*(s["encoder_features"] for s in samples))]
     batch["keys"], batch["scenes"] = keys, [s["scene"] for s in samples]
+    if any("target_groups" in s for s in samples):
+        batch["target_groups"] = [s.get("target_groups") for s in samples]
     return batch
 
 

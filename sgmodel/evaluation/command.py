@@ -9,9 +9,11 @@ when the VGG16 weights are available; each over the full image and over the vali
 
 Writes REPORT/ after every input is checked (the data split, the checkpoint or encoder, the LPIPS weights,
 and REPORT itself: absent, empty or an earlier report, apart from the data): ``metrics.json`` (means,
-target count, encoder, method or checkpoint, split), ``targets.csv`` (one row per target), ``scenes.md`` (a
-table per scene), and ``sheet.png`` (the worst and the best targets by PSNR: target | render). The report
-is built in a staging folder that replaces REPORT as a whole (``scenesplat_stereo.common.files.StagedFolder``).
+target count, encoder, method or checkpoint, split; per target group too when the samples label their
+targets, as ``scenesplat-stereo import multiview`` does: "between" and "beside"), ``targets.csv`` (one row
+per target), ``scenes.md`` (a table per scene), and ``sheet.png`` (the worst and the best targets by PSNR:
+target | render). The report is built in a staging folder that replaces REPORT as a whole
+(``scenesplat_stereo.common.files.StagedFolder``).
 """
 
 from __future__ import annotations

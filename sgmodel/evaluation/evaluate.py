@@ -30,6 +30,7 @@ from sgmodel.weights import SHIPPED, checkpoint_path, describe_checkpoint
 
 METHODS = ("naive-gs", "forward-splat")
 METRICS = ("psnr", "ssim", "lpips")
+LABELS = ("key", "scene", "target", "group")  # the columns of a target's row that are not numbers
 SHEET_TARGETS = 4  # worst and best targets shown in sheet.png
 OWNER = "sgmodel eval"  # recorded in REPORT (files.OWNER_FILE): a later evaluation may replace it
 
@@ -85,10 +86,13 @@ def measure(method: Method, loader, device: str, lpips_net, progress: bool = Tru
             values["lpips"] = metrics.lpips(lpips_net, pred, gt)
             values["lpips_masked"] = metrics.lpips(lpips_net, pred, gt, mask)
         valid = mask.float().flatten(1).mean(1)
+        groups = batch.get("target_groups")
         for i in range(B * T):
             b, t = divmod(i, T)
-            row = {"key": batch["keys"][b], "scene": batch["scenes"][b], "target": int(batch["target_ids"][b, t]),
-                   "valid_fraction": round(valid[i].item(), 6)}
+            row = {"key": batch["keys"][b], "scene": batch["scenes"][b], "target": int(batch["target_ids"][b, t])}
+            if groups is not None:
+                row["group"] = groups[b][t] if groups[b] is not None else ""
+            row["valid_fraction"] = round(valid[i].item(), 6)
             row.update({k: v[i].item() for k, v in values.items()})
             rows.append(row)
             kept.append({"psnr": row["psnr"], "target": gt[i].cpu(), "render": pred[i].cpu(),
@@ -104,25 +108,39 @@ def measure(method: Method, loader, device: str, lpips_net, progress: bool = Tru
 def summarise(rows: list[dict]) -> dict:
     """Means over targets; a masked metric of a target without a valid pixel (NaN) is left out of its mean
     (NaN only when no target has one)."""
-    keys = [k for k in rows[0] if k not in ("key", "scene", "target")]
+    keys = [k for k in rows[0] if k not in LABELS]
     values = {k: [r[k] for r in rows if not math.isnan(r[k])] for k in keys}
     return {k: sum(v) / len(v) if v else math.nan for k, v in values.items()}
 
 
+def group_means(rows: list[dict]) -> dict[str, dict]:
+    """``summarise`` per target group (the samples' ``target_groups`` labels, e.g. "between" and "beside"),
+    in order of appearance; empty when the targets carry no labels."""
+    groups = dict.fromkeys(r["group"] for r in rows if r.get("group"))
+    return {g: summarise([r for r in rows if r.get("group") == g]) for g in groups}
+
+
 def scene_table(rows: list[dict]) -> str:
+    """Means per scene and over all targets; with target groups, a line per scene and group and one per group
+    over all scenes after each scene's (and the overall) line."""
     scenes = sorted({r["scene"] for r in rows})
+    groups = list(dict.fromkeys(r["group"] for r in rows if r.get("group")))
     cols = [k for k in ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "lpips_masked") if k in rows[0]]
     body = []
     for s in scenes + ["all"]:
-        sel = [r for r in rows if s == "all" or r["scene"] == s]
-        mean = summarise(sel)
-        body.append([s, len(sel)] + [f"{mean[c]:.4f}" if "psnr" not in c else f"{mean[c]:.2f}" for c in cols])
+        for g in [None] + groups:
+            sel = [r for r in rows if (s == "all" or r["scene"] == s) and (g is None or r.get("group") == g)]
+            if not sel:
+                continue
+            mean = summarise(sel)
+            body.append([s if g is None else f"{s} ({g})", len(sel)]
+                        + [f"{mean[c]:.4f}" if "psnr" not in c else f"{mean[c]:.2f}" for c in cols])
     return markdown_table(["scene", "targets"] + cols, body)
 
 
 def _csv(rows: list[dict]) -> bytes:
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    w = csv.DictWriter(buf, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
     w.writeheader()
     w.writerows(rows)
     return buf.getvalue().encode()
@@ -138,6 +156,9 @@ def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpi
               "resolution": method.resolution, "targets": len(rows),
               "lpips": "LPIPS-VGG v0.1" if lpips_net is not None else "not computed (no VGG16 ImageNet weights)",
               "mean": summarise(rows)}
+    if group_means(rows):
+        result["groups"] = group_means(rows)
+        result["group_targets"] = {g: sum(r.get("group") == g for r in rows) for g in result["groups"]}
     with StagedFolder(out, OWNER) as tmp:
         (tmp / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
         (tmp / "targets.csv").write_bytes(_csv(rows))

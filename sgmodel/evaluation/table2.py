@@ -7,7 +7,8 @@ Every (benchmark, method) pair is one ``sgmodel eval`` run with its own report i
 ``OUT/<benchmark>/<method>/`` (metrics.json, targets.csv, scenes.md, sheet.png). ``OUT/table2.md`` and
 ``OUT/table2.json`` hold the table: one row per method in the paper's order (the baselines without
 learned prediction, forward-splat then naive-GS, then the model), per benchmark PSNR, SSIM and LPIPS
-(means over all targets), the best value of each column in bold.
+(means over all targets; a benchmark whose targets carry group labels, such as ``import multiview``'s
+"between" and "beside", gets a column per group after its own), the best value of each column in bold.
 
 Which numbers: a benchmark folder's ``benchmark.json`` (scenesplat_stereo.shards.benchmark_file) says whether it is
 measured over the valid masks (rendered test sets such as ReplicaGS: ``psnr_masked`` and so on, as the
@@ -19,6 +20,7 @@ not computed: its cells read "n/a" and the notes say why.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -133,14 +135,19 @@ def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:
     labels = dict(ROWS)
     order = [m for m, _ in ROWS if m in methods]
     built = {m: method_of(m, args, device) for m in order}  # every checkpoint and encoder loads before any run
-    rows, targets, lpips = [], {}, ""
+    rows, targets, lpips, shown = [], {}, "", {c.name: c for c in cols}
     for m in order:
         means = {}
         for c in cols:
             result = evaluate(built[m], c.data, args.split, Path(args.out) / c.name / m, device, args.lpips_vgg,
                               args.batch_size, not args.no_progress)
             means[c.name], targets[c.name], lpips = result["mean"], result["targets"], result["lpips"]
+            for g, group_mean in result.get("groups", {}).items():  # a column per target group after the benchmark's
+                name = f"{c.name} {g}"
+                shown.setdefault(name, dataclasses.replace(c, name=name))
+                means[name], targets[name] = group_mean, result["group_targets"][g]
         rows.append(Row(m, labels[m], built[m].encoder, built[m].resolution, means))
+    cols = sorted(shown.values(), key=lambda c: [k.name for k in cols].index(c.name.split(" ")[0]))
     text = table_markdown(cols, rows) + "\n\n" + notes(cols, rows, args.split, targets, lpips) + "\n"
     doc = {"split": args.split, "lpips": lpips,
            "benchmarks": [{"name": c.name, "data": str(c.data.resolve()), "masked": c.masked, "region": c.region,

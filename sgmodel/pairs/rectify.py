@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
-from scenesplat_stereo.scene.cameras import rotation_angle_deg
+from scenesplat_stereo.scene.cameras import LONG_BASELINE, rotation_angle_deg
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from sgmodel.pairs import rig as rig_mod
 from sgmodel.pairs import stereo_check
@@ -39,8 +39,6 @@ from sgmodel.pairs.stereo_pair import Pair, read_image, resize_pair
 
 #: OpenCV's free scaling parameter (alpha for pinhole lenses, balance for fisheye): 0 = only valid pixels.
 FREE_SCALING = 0.0
-#: A baseline longer than this (metres) is reported as a likely unit mistake (``--rig-units``).
-LONG_BASELINE = 2.0
 #: Rows of the right camera's projection allowed off zero (pixels) before a pair is not side by side.
 _VERTICAL_TOLERANCE = 1e-6
 

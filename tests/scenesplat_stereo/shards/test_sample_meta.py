@@ -46,6 +46,9 @@ def test_optional_fields_irs_extras_and_no_psnr():
     assert "c2w_right" not in doc and doc["teacher_psnr"] is None
     assert list(doc)[-2:] == ["target_frames", "target_coverage"] and doc["target_frames"] == [3, 9, 12]
     assert SampleMeta.from_json(meta.to_json(), "x") == meta
+    grouped = replace(meta, target_groups=("beside", "between", "beside"))  # import multiview's labels
+    assert json.loads(grouped.to_json())["target_groups"] == ["beside", "between", "beside"]
+    assert SampleMeta.from_json(grouped.to_json(), "x").target_groups == ("beside", "between", "beside")
 
 
 def test_builder_json_reads_back_equal_to_its_plan(demo_dataset):
@@ -118,6 +121,10 @@ def _set(path, value):
     (_set("camera_convention", "opengl"), "'camera_convention'"),
     (_set("target_frames", [1, 2]), "'target_frames'"),
     (_set("target_coverage", [0.5, 0.5, 1.5]), "'target_coverage'"),
+    (_set("target_groups", ["between", "beside"]), "'target_groups'"),
+    (_set("target_groups", ["between", "", "beside"]), "'target_groups'"),
+    (_set("target_groups", ["between", 3, "beside"]), "'target_groups'"),
+    (_set("target_groups", ["between", "a b", "beside"]), "'target_groups'"),
 ])
 def test_every_malformed_field_is_named(edit, field):
     data = json.dumps(edit(_doc())).encode()

@@ -115,7 +115,7 @@ def test_table2_for_the_model_and_both_baselines(stereonvs_dataset, replicags_da
 @pytest.mark.parametrize("argv,message", [
     (["--data", "{tmp}/nowhere", "--method", "naive-gs", "--method", "forward-splat"], "nowhere"),
     (["--data", "{nvs}", "--data", "{nvs}", "--method", "naive-gs"], "unique"),
-    (["--data", "{nvs}"], "--checkpoint / --method"),
+    (["--data", "{nvs}", "--checkpoint", "{tmp}/nope.pt"], "nope.pt: no such checkpoint"),
     (["--data", "{nvs}", "--data", "X={tmp}/nowhere", "--checkpoint", "{tmp}/none.pt"], "nowhere"),
 ])
 def test_table2_bad_input_exits_2_and_writes_nothing(stereonvs_dataset, tmp_path, capsys, argv, message):
