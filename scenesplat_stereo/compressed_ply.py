@@ -137,20 +137,19 @@ def morton_order(means: np.ndarray) -> np.ndarray:
     then x in each bit triple) are sorted stably, and every run of more than 256 equal codes is sorted
     again within its own box. (The stable sort is a plain sort of the 64-bit keys code << 32 | position,
     which numpy runs with SIMD: many times faster than a stable argsort of the codes.)"""
-    means = np.asarray(means, dtype=np.float64)
-    order = np.arange(len(means))
+    columns = np.asarray(means, dtype=np.float64).T.copy()  # [3, N]: reductions along rows are fast
+    order = np.arange(columns.shape[1])
 
     def refine(index: np.ndarray) -> np.ndarray:
-        p = means[index]
-        lo, hi = p.min(0), p.max(0)
+        p = columns if len(index) == columns.shape[1] else np.take(columns, index, axis=1)
+        lo, hi = p.min(1), p.max(1)
         length = hi - lo
         if not np.isfinite(length).all() or not length.any():
             return index
         with np.errstate(divide="ignore"):
             mul = np.where(length == 0, 0.0, (1 << MORTON_BITS) / length)
-        cell = np.minimum((1 << MORTON_BITS) - 1, (p - lo) * mul).astype(np.uint32)
-        code = (_part1by2(cell[:, 2]) << np.uint32(2)) | (_part1by2(cell[:, 1]) << np.uint32(1)) \
-            | _part1by2(cell[:, 0])
+        cell = np.minimum((1 << MORTON_BITS) - 1, (p - lo[:, None]) * mul[:, None]).astype(np.uint32)
+        code = (_part1by2(cell[2]) << np.uint32(2)) | (_part1by2(cell[1]) << np.uint32(1)) | _part1by2(cell[0])
         keys = (code.astype(np.uint64) << np.uint64(32)) | np.arange(len(code), dtype=np.uint64)
         keys.sort()
         index, code = index[(keys & np.uint64(0xFFFFFFFF)).astype(np.intp)], keys >> np.uint64(32)
@@ -163,24 +162,20 @@ def morton_order(means: np.ndarray) -> np.ndarray:
     return refine(order) if len(order) else order
 
 
-def _unit_interval(values: np.ndarray, box: np.ndarray, clamp: float | None = None) -> np.ndarray:
-    """Rows ``values`` [m, 3] (float32; whole chunks, the last one may be short) -> t [m, 3] float64 in [0, 1]
-    within each chunk's box, whose min and max per axis (clamped to [-clamp, clamp]) go to ``box`` [c, 6].
+def _unit_interval(columns: np.ndarray, box: np.ndarray, clamp: float | None = None) -> np.ndarray:
+    """``columns`` [3, C * 256] (float32, one row per axis; whole chunks, the last padded with copies of its
+    last value) -> t [3, C * 256] float64 in [0, 1] within each chunk's box, whose min and max per axis
+    (clamped to [-clamp, clamp]) go to ``box`` [C, 6] (mins, then maxes).
 
     t = (v - lo) / (hi - lo), 0 at or below lo, 1 at or above hi, and in a range narrower than MIN_RANGE 0
-    but at its hi (above lo), as splat-transform does. The last chunk is padded with its last row."""
-    m = len(values)
-    c = -(-m // CHUNK_SIZE)
-    blocks = np.empty((c * CHUNK_SIZE, 3), np.float32)
-    blocks[:m] = values
-    blocks[m:] = values[-1]
-    blocks = blocks.reshape(c, CHUNK_SIZE, 3)
-    lo, hi = blocks.min(1), blocks.max(1)  # exact float32 values: the padding repeats a real row
+    but at its hi (above lo), as splat-transform does."""
+    blocks = columns.reshape(3, -1, CHUNK_SIZE)
+    lo, hi = blocks.min(2), blocks.max(2)  # exact float32 values: the padding repeats a real value
     if clamp is not None:
         np.clip(lo, -clamp, clamp, out=lo)
         np.clip(hi, -clamp, clamp, out=hi)
-    box[:, :3], box[:, 3:] = lo, hi
-    lo64, hi64 = lo[:, None, :].astype(np.float64), hi[:, None, :].astype(np.float64)
+    box[:, :3], box[:, 3:] = lo.T, hi.T
+    lo64, hi64 = lo[:, :, None].astype(np.float64), hi[:, :, None].astype(np.float64)
     span = hi64 - lo64
     t = np.subtract(blocks, lo64, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -189,56 +184,74 @@ def _unit_interval(values: np.ndarray, box: np.ndarray, clamp: float | None = No
     narrow = span < MIN_RANGE
     if narrow.any():
         np.copyto(t, (blocks > lo64) & (blocks >= hi64), where=np.broadcast_to(narrow, t.shape))
-    return t.reshape(-1, 3)[:m]
+    return t.reshape(3, -1)
 
 
-def _pack_unorm(t: np.ndarray, bits: tuple[int, ...]) -> list[np.ndarray]:
-    """t [m, D] in [0, 1] -> D uint32 columns floor(t (2^b - 1) + 1/2), column d of ``bits[d]`` bits (in place
-    on t)."""
-    t *= np.array([(1 << b) - 1 for b in bits], dtype=np.float64)
+def _to_unorm(t: np.ndarray, bits: int) -> np.ndarray:
+    """t in [0, 1] (float64, scaled in place) -> uint32 floor(t (2^bits - 1) + 1/2)."""
+    t *= (1 << bits) - 1
     t += 0.5
-    q = t.astype(np.uint32)  # floor of t >= 0
-    return [q[:, d] for d in range(len(bits))]
+    return t.astype(np.uint32)  # floor of t >= 0
 
 
-def _pack_111011(t: np.ndarray) -> np.ndarray:
-    x, y, z = _pack_unorm(t, XYZ_BITS)
+def _pack_111011(t: np.ndarray, m: int) -> np.ndarray:
+    """t [3, >= m] in [0, 1] -> the first m 11-10-11 words (x in bits 21-31, y 11-20, z 0-10)."""
+    x, y, z = (_to_unorm(t[i, :m], b) for i, b in enumerate(XYZ_BITS))
     return (x << np.uint32(21)) | (y << np.uint32(11)) | z
 
 
-def _pack_rotation(quats: np.ndarray) -> np.ndarray:
-    """wxyz quaternions [m, 4] -> uint32 [m]: the largest |component|'s index (the first of equals) in bits
-    30-31, then the three others in wxyz order as 10-bit unorm(c / sqrt(2) + 1/2), the quaternion negated
-    first where the largest is negative."""
-    q = quats.astype(np.float64)
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    m = len(q)
-    largest = np.abs(q).argmax(1)  # the first of equal magnitudes
-    q *= np.where(q[np.arange(m), largest] < 0, -1.0, 1.0)[:, None]
-    others = np.stack([np.where(largest <= j, q[:, j + 1], q[:, j]) for j in range(3)], 1)
-    others *= np.sqrt(0.5)
-    others += 0.5
-    np.clip(others, 0.0, 1.0, out=others)
-    a, b, c = _pack_unorm(others, (ROTATION_BITS,) * 3)
-    return (largest.astype(np.uint32) << np.uint32(30)) | (a << np.uint32(20)) | (b << np.uint32(10)) | c
+def _pack_rotation(q: np.ndarray) -> np.ndarray:
+    """wxyz quaternions as columns q [4, m] (float64, normalised and changed in place) -> uint32 [m]: the index
+    of the largest |component| (the first of equals) in bits 30-31, then the three others in wxyz order as
+    10-bit unorm(c / sqrt(2) + 1/2), the quaternion negated first where the largest is negative."""
+    q /= np.linalg.norm(q, axis=0)  # ((w^2 + x^2) + y^2) + z^2, as numpy's row norm of the [m, 4] rows
+    a = np.abs(q)
+    largest, best, value = np.zeros(q.shape[1], np.uint32), a[0].copy(), q[0].copy()
+    for i in range(1, 4):
+        above = a[i] > best  # strictly: the first of equal magnitudes stays
+        largest[above], value[above] = i, q[i][above]
+        np.maximum(best, a[i], out=best)
+    q *= np.where(value < 0, -1.0, 1.0)
+    word = largest << np.uint32(30)
+    for j, shift in enumerate((20, 10, 0)):  # the j-th component other than the largest
+        c = np.where(largest <= j, q[j + 1], q[j])
+        c *= np.sqrt(0.5)
+        c += 0.5
+        np.clip(c, 0.0, 1.0, out=c)
+        word |= _to_unorm(c, ROTATION_BITS) << np.uint32(shift)
+    return word
+
+
+def _columns(a: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Rows ``index`` of a contiguous [N, D] as contiguous columns [D, len(index)] (np.take then a transposed
+    copy: several times faster than taking along the columns of a transposed view; np.take copies a
+    non-contiguous input whole first, so strided views are indexed instead)."""
+    return np.ascontiguousarray(np.take(a, index, axis=0).T)
 
 
 def _fill_rows(scene: GaussianScene, index: np.ndarray, chunks: np.ndarray, vertex: np.ndarray,
                rest: np.ndarray) -> None:
     """The file's rows ``index`` of the scene (whole chunks, the last one may be short): their chunk table
     rows ``chunks`` [c, 18], packed vertices ``vertex`` [m, 4] and higher SH bytes ``rest`` [m, 3 (K-1)]
-    (the module docstring's layout)."""
-    log_scales = np.log(scene.scales[index].astype(np.float64)).astype(np.float32)  # the file's log scales
-    colour = (scene.sh[index, 0, :].astype(np.float64) * SH_C0 + 0.5).astype(np.float32)
-    vertex[:, 0] = _pack_111011(_unit_interval(scene.means[index], chunks[:, 0:6]))
-    vertex[:, 1] = _pack_rotation(scene.quats[index])
-    vertex[:, 2] = _pack_111011(_unit_interval(log_scales, chunks[:, 6:12], LOG_SCALE_CLAMP))
-    r, g, b = _pack_unorm(_unit_interval(colour, chunks[:, 12:18]), (8, 8, 8))
-    (alpha,) = _pack_unorm(scene.opacities[index, None].astype(np.float64), (8,))
+    (the module docstring's layout). Works on columns (one row per axis) gathered through the index padded
+    to whole chunks with its last row, as the format pads the last chunk's box."""
+    m = len(index)
+    padded = np.empty(-(-m // CHUNK_SIZE) * CHUNK_SIZE, np.intp)
+    padded[:m], padded[m:] = index, index[-1]
+    means = _columns(scene.means, padded)
+    log_scales = np.log(_columns(scene.scales, padded), dtype=np.float64).astype(np.float32)
+    colour = np.multiply(scene.sh[padded, 0, :].T, SH_C0, dtype=np.float64)
+    colour += 0.5
+    vertex[:, 0] = _pack_111011(_unit_interval(means, chunks[:, 0:6]), m)
+    vertex[:, 1] = _pack_rotation(_columns(scene.quats, index).astype(np.float64))
+    vertex[:, 2] = _pack_111011(_unit_interval(log_scales, chunks[:, 6:12], LOG_SCALE_CLAMP), m)
+    rgb = _unit_interval(colour.astype(np.float32), chunks[:, 12:18])
+    r, g, b = (_to_unorm(rgb[i, :m], 8) for i in range(3))
+    alpha = _to_unorm(np.take(scene.opacities, index).astype(np.float64), 8)
     vertex[:, 3] = (r << np.uint32(24)) | (g << np.uint32(16)) | (b << np.uint32(8)) | alpha
     if rest.shape[1]:
         # q = clip(trunc(256 (f / 8 + 1/2)), 0, 255) = the float64 32 f + 128 (the same rounding), clipped
-        m, k1 = len(index), rest.shape[1] // 3
+        k1 = rest.shape[1] // 3
         u = np.empty((m, 3, k1), np.float64)
         np.multiply(scene.sh[index, 1:, :].transpose(0, 2, 1), 256.0 / (2 * SH_RANGE), out=u)
         u += 128.0
