@@ -1,10 +1,10 @@
 """``scenesplat-stereo`` command line: parse, call, print. Each command's work lives in its room.
 
 Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``inspect``,
-``demo-teachers``, ``bench render``, ``bench build``, ``bench encode``. Units and conventions are stated in each
-command's ``--help``. Exit status (``scenesplat_stereo.commandline``): 0 done, 2 bad arguments or input (one line
-naming the flag or file), 130 interrupted, 1 internal error (traceback with ``--debug``); ``build`` exits 3 when
-a teacher failed, ``inspect`` 1 when a check failed.
+``demo-teachers``, ``bench render``, ``bench build``, ``bench encode``, ``bench scenes``. Units and conventions
+are stated in each command's ``--help``. Exit status (``scenesplat_stereo.commandline``): 0 done, 2 bad
+arguments or input (one line naming the flag or file), 130 interrupted, 1 internal error (traceback with
+``--debug``); ``build`` exits 3 when a teacher failed, ``inspect`` 1 when a check failed.
 """
 
 from __future__ import annotations
@@ -86,6 +86,7 @@ def _add_demo_teachers(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
+    from scenesplat_stereo import scene_bench
     from scenesplat_stereo.bench import build as bench_build
     from scenesplat_stereo.bench import encode as bench_encode
     from scenesplat_stereo.bench import render as bench_render
@@ -105,6 +106,10 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
                            description=bench_encode.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     bench_encode.add_arguments(e)
     e.set_defaults(func=bench_encode.run)
+    s = benches.add_parser("scenes", help="every scene writer's time and file size at N Gaussians",
+                           description=scene_bench.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    scene_bench.add_arguments(s)
+    s.set_defaults(func=scene_bench.run)
 
 
 # Each entry adds one sub-command. Kept as a list so that each room registers its own command here

@@ -46,12 +46,14 @@ def pool() -> ThreadPoolExecutor:
         return _pool
 
 
-def row_ranges(n: int, step: int = ROWS_PER_TASK) -> list[tuple[int, int]]:
-    """[(start, end), ...] covering rows 0..n in slices of ``step`` (the last one shorter)."""
+def row_ranges(n: int, step: int | None = None) -> list[tuple[int, int]]:
+    """[(start, end), ...] covering rows 0..n in slices of ``step`` (default ``ROWS_PER_TASK``, read at each
+    call; the last slice shorter)."""
+    step = step or ROWS_PER_TASK
     return [(a, min(a + step, n)) for a in range(0, n, step)]
 
 
-def submit_rows(fn: Callable[[int, int], object], n: int, step: int = ROWS_PER_TASK) -> list[Future]:
+def submit_rows(fn: Callable[[int, int], object], n: int, step: int | None = None) -> list[Future]:
     """``fn(start, end)`` for every slice of ``row_ranges(n, step)``, queued on the shared pool in order."""
     p = pool()
     return [p.submit(fn, a, b) for a, b in row_ranges(n, step)]

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from scenesplat_stereo import row_tasks
 from scenesplat_stereo.encode import to_uint8
 from scenesplat_stereo.gaussians import GaussianScene
 from scenesplat_stereo.scene_files import FORMATS
@@ -60,8 +61,12 @@ CODECS = {"mp4v": Codec("mp4v", ".mp4", False), "mjpg": Codec("MJPG", ".avi", Fa
 DEFAULT_FPS = 30.0
 #: The orbit's default radius (a fraction of the first frame's median depth) and its period in seconds.
 ORBIT_RADIUS, ORBIT_PERIOD = 0.15, 8.0
-#: Batches queued for the writer thread at most: the model waits beyond that (frames and scenes held in memory).
+#: Batches queued for the writer threads at most: the model waits beyond that (frames and scenes held in memory).
 MAX_QUEUED = 2
+#: Threads writing the per-frame scenes of ``--frames``: half the usable cores, 2 to 8 (each scene's
+#: quantisation also runs on the shared pool of ``scenesplat_stereo.row_tasks``; the serial part of a writer,
+#: gzip for .spz, is what several writers overlap).
+SCENE_WRITERS = max(2, min(8, row_tasks.workers() // 2))
 
 
 # ---------------------------------------------------------------- input
@@ -178,33 +183,51 @@ def parse_trajectory(text: str) -> Trajectory:
 class VideoSink:
     """The novel-view video (``codec`` of CODECS at ``fps``, width x height) and, when ``scene_folder`` is
     given, one scene per frame named by frame number, its Gaussians moved by ``scene_frame`` first (a raw
-    rig's left camera frame; None: the model's); written in order by one writer thread."""
+    rig's left camera frame; None: the model's).
+
+    The frames are encoded in order by one writer thread; the scenes are written by ``scene_writers``
+    threads side by side (each file atomically, ``export.write_scene``), so a format whose writer takes
+    longer than a frame's prediction still keeps up: the stream runs at the rate of the slower of the model
+    and ``scene_writers`` writers, not of their sum. A batch counts as written when its frames and all its
+    scenes are; the first error of a scene writer is raised from the batch's future, once (``close`` then
+    drops the batches not yet started)."""
 
     def __init__(self, path: Path, codec: str, fps: float, width: int, height: int,
                  scene_folder: Path | None = None, scene_format: str = "spz",
-                 scene_frame: Callable[[dict], dict] | None = None) -> None:
+                 scene_frame: Callable[[dict], dict] | None = None, scene_writers: int = SCENE_WRITERS) -> None:
         self.writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*CODECS[codec].fourcc), fps, (width, height))
         if not self.writer.isOpened():
             raise PredictError(f"--codec {codec}: OpenCV cannot write {CODECS[codec].fourcc} to {path.name}")
         self.scene_folder, self.scene_format, self.scene_frame = scene_folder, scene_format, scene_frame
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="video-writer")
+        self.scene_writers = max(1, scene_writers)
+        self.scene_pool = ThreadPoolExecutor(self.scene_writers, thread_name_prefix="scene-writer")
 
-    def submit(self, first: int, frames: np.ndarray, scenes: list[GaussianScene]) -> Future:
-        """Queue uint8 RGB frames [n,H,W,3] (frame numbers first..) and their scenes; the future's result is
-        the time the batch was written (perf_counter seconds)."""
-        return self.pool.submit(self._write, first, frames, scenes)
+    def submit(self, first: int, frames: np.ndarray, scene: Callable[[int], GaussianScene] | None = None) -> Future:
+        """Queue uint8 RGB frames [n,H,W,3] (frame numbers first..) and, with a scene folder, their scenes:
+        ``scene(i)`` makes frame first + i's (called in a scene writer, so the copy of its Gaussians to the
+        host overlaps the model too). The future's result is the time the batch was written (perf_counter
+        seconds)."""
+        written = [] if self.scene_folder is None else \
+            [self.scene_pool.submit(self._write_scene, scene, i, first + i) for i in range(len(frames))]
+        return self.pool.submit(self._write, frames, written)
 
-    def _write(self, first: int, frames: np.ndarray, scenes: list[GaussianScene]) -> float:
+    def _write_scene(self, scene: Callable[[int], GaussianScene], i: int, number: int) -> Path:
+        path = self.scene_folder / f"{number:06d}{FORMATS[self.scene_format].suffix}"
+        return write_scene(scene(i), path, self.scene_format)
+
+    def _write(self, frames: np.ndarray, scenes: list[Future]) -> float:
         for f in frames:
             self.writer.write(np.ascontiguousarray(f[..., ::-1]))
-        if self.scene_folder is not None:
-            for i, scene in enumerate(scenes):
-                write_scene(scene, self.scene_folder / f"{first + i:06d}{FORMATS[self.scene_format].suffix}",
-                            self.scene_format)
+        for future in scenes:
+            future.result()
         return time.perf_counter()
 
-    def close(self) -> None:
-        self.pool.shutdown(wait=True)
+    def close(self, cancel: bool = False) -> None:
+        """Wait for the queued writes (``cancel``: only for those already started, after an error or Ctrl-C),
+        then close the video."""
+        self.scene_pool.shutdown(wait=True, cancel_futures=cancel)
+        self.pool.shutdown(wait=True, cancel_futures=cancel)
         self.writer.release()
 
 
@@ -274,6 +297,7 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
     total = min(x for x in (source.frame_count, max_frames) if x is not None) \
         if (source.frame_count or max_frames) else None
     report, pending, done, written = StreamReport(), [], 0, 0
+    queued = max(MAX_QUEUED, -(-sink.scene_writers // batch_size) + 1)  # keep every scene writer busy
     reader = ThreadPoolExecutor(1, thread_name_prefix="video-reader")
 
     def read(n: int) -> tuple[float, float, np.ndarray, np.ndarray]:
@@ -281,7 +305,7 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
         left, right = source.read(n)
         return start, time.perf_counter(), left, right
 
-    start = time.perf_counter()
+    start, finished = time.perf_counter(), False
     bar = tqdm(total=total, unit="frame", disable=not progress, desc="video", dynamic_ncols=True)
     try:
         ahead = reader.submit(read, batch_size if total is None else min(batch_size, total))
@@ -310,22 +334,19 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
             t_render = time.perf_counter()
             kept, produced = scenes.counts()
             report.kept, report.produced = report.kept + kept, report.produced + produced
-            if sink.scene_folder is not None:
-                moved = scenes.in_frame(sink.scene_frame)
-                scene_list = [moved.scene(i) for i in range(n)]
-            else:
-                scene_list = []
             report.batches.append(BatchTimes(n, t0, t1, t_start, t_model, t_render))
-            pending.append(sink.submit(done, frames, scene_list))
+            pending.append(sink.submit(done, frames, scenes.in_frame(sink.scene_frame).scene
+                                       if sink.scene_folder is not None else None))
             done += n
             bar.update(n)
-            while len(pending) - written > MAX_QUEUED:  # back-pressure: the writer is behind
+            while len(pending) - written > queued:  # back-pressure: the writers are behind
                 report.batches[written].written, written = pending[written].result(), written + 1
         for batch, future in zip(report.batches[written:], pending[written:]):
             batch.written = future.result()
+        finished = True
     finally:
         bar.close()
         reader.shutdown(wait=True)
-        sink.close()
+        sink.close(cancel=not finished)  # after an error or Ctrl-C: only the writes already started end
     report.wall = time.perf_counter() - start
     return report
