@@ -9,7 +9,8 @@ depends on the bytes, so a real prediction's ``.spz`` may take somewhat more or 
 
 Each writer of ``scene_files.FORMATS`` writes the scene as ``sgmodel predict`` does (atomically, without
 fsync), then the ``.ply`` with fsync (what the fsync costs), ``--warmup`` untimed and ``--repeats`` timed
-times into a temporary folder (``--folder``: on that disk); the table gives the median and the fastest run.
+times into a temporary folder (``--folder``: on that disk); the table gives the median and the fastest run,
+and the median CPU time of the process (all threads: what the write costs the machine).
 A last row per degree times the ``.spz``'s deflate alone (``zlib`` level 6 of the uncompressed stream, one
 thread): the serial part of a byte-identical ``.spz`` writer, which no threading removes.
 """
@@ -38,7 +39,7 @@ from scenesplat_stereo.text import markdown_table
 #: The Gaussians ``sgmodel predict`` makes from a 320x256 pair (two layers on the padded canvas).
 PREDICTION_GAUSSIANS = 202_752
 #: Columns of ``writer_rows``.
-COLUMNS = ["writer", "SH degree", "Gaussians", "median ms", "min ms", "MB", "x smaller than .ply"]
+COLUMNS = ["writer", "SH degree", "Gaussians", "median ms", "min ms", "CPU ms", "MB", "x smaller than .ply"]
 
 
 def synthetic_scene(n: int = PREDICTION_GAUSSIANS, sh_degree: int = 0, seed: int = 0) -> GaussianScene:
@@ -61,14 +62,17 @@ def synthetic_scene(n: int = PREDICTION_GAUSSIANS, sh_degree: int = 0, seed: int
     return GaussianScene(f32(means), f32(quats), f32(scales), f32(rng.uniform(0.05, 1.0, n)), f32(sh), sh_degree)
 
 
-def _times(run: Callable[[], object], warmup: int, repeats: int) -> list[float]:
-    times = []
+def _times(run: Callable[[], object], warmup: int, repeats: int) -> list[str]:
+    """[median ms, min ms, median CPU ms] of ``repeats`` runs after ``warmup``: wall time, and the process's CPU
+    time (all threads; less sensitive to other processes on a shared machine than the wall time)."""
+    wall, cpu = [], []
     for i in range(warmup + repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         run()
         if i >= warmup:
-            times.append(time.perf_counter() - t)
-    return times
+            wall.append(time.perf_counter() - t)
+            cpu.append(time.process_time() - c)
+    return [f"{1e3 * statistics.median(wall):.1f}", f"{1e3 * min(wall):.1f}", f"{1e3 * statistics.median(cpu):.1f}"]
 
 
 def writer_rows(scene: GaussianScene, folder: Path, warmup: int, repeats: int, label: str | None = None,
@@ -84,13 +88,13 @@ def writer_rows(scene: GaussianScene, folder: Path, warmup: int, repeats: int, l
         path = folder / f"bench{suffix}"
         times = _times(lambda: write(path), warmup, repeats)
         sizes[name] = path.stat().st_size
-        rows.append([name, degree, f"{len(scene):,}", f"{1e3 * statistics.median(times):.1f}",
-                     f"{1e3 * min(times):.1f}", f"{sizes[name] / 1e6:.2f}", f"{sizes['ply'] / sizes[name]:.1f}"])
+        rows.append([name, degree, f"{len(scene):,}", *times, f"{sizes[name] / 1e6:.2f}",
+                     f"{sizes['ply'] / sizes[name]:.1f}"])
     if deflate and "spz" in sizes:
         raw = encode_spz(scene)
         times = _times(lambda: zlib.compress(raw, GZIP_LEVEL), warmup, repeats)
-        rows.append([f"spz: its deflate alone (zlib {GZIP_LEVEL}, one thread)", degree, f"{len(scene):,}",
-                     f"{1e3 * statistics.median(times):.1f}", f"{1e3 * min(times):.1f}", "", ""])
+        rows.append([f"spz: its deflate alone (zlib {GZIP_LEVEL}, one thread)", degree, f"{len(scene):,}", *times,
+                     "", ""])
     return rows
 
 
@@ -128,8 +132,10 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(dir=args.folder) as tmp:
         for degree in args.sh_degrees:
             rows += writer_rows(synthetic_scene(args.gaussians, degree), Path(tmp), args.warmup, args.repeats)
-    text = (f"Scene writers on {machine()}: {args.gaussians:,} prediction-shaped Gaussians, each write atomic "
-            f"without fsync unless said; median and fastest of {args.repeats} after {args.warmup}.\n\n"
+    load = ", load average {:.1f} {:.1f} {:.1f}".format(*os.getloadavg()) if hasattr(os, "getloadavg") else ""
+    text = (f"Scene writers on {machine()}{load}: {args.gaussians:,} prediction-shaped Gaussians, each write "
+            f"atomic without fsync unless said; median and fastest of {args.repeats} after {args.warmup}, and "
+            f"the median CPU time (all threads).\n\n"
             f"{markdown_table(COLUMNS, rows)}\n")
     print(text)
     if args.out:

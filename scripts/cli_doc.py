@@ -26,6 +26,7 @@ COMMANDS = [
     ("scenesplat-stereo bench render", "rasteriser speed/accuracy knobs against gsplat and the float64 reference"),
     ("scenesplat-stereo bench build", "dataset build throughput, split into render/encode/write, projected to the paper's size"),
     ("scenesplat-stereo bench encode", "host JPEG/PNG/EXR encoding without a GPU: per-image cost, encoder threads against processes"),
+    ("scenesplat-stereo bench scenes", "every scene writer's time and file size at N Gaussians, SH degree 0 and 2"),
     ("sgmodel train", "train the model on shards (AdamW/OneCycle, validation, best checkpoint, resume, torchrun)"),
     ("sgmodel eval", "PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split, with a report folder"),
     ("sgmodel predict", "a stereo pair or video (rectified, or raw with --rig) to 3DGS scenes, viewer files, views"),

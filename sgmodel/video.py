@@ -2,6 +2,7 @@
 
     decode (reader thread) -> batches of raw ``Pair`` s -> the pair transform (``sgmodel.pairs``) ->
     ``inference.Reconstructor`` (the path of a still pair) -> one novel view per frame -> encode (writer thread)
+    and, with ``--frames``, each frame's scene to the host and its file (``SCENE_WRITERS`` scene writer threads)
 
 Input: one side-by-side video (left eye in the left half) or a left and a right video of one size and frame
 rate, with the calibration of one eye's frame (as for a still pair). Output: the novel view of every frame
@@ -237,7 +238,7 @@ class VideoSink:
 class BatchTimes:
     """One batch's frames and times (perf_counter seconds): decode start and end (reader thread, ahead of
     the model), model start and end (pair transform and prediction), render end (the frames on the host),
-    written (encoded and its scenes written, writer thread)."""
+    written (encoded, writer thread, and its scenes written, scene writer threads)."""
 
     frames: int
     decode_start: float

@@ -199,7 +199,7 @@ def test_bench_predict_times_every_stage_on_the_cpu(tmp_path, capsys):
     for scene in ("as predicted (0)", "2 (a trained model's)"):  # a fresh model: SH 0
         for fmt in ("ply", "compressed-ply", "spz", "ply, fsync'd"):
             assert re.search(rf"\| {re.escape(fmt)} \| {re.escape(scene)} \| [\d,]+ \| \d+\.\d \| \d+\.\d \| "
-                             rf"\d+\.\d\d \| \d+\.\d \|", text), (scene, fmt)
+                             rf"\d+\.\d \| \d+\.\d\d \| \d+\.\d \|", text), (scene, fmt)
         assert re.search(rf"\| spz: its deflate alone \(zlib 6, one thread\) \| {re.escape(scene)} \| [\d,]+ \|", text)
 
 
