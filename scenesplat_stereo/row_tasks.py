@@ -8,7 +8,8 @@ temporaries (8192 rows x 24 SH coefficients: 1.5 MB) stay in the CPU's cache ins
 [N, ...] arrays through memory once per operation.
 
 The pool is created on first use with ``workers()`` threads and shared by every writer in the process
-(several scenes written at once, as ``sgmodel predict --video --frames`` does, share it too). A task must
+(several scenes written at once, as ``sgmodel predict --video --frames`` does, share it too); a forked
+child makes its own. A task must
 never wait for another task of this pool (that could deadlock a full pool); writers wait in their own thread.
 """
 
@@ -26,6 +27,15 @@ MAX_WORKERS = 16
 
 _pool: ThreadPoolExecutor | None = None
 _lock = threading.Lock()
+
+
+def _forget_pool() -> None:
+    """In a forked child the parent's pool threads do not exist: the child makes its own on first use."""
+    global _pool, _lock
+    _pool, _lock = None, threading.Lock()
+
+
+os.register_at_fork(after_in_child=_forget_pool)
 
 
 def workers() -> int:

@@ -64,10 +64,11 @@ DEFAULT_FPS = 30.0
 ORBIT_RADIUS, ORBIT_PERIOD = 0.15, 8.0
 #: Batches queued for the writer threads at most: the model waits beyond that (frames and scenes held in memory).
 MAX_QUEUED = 2
-#: Threads writing the per-frame scenes of ``--frames``: half the usable cores, 2 to 8 (each scene's
-#: quantisation also runs on the shared pool of ``scenesplat_stereo.row_tasks``; the serial part of a writer,
-#: gzip for .spz, is what several writers overlap).
-SCENE_WRITERS = max(2, min(8, row_tasks.workers() // 2))
+#: Threads writing the per-frame scenes of ``--frames``: the usable cores but 4 (the model's thread, the
+#: reader, the encoder and one spare), 2 to 12. The serial part of a writer, the .spz's deflate (100-250 ms a
+#: 200K-Gaussian scene), is what several writers overlap; their quantisation runs on the shared pool of
+#: ``scenesplat_stereo.row_tasks``.
+SCENE_WRITERS = max(2, min(12, row_tasks.workers() - 4))
 
 
 # ---------------------------------------------------------------- input

@@ -134,6 +134,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="video: also run end to end with a scene per frame in each of these formats, as "
                    "`predict --video --frames` does (default: every format; none: only without scenes)")
     p.add_argument("--scene-writers", type=int, default=SCENE_WRITERS,
-                   help=f"video: threads writing those scenes (default as predict: half the usable cores, 2 "
-                   f"to 8; {SCENE_WRITERS} here)")
+                   help=f"video: threads writing those scenes (default as predict: the usable cores but 4, 2 to "
+                   f"12; {SCENE_WRITERS} here)")
     p.add_argument("--out", type=Path, help="also write the markdown table here")
