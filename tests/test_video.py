@@ -21,8 +21,8 @@ from scenesplat_stereo.encode import encode_png, to_uint8
 from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.scene_files import FORMATS
 from scripts.video_demo import read_frames, render_clip
-from sgmodel import predict as predict_mod
 from sgmodel import export, video
+from sgmodel import predict as predict_mod
 from sgmodel.export import offset_camera, orbit_camera
 from sgmodel.render import render_views
 from tests.model_helpers import predict_status as run

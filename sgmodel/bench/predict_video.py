@@ -34,7 +34,7 @@ from ..inference import Reconstructor
 from ..model import Predictor
 from ..pairs import prepare_pairs
 from ..stereo_pair import Pair, to_tensor
-from ..video import CODECS, SCENE_WRITERS, StereoSource, Trajectory, VideoSink, stream
+from ..video import CODECS, StereoSource, Trajectory, VideoSink, stream
 from . import describe, report, synced_clock, synthetic_pair
 
 #: The novel view of the end-to-end run: the left camera moved 5 cm to the right.
