@@ -187,7 +187,8 @@ def encode_spz(scene: GaussianScene, path: str | os.PathLike = "<memory>") -> by
 
 def _gzip_header() -> bytes:
     """The 10 bytes ``gzip.compress(..., compresslevel=GZIP_LEVEL, mtime=0)`` starts with in this Python (they
-    do not depend on the data; the OS byte differs between Python versions)."""
+    do not depend on the data; the OS byte, the 10th, is zlib's 3 on Linux up to Python 3.12 and 255 from
+    3.13 on, CPython gh-112346)."""
     return gzip.compress(b"", compresslevel=GZIP_LEVEL, mtime=0)[:10]
 
 
