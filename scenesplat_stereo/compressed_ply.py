@@ -136,7 +136,8 @@ def morton_order(means: np.ndarray) -> np.ndarray:
     Each axis of the points' bounding box is cut into 2^10 cells, the 30-bit codes (z highest, then y,
     then x in each bit triple) are sorted stably, and every run of more than 256 equal codes is sorted
     again within its own box. (The stable sort is a plain sort of the 64-bit keys code << 32 | position,
-    which numpy runs with SIMD: many times faster than a stable argsort of the codes.)"""
+    which numpy runs with SIMD: many times faster than a stable argsort of the codes; the keys are made in
+    slices on the shared pool of ``row_tasks``, so this is not to be called from one of its tasks.)"""
     columns = np.asarray(means, dtype=np.float64).T.copy()  # [3, N]: reductions along rows are fast
     order = np.arange(columns.shape[1])
 
@@ -148,9 +149,14 @@ def morton_order(means: np.ndarray) -> np.ndarray:
             return index
         with np.errstate(divide="ignore"):
             mul = np.where(length == 0, 0.0, (1 << MORTON_BITS) / length)
-        cell = np.minimum((1 << MORTON_BITS) - 1, (p - lo[:, None]) * mul[:, None]).astype(np.uint32)
-        code = (_part1by2(cell[2]) << np.uint32(2)) | (_part1by2(cell[1]) << np.uint32(1)) | _part1by2(cell[0])
-        keys = (code.astype(np.uint64) << np.uint64(32)) | np.arange(len(code), dtype=np.uint64)
+        keys = np.empty(p.shape[1], np.uint64)  # code << 32 | position, made in slices on the shared pool
+
+        def fill(a: int, b: int) -> None:
+            cell = np.minimum((1 << MORTON_BITS) - 1, (p[:, a:b] - lo[:, None]) * mul[:, None]).astype(np.uint32)
+            code = (_part1by2(cell[2]) << np.uint32(2)) | (_part1by2(cell[1]) << np.uint32(1)) | _part1by2(cell[0])
+            keys[a:b] = (code.astype(np.uint64) << np.uint64(32)) | np.arange(a, b, dtype=np.uint64)
+
+        row_tasks.wait_all(row_tasks.submit_rows(fill, len(keys)))
         keys.sort()
         index, code = index[(keys & np.uint64(0xFFFFFFFF)).astype(np.intp)], keys >> np.uint64(32)
         starts = np.flatnonzero(np.r_[True, code[1:] != code[:-1]])
