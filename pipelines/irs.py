@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from scenesplat_stereo.cameras import right_camera
-from scenesplat_stereo.colmap import PinholeCamera, Recovery, RecoveryOptions, image_size, recover_poses
-from scenesplat_stereo.files import atomic_write_json
-from scenesplat_stereo.text import format_table, key_safe_name
+from scenesplat_stereo.captured.colmap import PinholeCamera, Recovery, RecoveryOptions, image_size, recover_poses
+from scenesplat_stereo.common.files import atomic_write_json
+from scenesplat_stereo.common.text import format_table, key_safe_name
+from scenesplat_stereo.scene.cameras import right_camera
 
 # Paper appendix F: IRS intrinsics (pixels) at its native 960x540, and the rectified stereo baseline.
 IRS_CAMERA = PinholeCamera(fx=480.0, fy=480.0, cx=480.0, cy=270.0, width=960, height=540)

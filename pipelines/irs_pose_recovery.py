@@ -21,7 +21,7 @@ writes ``{"frames": [{"image": name, "c2w": 4x4}], "registered": n, "mean_reproj
 (c2w OpenCV, in COLMAP's arbitrary units; e in pixels). Images are taken in natural name order
 (frame_2 before frame_10), which sequential matching relies on.
 
-Exit status (``scenesplat_stereo.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
+Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
 file), 130 interrupted, 1 internal error; ``recover`` exits 1 when no image registers.
 """
 
@@ -35,11 +35,11 @@ from pathlib import Path
 
 from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION_ERROR, MAX_SCALE_IQR_FRACTION,
                            MIN_REGISTERED_FRAMES, Filters, VariantConfig, run_dataset, summary_table)
-from scenesplat_stereo.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera, RecoveryOptions,
-                                      image_size, recover_poses, recovery_json)
-from scenesplat_stereo.commandline import Parser, run_command
-from scenesplat_stereo.files import atomic_write_json, check_writable
-from scenesplat_stereo.text import argtype, parse_size, positive_number, whole_number
+from scenesplat_stereo.captured.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera, RecoveryOptions,
+                                               image_size, recover_poses, recovery_json)
+from scenesplat_stereo.common.commandline import Parser, run_command
+from scenesplat_stereo.common.files import atomic_write_json, check_writable
+from scenesplat_stereo.common.text import argtype, parse_size, positive_number, whole_number
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 PROG = "irs-pose-recovery"  # the installed command (pyproject.toml [project.scripts])

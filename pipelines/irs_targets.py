@@ -25,7 +25,7 @@ selection order, ``mask_<jj>.png`` all valid (255: real images have no holes), a
 the largest reference-to-target distance (metres; IRS targets are not on a sphere), plus
 ``target_frames`` (IRS frame numbers) and ``target_coverage``.
 
-Exit status (``scenesplat_stereo.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
+Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
 file, nothing removed), 130 interrupted, 1 internal error.
 """
 
@@ -41,9 +41,9 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.irs import IRS_FOCAL_BASELINE, depth_from_disparity, read_disparity
-from scenesplat_stereo.cameras import rotation_angle_deg
-from scenesplat_stereo.commandline import Parser, run_command
-from scenesplat_stereo.text import format_table, key_safe_name, positive_number, whole_number
+from scenesplat_stereo.common.commandline import Parser, run_command
+from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
+from scenesplat_stereo.scene.cameras import rotation_angle_deg
 
 # Paper appendix F, "IRS target selection and training".
 REFERENCE_MIN_TRANSLATION = 0.05  # metres since the last reference frame ...
@@ -175,7 +175,7 @@ def split_samples(refs: Sequence[Reference], split: str, min_targets: int = TRAI
     """The references a split stores: "train" every reference with >= ``min_targets`` targets (all its
     targets); "val" ``protocol.validation_frames`` (5 evenly spaced) among those with at least
     ``len(VAL_TARGETS)`` targets, each cut to its first ``len(VAL_TARGETS)`` targets."""
-    from scenesplat_stereo.protocol import VAL_TARGETS, validation_frames
+    from scenesplat_stereo.build.protocol import VAL_TARGETS, validation_frames
 
     if split == "train":
         return [r for r in refs if len(r.targets) >= max(1, min_targets)]
@@ -265,8 +265,9 @@ def kept_variants(poses_dir: Path) -> list[str]:
 def sample_images(sel: VariantSelection, ref: Reference):
     """The ``encode.SampleImages`` of one stored reference pair (at least one target; images read from the
     IRS folder)."""
-    from scenesplat_stereo.encode import SampleImages
-    from scenesplat_stereo.protocol import SampleMeta, SamplePlan, sample_key
+    from scenesplat_stereo.build.protocol import SamplePlan
+    from scenesplat_stereo.shards.encode import SampleImages
+    from scenesplat_stereo.shards.sample import SampleMeta, sample_key
 
     frames, w, h = sel.poses["frames"], sel.poses["width"], sel.poses["height"]
     f = frames[ref.index]
@@ -299,13 +300,11 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
 
     from tqdm import tqdm
 
-    from scenesplat_stereo.files import atomic_write_json
-    from scenesplat_stereo.encode_pool import SampleEncoder
-    from scenesplat_stereo.protocol import split_scenes
-    from scenesplat_stereo.shards import (ShardWriter, collect_stats, finished_shards, remove_shard, write_index,
-                                          write_stats)
-
-    from scenesplat_stereo.files import check_writable
+    from scenesplat_stereo.build.protocol import split_scenes
+    from scenesplat_stereo.common.files import atomic_write_json, check_writable
+    from scenesplat_stereo.shards.encode_pool import SampleEncoder
+    from scenesplat_stereo.shards.webdataset import (ShardWriter, collect_stats, finished_shards, remove_shard,
+                                                     write_index, write_stats)
 
     if samples_per_shard < 1:
         raise ValueError(f"--samples-per-shard {samples_per_shard}: must be >= 1")

@@ -2,8 +2,11 @@
 canvas + residual attribute composer, trained by rendering targets through
 ``scenesplat_stereo.raster.rasterization`` (the same function the dataset uses).
 
-Entry points: ``sgmodel.model.create_model`` / ``load_predictor``, ``sgmodel.train.train``, and the
-``sgmodel`` command (train, eval, predict, ablate, weights, bench). The rooms are listed in docs/model.md.
+Stages, bottom-up as the data flows (docs/architecture.md): ``kernels``, ``encoders``, ``data`` (batches),
+``model``, ``metrics``, ``train`` (checkpoints), ``pairs`` (a user's stereo input), ``predict`` (scenes),
+``evaluation``, ``bench``; ``config``, ``args`` and ``weights`` are shared, ``cli`` is the command table.
+Entry points: ``sgmodel.model.network.create_model`` / ``load_predictor``, ``sgmodel.train.loop.train``, and the
+``sgmodel`` command.
 """
 
 __version__ = "0.1.0"

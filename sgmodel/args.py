@@ -16,11 +16,10 @@ import logging
 
 import torch
 
+from scenesplat_stereo.common.text import argtype, non_negative_number, open_fraction, positive_number, whole_number
 from scenesplat_stereo.raster import check_device
-from scenesplat_stereo.text import argtype, non_negative_number, open_fraction, positive_number, whole_number
-
-from .config import MAX_SEED, PRESETS, ModelParams, TrainParams
-from .encoders.flags import add_encoder_arguments, encoder_params
+from sgmodel.config import MAX_SEED, PRESETS, ModelParams, TrainParams
+from sgmodel.encoders.flags import add_encoder_arguments, encoder_params
 
 log = logging.getLogger(__name__)
 

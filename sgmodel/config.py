@@ -48,7 +48,7 @@ class ComposerParams:
     back_layer: bool = True  # two Gaussian layers; False: front layer only (Table 4 "without back layer")
     edge_mask: str = "none"  # back-layer opacity gate: "none" (default), "hard" or "soft" (appendix A)
     composer: bool = True  # residual attribute composition; False: plain activations (Table 4,
-    # "without composer"; exact meaning in sgmodel.composer)
+    # "without composer"; exact meaning in sgmodel.model.composer)
 
 
 @dataclass

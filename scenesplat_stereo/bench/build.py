@@ -38,19 +38,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.build_settings import BuildSettings
-from scenesplat_stereo.cameras import intrinsics_matrix
-from scenesplat_stereo.demo import make_room, room_trajectory
-from scenesplat_stereo.effects import CameraEffects
-from scenesplat_stereo.encode import JPEG_ENCODERS, decode_image, encode_jpeg
-from scenesplat_stereo.encode_pool import ENCODER_MODES, SampleEncoder, default_encoder_workers
-from scenesplat_stereo.files import atomic_write_bytes
-from scenesplat_stereo.nvjpeg import NvJpegEncoder
-from scenesplat_stereo.protocol import JPEG_QUALITY, SamplePlan, plan_scene
+from scenesplat_stereo.build.demo import make_room, room_trajectory
+from scenesplat_stereo.build.effects import CameraEffects
+from scenesplat_stereo.build.protocol import SamplePlan, plan_scene
+from scenesplat_stereo.build.render_pairs import start_render, stream_samples
+from scenesplat_stereo.build.settings import BuildSettings
+from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.measure import psnr_from_mse, synced_clock
 from scenesplat_stereo.raster import rasterization
-from scenesplat_stereo.render_pairs import start_render, stream_samples
-from scenesplat_stereo.shards import ShardWriter
-from scenesplat_stereo.teachers import Teacher
+from scenesplat_stereo.scene.cameras import intrinsics_matrix
+from scenesplat_stereo.scene.teachers import Teacher
+from scenesplat_stereo.shards.encode import JPEG_ENCODERS, decode_image, encode_jpeg
+from scenesplat_stereo.shards.encode_pool import ENCODER_MODES, SampleEncoder, default_encoder_workers
+from scenesplat_stereo.shards.nvjpeg import NvJpegEncoder
+from scenesplat_stereo.shards.sample import JPEG_QUALITY
+from scenesplat_stereo.shards.webdataset import ShardWriter
 
 # Paper appendix B ("Scene splits and counts", "Rendering and valid masks"): training pairs per subset at
 # the subsets' native resolutions.
@@ -118,9 +120,8 @@ def synthetic_teacher(n: int, sh_degree: int, frames: int, size: tuple[int, int]
 
 def _pipeline(plans: list[SamplePlan], render, settings: BuildSettings, folder: Path) -> tuple[float, float, int, object]:
     """Run plans through render -> encode -> write into ``folder``: (wall s, render s, renders, encoder)."""
-    sync = torch.cuda.synchronize if str(settings.device).startswith("cuda") else (lambda: None)
-    sync()
-    t0, render_s, renders = time.perf_counter(), 0.0, 0
+    now = synced_clock(settings.device)
+    t0, render_s, renders = now(), 0.0, 0
     with ShardWriter(folder, "bench", settings.samples_per_shard) as writer:  # shards as the build writes them
         with SampleEncoder(writer.add, settings.workers, settings.jpeg_quality, mode=settings.encoder_mode) as enc:
             batches = [plans[s:s + settings.batch_pairs] for s in range(0, len(plans), settings.batch_pairs)]
@@ -194,10 +195,10 @@ def jpeg_comparison(teacher: Teacher, gaussians: dict, settings: BuildSettings, 
     images = np.stack([im for s in samples for im in (s.left, s.right, *s.targets)])
     device_images = torch.from_numpy(images).to(settings.device)
     times = []
+    now = synced_clock(settings.device)
     with contextlib.closing(NvJpegEncoder(settings.device, settings.jpeg_quality)) as enc:
         for _ in range(repeats + 1):
-            torch.cuda.synchronize()
-            t0 = time.perf_counter()
+            t0 = now()
             gpu = enc.encode(device_images).result()
             times.append((time.perf_counter() - t0) / len(images))
     t0 = time.perf_counter()
@@ -206,7 +207,7 @@ def jpeg_comparison(teacher: Teacher, gaussians: dict, settings: BuildSettings, 
 
     def psnr(files: list[bytes]) -> float:
         mse = np.mean([np.mean((decode_image(f, "jpg").astype(float) - im) ** 2) for f, im in zip(files, images)])
-        return 10 * math.log10(255.0 ** 2 / mse)
+        return psnr_from_mse(mse, 255.0)
 
     kb = [sum(map(len, files)) / len(files) / 1e3 for files in (gpu, cpu)]
     return (f"| {size[0]}x{size[1]} | {len(images)} | {1e3 * statistics.median(times[1:]):.3f} | {cpu_ms:.2f} | "

@@ -32,13 +32,13 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
-from scenesplat_stereo import encode
-from scenesplat_stereo.commandline import Parser
-from scenesplat_stereo.encode import SampleImages
-from scenesplat_stereo.encode_pool import SampleEncoder
-from scenesplat_stereo.protocol import NUM_TARGETS
-from scenesplat_stereo.shards import ShardWriter
-from scenesplat_stereo.text import parse_size
+from scenesplat_stereo.build.protocol import NUM_TARGETS
+from scenesplat_stereo.common.commandline import Parser
+from scenesplat_stereo.common.text import parse_size
+from scenesplat_stereo.shards import encode
+from scenesplat_stereo.shards.encode import SampleImages
+from scenesplat_stereo.shards.encode_pool import SampleEncoder
+from scenesplat_stereo.shards.webdataset import ShardWriter
 
 BENCH_MODES = ("threads", "processes", "threads-oiio1")
 
@@ -200,7 +200,7 @@ def run(args) -> int:
     doc = "\n".join([head, "One image, one call at a time:\n", *t1, "",
                      f"Whole SampleEncoder into tar shards, {args.samples} samples per run:\n", *t2, ""])
     if args.out is not None:
-        from scenesplat_stereo.files import atomic_write_bytes
+        from scenesplat_stereo.common.files import atomic_write_bytes
 
         atomic_write_bytes(args.out, doc.encode())
     return 0

@@ -5,7 +5,7 @@ Prints markdown tables (paste-ready for docs/benchmarks.md):
    antialiased) against gsplat 1.5.3's ``rasterization`` on the same inputs (when gsplat is importable);
 2. one-knob-at-a-time sweeps from a base setting (tile size, SH degree, rasterize mode, render mode,
    resolution, number of Gaussians): median ms per frame, PSNR against gsplat at the timed size, and PSNR
-   against the float64 reference (``scenesplat_stereo.reference``) on a small frame;
+   against the float64 reference (``scenesplat_stereo.raster.reference``) on a small frame;
 3. with ``--backward``: forward+backward time and peak memory against gsplat, for the two headline
    workloads and the model's (32 scenes x 4 targets at 256x256, 2 x 288^2 Gaussians per scene).
 With ``--batch``, only the model's workload instead, one batched call against a loop of calls, ours and
@@ -20,8 +20,6 @@ import argparse
 import importlib.util
 import math
 import os
-import statistics
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -29,11 +27,12 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.bench.render_batch import batch_table
-from scenesplat_stereo.cameras import look_at, viewmats_from_c2w
-from scenesplat_stereo.commandline import Parser
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.commandline import Parser
+from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.measure import median_seconds, psnr_from_mse
 from scenesplat_stereo.raster import rasterization
-from scenesplat_stereo.reference import as_renderer_sees, reference_rasterization
+from scenesplat_stereo.raster.reference import as_renderer_sees, reference_rasterization
+from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
 
 # The real guitar teacher beside a checkout (../shared/data), or where SCENESPLAT_GUITAR_PLY points.
 GUITAR = Path(os.environ.get("SCENESPLAT_GUITAR_PLY", Path(__file__).resolve().parents[2].parent
@@ -79,7 +78,7 @@ def identity_camera(width: int, height: int, device: str) -> tuple[torch.Tensor,
 
 def guitar_scene(device: str, width: int, height: int) -> tuple[dict, torch.Tensor, torch.Tensor]:
     """The real guitar teacher and an orbit camera (radius 6 around the median of the means, y down)."""
-    from scenesplat_stereo.gaussians import load_ply
+    from scenesplat_stereo.scene.gaussians import load_ply
 
     scene = load_ply(GUITAR)
     center = np.median(scene.means, axis=0)
@@ -89,27 +88,9 @@ def guitar_scene(device: str, width: int, height: int) -> tuple[dict, torch.Tens
     return scene.to_torch(device), viewmats.to(device), K.to(device)
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-
-
-def median_seconds(fn, device: str, repeats: int, warmup: int = 2) -> float:
-    for _ in range(warmup):
-        fn()
-    _sync(device)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(((a.double() - b.double()) ** 2).mean())
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+    """PSNR (dB, range 1) of two renders, in float64, unclipped."""
+    return psnr_from_mse(float(((a.double() - b.double()) ** 2).mean()))
 
 
 def _render_fn(impl, scene, viewmats, Ks, s: Setting, max_alpha: float, deterministic: bool = False):

@@ -21,10 +21,10 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
-import time
 
 import torch
 
+from scenesplat_stereo.common.measure import synced_clock, synchronize
 from scenesplat_stereo.raster import rasterization
 
 # SPEC section 7: the canvas extends the S x S reference image by 16 px on each side; two layers per pixel.
@@ -117,24 +117,18 @@ def render_fn(impl, data: dict, side: int, looped: bool, backward: bool, determi
     return run
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-
-
 def interleaved_times(fns: dict[str, callable], device: str, repeats: int, warmup: int = 2) -> dict[str, list[float]]:
     """Seconds per run of every closure, the closures taking turns in each repetition."""
     for fn in fns.values():
         for _ in range(warmup):
             fn()
-    _sync(device)
+    now = synced_clock(device)
     times: dict[str, list[float]] = {name: [] for name in fns}
     for _ in range(repeats):
         for name, fn in fns.items():
-            t0 = time.perf_counter()
+            t0 = now()
             fn()
-            _sync(device)
-            times[name].append(time.perf_counter() - t0)
+            times[name].append(now() - t0)
     return times
 
 
@@ -142,12 +136,12 @@ def peak_mib(fn, device: str) -> float | None:
     """torch's allocator peak above what was allocated before, in MiB, of one run (CUDA only)."""
     if not device.startswith("cuda"):
         return None
-    _sync(device)
+    synchronize(device)
     torch.cuda.empty_cache()
     before = torch.cuda.memory_allocated()
     torch.cuda.reset_peak_memory_stats()
     fn()
-    _sync(device)
+    synchronize(device)
     return (torch.cuda.max_memory_allocated() - before) / 2**20
 
 

@@ -18,13 +18,14 @@ from __future__ import annotations
 
 import torch
 
-from .binning import Bins
-from .composite import composite_forward
-from .composite_backward import composite_backward, unpack_splat_grads
-from .projection import Projection, project_gaussians
-from .projection_backward import project_gaussians_backward
-from .sh import eval_sh_colors
-from .sh_backward import eval_sh_colors_backward
+from scenesplat_stereo.raster.binning import Bins
+from scenesplat_stereo.raster.composite import composite_forward
+from scenesplat_stereo.raster.composite_backward import composite_backward, unpack_splat_grads
+from scenesplat_stereo.raster.projection import Projection, project_gaussians
+from scenesplat_stereo.raster.projection_backward import project_gaussians_backward
+from scenesplat_stereo.raster.sh import eval_sh_colors
+from scenesplat_stereo.raster.sh_backward import eval_sh_colors_backward
+
 
 class ProjectGaussians(torch.autograd.Function):
     @staticmethod

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ._warp import launch, radix_sort_pairs, to_wp
-from .projection import Projection
+from scenesplat_stereo.raster._warp import launch, radix_sort_pairs, to_wp
+from scenesplat_stereo.raster.projection import Projection
 
 
 @dataclass

@@ -28,9 +28,9 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import ALPHA_MIN, T_MIN, launch, to_wp, vector_type
-from .binning import Bins
-from .lanes import LANES, block_all, lanes_ballot, lowest_bit
+from scenesplat_stereo.raster._warp import ALPHA_MIN, T_MIN, launch, to_wp, vector_type
+from scenesplat_stereo.raster.binning import Bins
+from scenesplat_stereo.raster.lanes import LANES, block_all, lanes_ballot, lowest_bit
 
 # CUDA compile options of the compositing kernels (forward and backward alike, so both make the same
 # touch / stop decisions): fast math turns exp into the hardware approximation gsplat uses (__expf);

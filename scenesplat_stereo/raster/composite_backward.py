@@ -51,11 +51,11 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import ALPHA_MIN, launch, to_wp, vector_type
-from .binning import Bins
-from .composite import (COMPOSITE_OPTIONS, SPLAT_SLOTS, conic_sigma, gather_splats, lanes_box, may_touch,
-                        splat_batch_func, tile_pixel)
-from .lanes import LANES, highest_bit, lanes_any, lanes_ballot, lanes_max, lanes_sum_add
+from scenesplat_stereo.raster._warp import ALPHA_MIN, launch, to_wp, vector_type
+from scenesplat_stereo.raster.binning import Bins
+from scenesplat_stereo.raster.composite import (COMPOSITE_OPTIONS, SPLAT_SLOTS, conic_sigma, gather_splats, lanes_box,
+                                                may_touch, splat_batch_func, tile_pixel)
+from scenesplat_stereo.raster.lanes import LANES, highest_bit, lanes_any, lanes_ballot, lanes_max, lanes_sum_add
 
 # Pixels per cooperative block in the deterministic reduction (a 16 x 16 tile is one block; larger
 # tiles are split into groups of this many pixels, each with its own row per list entry).

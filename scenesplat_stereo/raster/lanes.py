@@ -22,7 +22,7 @@ import functools
 
 import warp as wp
 
-from ._warp import vector_type
+from scenesplat_stereo.raster._warp import vector_type
 
 LANES = 32
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ._warp import ALPHA_MIN, launch, to_wp
+from scenesplat_stereo.raster._warp import ALPHA_MIN, launch, to_wp
 
 # SPEC section 2, step 3: tx/z is clamped to 1.3x the half field of view (0.15 W / fx beyond each edge).
 JACOBIAN_CLAMP_MARGIN = 0.15

@@ -27,8 +27,9 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import launch, to_wp
-from .projection import clamped_jacobian, quat_to_rotation, screen_covariance, tangent_limits, view_rotation
+from scenesplat_stereo.raster._warp import launch, to_wp
+from scenesplat_stereo.raster.projection import (clamped_jacobian, quat_to_rotation, screen_covariance, tangent_limits,
+                                                 view_rotation)
 
 
 @wp.func

@@ -15,9 +15,9 @@ import math
 
 import torch
 
-from . import autograd
-from .binning import finish_binning, start_binning
-from .sh import num_sh_bases
+from scenesplat_stereo.raster import autograd
+from scenesplat_stereo.raster.binning import finish_binning, start_binning
+from scenesplat_stereo.raster.sh import num_sh_bases
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RASTERIZE_MODES = ("classic", "antialiased")

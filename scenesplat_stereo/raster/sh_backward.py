@@ -17,8 +17,8 @@ import functools
 import torch
 import warp as wp
 
-from ._warp import launch, to_wp, vector_type
-from .sh import SH_C1, SH_C2, SH_C3, num_sh_bases, sh_basis_func, view_direction
+from scenesplat_stereo.raster._warp import launch, to_wp, vector_type
+from scenesplat_stereo.raster.sh import SH_C1, SH_C2, SH_C3, num_sh_bases, sh_basis_func, view_direction
 
 
 @functools.cache

@@ -1,6 +1,6 @@
 """Rasteriser policy outside the kernels: which torch devices it renders on, and the tile edge for each.
 
-The image does not depend on the tile edge (tests/test_raster_forward.py: within 1e-5 across tile sizes);
+The image does not depend on the tile edge (tests/scenesplat_stereo/raster/test_raster_forward.py: within 1e-5 across tile sizes);
 the time does.
 """
 

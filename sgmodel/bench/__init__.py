@@ -6,26 +6,15 @@ scene in a warm process, split by stage; ``--video`` in ``predict_video``). Thei
 from __future__ import annotations
 
 import argparse
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
 
-from scenesplat_stereo.files import atomic_write_bytes
+from scenesplat_stereo.common.files import atomic_write_bytes
 
 if TYPE_CHECKING:
-    from ..model import Predictor
-
-
-def synced_clock(device: torch.device) -> Callable[[], float]:
-    """A clock (seconds) that first waits for ``device``'s queued work, so that stage times are honest."""
-    def now() -> float:
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        return time.perf_counter()
-    return now
+    from sgmodel.model.network import Predictor
 
 
 def report(text: str, out: Path | None) -> None:

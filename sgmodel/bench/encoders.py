@@ -16,15 +16,14 @@ from pathlib import Path
 
 import torch
 
-from scenesplat_stereo.text import markdown_table
-
-from ..args import add_device_argument, device_from_flag
-from ..data import make_loader
-from ..encoders import StereoEncoder
-from ..encoders.flags import build_encoder, encoder_label, parse_encoder_spec
-from ..geometry import depth_from_disparity
-from ..train import to_device
-from . import report, synced_clock
+from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.text import markdown_table
+from sgmodel.args import add_device_argument, device_from_flag
+from sgmodel.bench import report
+from sgmodel.data.loader import make_loader, to_device
+from sgmodel.encoders import StereoEncoder
+from sgmodel.encoders.flags import build_encoder, encoder_label, parse_encoder_spec
+from sgmodel.model.geometry import depth_from_disparity
 
 
 def disparity_errors(disparity: torch.Tensor, depth: torch.Tensor, fx: torch.Tensor, baseline: torch.Tensor

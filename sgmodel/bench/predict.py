@@ -7,7 +7,7 @@ rasteriser's kernels loaded, the model on the device): encoder, decoder + predic
 to the host (Gaussians without a stereo depth dropped, SH cut to the content's degree), the ``.ply`` write
 (as predict writes it: atomic, no fsync) and the rendering of one novel view, each synchronised; medians
 of ``--repeats`` pairs after ``--warmup``. A second table times every scene format's write (and the ``.ply``
-with fsync, and the ``.spz``'s deflate alone) with its size (``scenesplat_stereo.scene_bench.writer_rows``).
+with fsync, and the ``.spz``'s deflate alone) with its size (``scenesplat_stereo.bench.scenes.writer_rows``).
 A cold ``sgmodel predict`` adds the process start, the model load and the first launches (its own table says
 how long each took). The pair is synthetic (smooth random texture shifted by a few pixels) at ``--size``;
 with ``--checkpoint`` the trained model runs, else a fresh one of the given flags (the time does not depend
@@ -25,19 +25,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenesplat_stereo.gaussians import GaussianScene
-from scenesplat_stereo.scene_bench import COLUMNS, writer_rows
-from scenesplat_stereo.scene_files import FORMATS
-from scenesplat_stereo.text import argtype, markdown_table, parse_size
-
-from .. import export
-from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
-from ..geometry import depth_from_disparity
-from ..layers import amp_autocast
-from ..model import Predictor, create_model, load_predictor
-from ..render import SH_DEGREE, render_views
-from ..video import SCENE_WRITERS
-from . import describe, report, synced_clock, synthetic_pair
+from scenesplat_stereo.bench.scenes import COLUMNS, writer_rows
+from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
+from scenesplat_stereo.scene.gaussians import GaussianScene
+from scenesplat_stereo.scene.scene_files import FORMATS
+from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
+from sgmodel.bench import describe, report, synthetic_pair
+from sgmodel.model.geometry import depth_from_disparity
+from sgmodel.model.layers import amp_autocast
+from sgmodel.model.network import Predictor, create_model, load_predictor
+from sgmodel.model.render import SH_DEGREE, render_views
+from sgmodel.predict import export
+from sgmodel.predict.video import SCENE_WRITERS
 
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
 
@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     device = torch.device(device_from_flag(args.device))
     predictor = bench_model(args, device)
     if args.video:
-        from .predict_video import bench_video
+        from sgmodel.bench.predict_video import bench_video
 
         return bench_video(args, predictor, device)
     model = predictor.model
@@ -103,8 +103,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) -> list[list[str]]:
-    """Rows (``scene_bench.COLUMNS``) of writing ``scene`` with every writer as predict does (atomic, no fsync),
-    the ``.ply`` with fsync and the ``.spz``'s deflate alone (``scene_bench.writer_rows``). When the
+    """Rows (``scenesplat_stereo.bench.scenes.COLUMNS``) of writing ``scene`` with every writer as predict does
+    (atomic, no fsync), the ``.ply`` with fsync and the ``.spz``'s deflate alone (``writer_rows``). When the
     prediction has no higher SH (a fresh model's SH heads start at zero), the same Gaussians with degree-2 SH
     as a trained model predicts are timed too (coefficients drawn from N(0, 0.02^2): sizes of incompressible
     values)."""

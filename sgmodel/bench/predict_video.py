@@ -2,7 +2,7 @@
 
 A synthetic side-by-side video (``--frames`` frames of one eye's ``--size``, a smooth texture panning by
 one pixel a frame with a 4-pixel disparity; MPEG-4 part 2 in ``.mp4``, the codec OpenCV's wheel encodes)
-goes through the path of ``sgmodel predict --video`` (``sgmodel.video.stream``): decode (reader thread),
+goes through the path of ``sgmodel predict --video`` (``sgmodel.predict.video.stream``): decode (reader thread),
 the pair transform, the model, one novel view per frame, encode (mp4v, writer thread).
 
 * model alone: ``Reconstructor`` on a batch of ``--batch-size`` model-ready pairs already on the device
@@ -25,17 +25,17 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.encode import to_uint8
-from scenesplat_stereo.scene_files import FORMATS
-from scenesplat_stereo.text import markdown_table
-
-from ..calib import Calibration
-from ..inference import Reconstructor
-from ..model import Predictor
-from ..pairs import prepare_pairs
-from ..stereo_pair import Pair, to_tensor
-from ..video import CODECS, StereoSource, Trajectory, VideoSink, stream
-from . import describe, report, synced_clock, synthetic_pair
+from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.text import markdown_table
+from scenesplat_stereo.scene.scene_files import FORMATS
+from scenesplat_stereo.shards.encode import to_uint8
+from sgmodel.bench import describe, report, synthetic_pair
+from sgmodel.model.network import Predictor
+from sgmodel.pairs.calib import Calibration
+from sgmodel.pairs.prepare import prepare_pairs
+from sgmodel.pairs.stereo_pair import Pair, to_tensor
+from sgmodel.predict.inference import Reconstructor
+from sgmodel.predict.video import CODECS, StereoSource, Trajectory, VideoSink, stream
 
 #: The novel view of the end-to-end run: the left camera moved 5 cm to the right.
 OFFSET = (0.05, 0.0, 0.0)

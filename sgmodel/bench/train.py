@@ -25,19 +25,19 @@ from pathlib import Path
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from scenesplat_stereo.text import markdown_table
-
-from ..args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
-from ..data import make_loader
-from ..encoder_cache import open_cache, precision_of
-from ..geometry import depth_from_disparity
-from ..layers import amp_autocast, compiles
-from ..losses import Objective, create_objective
-from ..lpips import random_lpips, vgg16_missing_message
-from ..model import create_model
-from ..render import render_views
-from ..train import cached_encoding, create_optimizer, to_device, train_step
-from . import report, synced_clock
+from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.text import markdown_table
+from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
+from sgmodel.bench import report
+from sgmodel.data.encoder_cache import open_cache, precision_of
+from sgmodel.data.loader import make_loader, to_device
+from sgmodel.metrics.lpips import random_lpips, vgg16_missing_message
+from sgmodel.model.geometry import depth_from_disparity
+from sgmodel.model.layers import amp_autocast, compiles
+from sgmodel.model.network import create_model
+from sgmodel.model.render import render_views
+from sgmodel.train.loop import cached_encoding, create_optimizer, train_step
+from sgmodel.train.losses import Objective, create_objective
 
 STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation forward", "loss", "backward",
           "optimiser")

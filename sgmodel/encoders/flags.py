@@ -17,8 +17,8 @@ from pathlib import Path
 
 import torch
 
-from ..config import EncoderParams
-from . import DEFAULT_ENCODER, EncoderFlagError, StereoEncoder, available_encoders, create_encoder
+from sgmodel.config import EncoderParams
+from sgmodel.encoders import DEFAULT_ENCODER, EncoderFlagError, StereoEncoder, available_encoders, create_encoder
 
 SPEC_KEYS = ("weights", "repo")
 

@@ -47,7 +47,7 @@ from torch import Tensor, nn
 
 from sgmodel import weights as weights_mod
 from sgmodel.encoders.base import EncoderOutput, StereoEncoder, crop_to, pad_to_multiple
-from sgmodel.encoders.regression import soft_argmin
+from sgmodel.kernels.soft_argmin import soft_argmin
 
 MAX_DISPARITY = 192  # PSMNet's maximum disparity in pixels (paper: Chang and Chen 2018, section 4)
 PAD_MULTIPLE = 16  # 1/4-scale maps pass two stride-2 3D convs in each hourglass

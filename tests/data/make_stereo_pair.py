@@ -18,9 +18,9 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.demo import make_room, room_trajectory
+from scenesplat_stereo.build.demo import make_room, room_trajectory
 from scenesplat_stereo.raster import rasterization
-from scenesplat_stereo.shards import atomic_write_bytes
+from scenesplat_stereo.shards.webdataset import atomic_write_bytes
 
 WIDTH, HEIGHT = 128, 96
 FOV_X_DEG = 70.0

@@ -1,0 +1,5 @@
+"""What every stage shares: files (the one atomic writer, folder locks), the command line's one error path
+and command table (commandline), text and flag parsing, and the measuring clock and PSNR (measure).
+
+Public names: ``common.files.atomic_write_bytes``, ``common.commandline.run_command``, ``common.measure.synced_clock``.
+"""

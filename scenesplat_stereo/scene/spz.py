@@ -1,0 +1,284 @@
+"""Niantic's ``.spz`` (versions 2 and 3): reader and writer, pure numpy and the standard library's gzip.
+
+Written from the format description of the public nianticlabs/spz repository (README "File Format",
+``load-spz.cc``). A v2/v3 file is one gzip stream holding a 16-byte little-endian header
+
+    uint32 magic 0x5053474e ("NGSP"), uint32 version, uint32 numPoints,
+    uint8 shDegree (0..3), uint8 fractionalBits, uint8 flags (0x1: antialiased), uint8 reserved (0)
+
+followed by attribute blocks, each point after point:
+
+* positions: 3 x 24-bit signed fixed point, little-endian, value = integer / 2^fractionalBits;
+* alphas: uint8 round(255 opacity);
+* colours: uint8 round(255 (0.15 f_dc + 0.5)) per channel (the SH DC coefficient, not SH_C0-scaled);
+* scales: uint8 round(16 (ln s + 10)) per axis;
+* rotations: v3 "smallest three": a little-endian uint32 whose bits 30-31 hold the index i of the largest
+  |component| of the unit xyzw quaternion (made positive), then for each other component in xyzw order a
+  sign bit and 9 bits of round(511 |c| / sqrt(1/2)); v2: uint8 round(127.5 c + 127.5) for x, y, z with w >= 0;
+* SH (degree > 0): for each coefficient 1..K-1, the three colours (colour fastest), int8-like uint8
+  round(128 f) + 128, quantised to buckets of 8 (degree 1, 5 bits) or 16 (degree 2 and 3, 4 bits) as the
+  reference writer does; read back as (q - 128) / 128.
+
+The reference writer rounds half away from zero (``std::round``) and clamps every byte to 0..255; so does
+this one, so an encoded value inside a field's range is off by at most half a step: 2^-(fractionalBits+1)
+metres in position (12 fractional bits, or fewer when the scene is too large for 24 bits), 1/32 in ln s
+(range [-10, 5.94]), 1/(2 0.15 255) in f_dc (|f_dc| <= 3.33), 1/510 in opacity, and in SH (range [-1, 1))
+half a step of 1/128 plus half a bucket: 4.5/128 (degree 1) or 8.5/128 (degrees 2 and 3).
+
+Coordinates are stored as they are, without an axis change: that is what Niantic's own ``ply_to_spz``
+(``CoordinateSystem::UNSPECIFIED``) and PlayCanvas' splat-transform write and read, so a scene keeps the
+frame of its ``.ply`` (the README's default RUB applies to callers that declare a coordinate system).
+Version 4 (per-attribute zstd streams) is recognised and refused with a message naming the converter:
+Python 3.11's standard library has no zstd. This writer writes version 3, which every client reads.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import gzip
+import math
+import os
+import struct
+import zlib
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.scene import row_tasks
+from scenesplat_stereo.scene.gaussians import GaussianScene
+
+#: "NGSP" read as a little-endian uint32.
+MAGIC = 0x5053474E
+#: The version this module writes, and the versions it reads.
+WRITE_VERSION, READ_VERSIONS = 3, (2, 3)
+#: Fractional bits of the fixed-point positions (the reference writer's 12: 1/4096 m steps).
+FRACTIONAL_BITS = 12
+#: Colours store f_dc scaled by this around 0.5 (the format's colorScale).
+COLOR_SCALE = 0.15
+#: SH quantisation: bits kept for degree 1 and for degrees 2 and 3 (the reference writer's defaults).
+SH1_BITS, SH_REST_BITS = 5, 4
+#: gzip level of the writer (zlib's default, as the reference writer's Z_DEFAULT_COMPRESSION).
+GZIP_LEVEL = 6
+_HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("num_points", "<u4"), ("sh_degree", "u1"),
+                    ("fractional_bits", "u1"), ("flags", "u1"), ("reserved", "u1")])
+_SQRT1_2 = math.sqrt(0.5)
+
+
+class SpzError(ValueError):
+    """A ``.spz`` file that cannot be read (or a scene that cannot be written); names the file and field."""
+
+
+def _fraction_bits(means: np.ndarray, path: Path) -> int:
+    """Fractional bits of the 24-bit fixed-point positions: 12, fewer when the largest |coordinate| would not
+    fit (|round(x 2^bits)| <= 2^23 - 1, rounded half away from zero as below)."""
+    m = np.abs(means).max() if len(means) else 0.0
+    bits = FRACTIONAL_BITS if m == 0 else min(FRACTIONAL_BITS, math.floor(math.log2((2**23 - 1) / m)))
+    while bits >= 0 and math.floor(float(m) * 2.0**bits + 0.5) > 2**23 - 1:  # round half away is monotone
+        bits -= 1
+    if bits < 0:
+        raise SpzError(f"{path}: positions up to {m:g} do not fit 24-bit fixed point (|x| < 2^23)")
+    return bits
+
+
+def _fill_bytes(out: np.ndarray, x: np.ndarray, scale: float, offset: float) -> None:
+    """out (uint8) = clip(round half away from zero(x scale + offset), 0, 255), computed in float64 as the
+    reference writer's ``std::round`` of its float products: for v = x scale + offset >= 0 that is
+    floor(v + 1/2), and a v < 0 stores 0 either way (so clip(v + 1/2, 0, 255) truncated)."""
+    v = np.multiply(x, scale, dtype=np.float64)
+    v += offset
+    v += 0.5
+    np.clip(v, 0.0, 255.0, out=v)
+    np.copyto(out, v, casting="unsafe")  # truncation: floor of a value >= 0
+
+
+def _fill_positions(out: np.ndarray, means: np.ndarray, bits: int) -> None:
+    """out uint8 [n, 9]: each coordinate round-half-away(x 2^bits) as 24-bit little-endian two's complement.
+    x 2^bits + copysign(1/2) is exact in float64 for a float32 x (|x 2^bits| < 2^23), and truncation towards
+    zero then rounds half away from zero."""
+    y = np.multiply(means, 2.0**bits, dtype=np.float64)
+    y += np.copysign(0.5, y)
+    fixed = y.astype("<i4")
+    out[:] = fixed.view(np.uint8).reshape(len(means), 3, 4)[:, :, :3].reshape(-1, 9)
+
+
+def _fill_rotations(out: np.ndarray, quats: np.ndarray) -> None:
+    """wxyz unit quaternions [n, 4] -> out uint8 [n, 4]: the smallest-three uint32 of version 3: bits 30-31 the
+    index of the largest |component| (xyzw order), then each other component in xyzw order (the first in
+    the highest bits) as a sign bit (of the component, made relative to a positive largest one) and 9 bits
+    of floor(511 |c| / sqrt(1/2) + 1/2)."""
+    q = quats[:, [1, 2, 3, 0]].astype(np.float64)  # xyzw, the format's order
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    n = len(q)
+    largest = np.abs(q).argmax(1)
+    negate = q[np.arange(n), largest] < 0
+    word = np.floor(511.0 * np.abs(q) / _SQRT1_2 + 0.5).astype(np.uint32)
+    word |= ((q < 0) ^ negate[:, None]).astype(np.uint32) << np.uint32(9)
+    packed = largest.astype(np.uint32) << np.uint32(30)
+    for j, shift in enumerate((20, 10, 0)):  # the j-th component other than the largest
+        packed |= np.where(largest <= j, word[:, j + 1], word[:, j]) << np.uint32(shift)
+    out[:] = packed.astype("<u4").view(np.uint8).reshape(n, 4)
+
+
+def _fill_sh(out: np.ndarray, x: np.ndarray, bits: int) -> None:
+    """out uint8 = the reference quantizeSH of x: q = round-half-away(128 x) + 128 snapped to a bucket of
+    b = 2^(8 - bits) by floor((q + b/2) / b) b, clamped to 0..255.
+
+    Computed as idx = floor(u), u = x 128/b + (128 + b/2 + 1/2)/b (exact in float64), which equals the
+    bucket index for every x except an exact tie of a negative 128 x (round half away goes down there, so
+    the index is ceil(u) - 1): those get u - 2^-30 first (a u that is not an integer lies at least 2^-25
+    above the integer below it, so nothing else moves). Then min(idx b, 255) for idx in 0..256/b."""
+    b = 1 << (8 - bits)
+    u = np.multiply(x, 128.0 / b, dtype=np.float64)
+    u += (128 + b // 2 + 0.5) / b
+    u -= (x < 0) * 2.0**-30  # (a masked subtract, where=, is several times slower)
+    np.clip(u, 0.0, 256 // b + 0.5, out=u)
+    idx = u.astype(np.uint8)  # floor of u >= 0: 0..256/b
+    idx_b = idx << np.uint8(8 - bits)  # idx b, 256 (the top index) wrapping to 0
+    idx >>= np.uint8(bits)  # 1 for the top index only
+    np.subtract(idx_b, idx, out=out, casting="unsafe")  # the top index's 0 - 1 wraps to 255
+
+
+def _encoded_blocks(scene: GaussianScene, path: Path) -> Iterator[np.ndarray]:
+    """The uncompressed version-3 stream (module docstring) as its blocks in file order: header, positions,
+    alphas, colours, scales, rotations, SH. Every block's rows are quantised in tasks on the shared pool
+    (``row_tasks``), all queued at once in file order; each block is yielded when its own tasks are done,
+    so a consumer (gzip) works on it while later blocks are quantised."""
+    n, k = len(scene), (scene.sh_degree + 1) ** 2
+    bits = _fraction_bits(scene.means, path)
+    header = np.zeros((), _HEADER)
+    header[()] = (MAGIC, WRITE_VERSION, n, scene.sh_degree, bits, 0, 0)
+    widths = [9, 1, 3, 3, 4, 3 * (k - 1)]
+    body = np.empty((n * sum(widths),), np.uint8)
+    blocks = np.split(body, np.cumsum([n * w for w in widths])[:-1])
+    positions, alphas, colours, scales, rotations, sh = (b.reshape(n, w) for b, w in zip(blocks, widths))
+    sh = sh.reshape(n, k - 1, 3)
+    fills = [
+        lambda a, b: _fill_positions(positions[a:b], scene.means[a:b], bits),
+        lambda a, b: _fill_bytes(alphas[a:b, 0], scene.opacities[a:b], 255.0, 0.0),
+        lambda a, b: _fill_bytes(colours[a:b], scene.sh[a:b, 0, :], COLOR_SCALE * 255.0, 0.5 * 255.0),
+        lambda a, b: _fill_bytes(scales[a:b], np.log(scene.scales[a:b].astype(np.float64)) + 10.0, 16.0, 0.0),
+        lambda a, b: _fill_rotations(rotations[a:b], scene.quats[a:b]),
+    ]
+    if k > 1:
+        def fill_sh(a: int, b: int) -> None:
+            _fill_sh(sh[a:b, :3], scene.sh[a:b, 1:4], SH1_BITS)
+            if k > 4:
+                _fill_sh(sh[a:b, 3:], scene.sh[a:b, 4:], SH_REST_BITS)
+        fills.append(fill_sh)
+    tasks = [row_tasks.submit_rows(fill, n) for fill in fills]
+    yield header.tobytes()
+    try:
+        for block, futures in zip(blocks, tasks):
+            row_tasks.wait_all(futures)
+            yield block
+    finally:
+        for futures in tasks:  # an abandoned stream: let its tasks end before the arrays go
+            concurrent.futures.wait(futures)
+
+
+def encode_spz(scene: GaussianScene, path: str | os.PathLike = "<memory>") -> bytes:
+    """The uncompressed version-3 bytes (header and blocks) of ``scene`` (module docstring). The header's flags
+    are 0: not antialiased (bit 0x1 marks scenes trained with mip-splatting's filter; ours render in
+    gsplat's "classic" mode)."""
+    return b"".join(bytes(b) for b in _encoded_blocks(scene, Path(path)))
+
+
+def _gzip_header() -> bytes:
+    """The 10 bytes ``gzip.compress(..., compresslevel=GZIP_LEVEL, mtime=0)`` starts with in this Python (they
+    do not depend on the data; the OS byte, the 10th, is zlib's 3 on Linux up to Python 3.12 and 255 from
+    3.13 on, CPython gh-112346)."""
+    return gzip.compress(b"", compresslevel=GZIP_LEVEL, mtime=0)[:10]
+
+
+def save_spz(scene: GaussianScene, path: str | os.PathLike, durable: bool = True) -> Path:
+    """Write ``scene`` as a version-3 ``.spz``, atomically. Returns the path.
+
+    The bytes are ``gzip.compress(encode_spz(scene), compresslevel=GZIP_LEVEL, mtime=0)``'s: its header, one
+    raw deflate stream at that level (zlib's output does not depend on how its input is split between
+    calls) and the CRC-32 and length trailer. The stream is deflated block by block while the later blocks
+    are quantised; deflate is the writer's one serial step."""
+    path = Path(path)
+    deflate = zlib.compressobj(GZIP_LEVEL, zlib.DEFLATED, -zlib.MAX_WBITS)
+    parts, crc, size = [_gzip_header()], 0, 0
+    for block in _encoded_blocks(scene, path):
+        parts.append(deflate.compress(block))
+        crc, size = zlib.crc32(block, crc), size + len(memoryview(block))
+    parts += [deflate.flush(), struct.pack("<II", crc, size & 0xFFFFFFFF)]
+    atomic_write_bytes(path, parts, durable=durable)
+    return path
+
+
+def _unpack_rotations(raw: np.ndarray, version: int) -> np.ndarray:
+    """uint8 [N, 4] (v3) or [N, 3] (v2) -> unit wxyz float64 [N, 4]."""
+    n = len(raw)
+    xyzw = np.empty((n, 4), dtype=np.float64)
+    if version == 2:
+        xyzw[:, :3] = raw.astype(np.float64) / 127.5 - 1.0
+        xyzw[:, 3] = np.sqrt(np.maximum(0.0, 1.0 - (xyzw[:, :3] ** 2).sum(1)))
+    else:
+        comp = np.ascontiguousarray(raw).view("<u4").reshape(n).astype(np.uint32)
+        largest = (comp >> np.uint32(30)).astype(np.int64)
+        for i in range(3, -1, -1):  # the last component written sits in the lowest bits
+            mag = (comp & np.uint32(511)).astype(np.float64)
+            value = np.where((comp >> np.uint32(9)) & np.uint32(1), -1.0, 1.0) * _SQRT1_2 * mag / 511.0
+            here = largest != i
+            xyzw[here, i] = value[here]
+            comp = np.where(here, comp >> np.uint32(10), comp)
+        others = np.where(np.arange(4)[None] == largest[:, None], 0.0, xyzw)
+        xyzw[np.arange(n), largest] = np.sqrt(np.maximum(0.0, 1.0 - (others**2).sum(1)))
+    norm = np.linalg.norm(xyzw, axis=1, keepdims=True)
+    xyzw = np.where(norm > 0, xyzw / np.where(norm > 0, norm, 1.0), [0.0, 0.0, 0.0, 1.0])
+    return xyzw[:, [3, 0, 1, 2]]
+
+
+def load_spz(path: str | os.PathLike) -> GaussianScene:
+    """Read a version 2 or 3 ``.spz`` into a ``GaussianScene``; ``SpzError`` naming the file and field."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise SpzError(f"{path}: cannot open ({e.strerror or e})") from None
+    if raw[:4] == b"NGSP":
+        version = int(np.frombuffer(raw, "<u4", 1, 4)[0]) if len(raw) >= 8 else None
+        raise SpzError(f"{path}: .spz version {version} (zstd streams) is not read here (versions "
+                       f"{', '.join(map(str, READ_VERSIONS))}); `splat-transform {path.name} out.ply` converts it")
+    if raw[:2] != b"\x1f\x8b":
+        raise SpzError(f"{path}: not a .spz file (neither gzip nor 'NGSP' magic at the start)")
+    try:
+        data = gzip.decompress(raw)
+    except (OSError, EOFError, zlib.error) as e:
+        raise SpzError(f"{path}: corrupt gzip stream ({e})") from None
+    if len(data) < _HEADER.itemsize:
+        raise SpzError(f"{path}: header truncated ({len(data)} of {_HEADER.itemsize} bytes)")
+    h = np.frombuffer(data, _HEADER, 1)[0]
+    if int(h["magic"]) != MAGIC:
+        raise SpzError(f"{path}: header magic is {int(h['magic']):#x}, expected {MAGIC:#x} ('NGSP')")
+    version, n, degree = int(h["version"]), int(h["num_points"]), int(h["sh_degree"])
+    if version not in READ_VERSIONS:
+        raise SpzError(f"{path}: header version {version} is not supported (reads {READ_VERSIONS})")
+    if degree > 3:
+        raise SpzError(f"{path}: header shDegree {degree}: SH degree 0..3 supported")
+    k = (degree + 1) ** 2
+    sizes = {"positions": 9, "alphas": 1, "colours": 3, "scales": 3, "rotations": 4 if version >= 3 else 3,
+             "sh": 3 * (k - 1)}
+    need = _HEADER.itemsize + n * sum(sizes.values())
+    if len(data) < need:
+        raise SpzError(f"{path}: body truncated: header numPoints {n} needs {need} bytes, the stream has "
+                       f"{len(data)}")
+    blocks, offset = {}, _HEADER.itemsize
+    for name, size in sizes.items():
+        blocks[name] = np.frombuffer(data, np.uint8, n * size, offset).reshape(n, size)
+        offset += n * size
+    p = blocks["positions"].reshape(n, 3, 3).astype(np.int32)
+    fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
+    fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+    sh = np.empty((n, k, 3), np.float32)
+    sh[:, 0] = (blocks["colours"].astype(np.float64) / 255.0 - 0.5) / COLOR_SCALE
+    sh[:, 1:] = ((blocks["sh"].astype(np.float64) - 128.0) / 128.0).reshape(n, k - 1, 3)
+    scene = GaussianScene((fixed / 2.0 ** int(h["fractional_bits"])).astype(np.float32),
+                          _unpack_rotations(blocks["rotations"], version).astype(np.float32),
+                          np.exp(blocks["scales"].astype(np.float64) / 16.0 - 10.0).astype(np.float32),
+                          (blocks["alphas"][:, 0] / 255.0).astype(np.float32), sh, degree)
+    return scene

@@ -1,0 +1,162 @@
+"""Several GPUs, measured and checked in one go (the recipe behind ``scripts/gpu/ddp.sh``; also run on the CPU
+with gloo by ``tests/sgmodel/train/test_distributed.py``).
+
+    python scripts/checks/ddp_check.py --data DATASET --work DIR --ranks 2 [--device cuda] [--steps 200]
+                                [--out report.md] [-- extra `sgmodel train` flags]
+
+Runs, each with the same flags and seed (``--val-every`` a quarter of ``--steps``):
+
+1. one process, uninterrupted (the reference, and the one-GPU throughput);
+2. ``torchrun --nproc_per_node=RANKS``, uninterrupted (the several-GPU throughput; its weights against 1);
+3. RANKS processes stopped (SIGKILL, every rank) at their first checkpoint, resumed on one process;
+4. one process stopped at its first checkpoint, resumed on RANKS processes.
+
+Throughput is pairs per second from the median ``step_ms`` of ``metrics.jsonl`` (the first ``--skip`` steps
+left out: cuDNN autotuning, Triton compilation, loader start-up), ``--batch-size`` pairs a step over all
+ranks. Weights are compared as ||difference|| / ||weights|| over all parameters (``weight_difference``):
+DDP averages the ranks' gradients, which equals one process's mean up to float summation order.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def command(ranks: int, data: Path, run: Path, flags: list[str]) -> list[str]:
+    """``sgmodel train`` on one process, or under ``torchrun`` on ``ranks`` processes of this host."""
+    train = ["-m", "sgmodel.cli", "train", "--data", str(data), "--out", str(run), *flags]
+    if ranks == 1:
+        return [sys.executable, *train]
+    return [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={ranks}", *train]
+
+
+def train(ranks: int, data: Path, run: Path, flags: list[str]) -> subprocess.CompletedProcess:
+    """Run to the end; RuntimeError with the end of stderr if it fails."""
+    done = subprocess.run(command(ranks, data, run, flags), capture_output=True, text=True, cwd=REPO)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(command(ranks, data, run, flags))} failed ({done.returncode}):\n"
+                           f"{done.stderr[-3000:]}")
+    return done
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (torchrun starts its ranks in sessions of their own)."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        for child in (task / "children").read_text().split():
+            out += [int(child), *_descendants(int(child))]
+    return out
+
+
+def stop_at_first_checkpoint(ranks: int, data: Path, run: Path, flags: list[str]) -> int:
+    """Start a run and SIGKILL it, every rank included, as soon as ``last.pt`` exists; the step it holds.
+    The process tree is frozen (SIGSTOP) first, so no rank writes after the checkpoint is read."""
+    proc = subprocess.Popen(command(ranks, data, run, flags), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            cwd=REPO)
+    last = run / "checkpoints" / "last.pt"
+    while not last.exists() and proc.poll() is None:
+        time.sleep(0.01)
+    tree = [proc.pid, *_descendants(proc.pid)]
+    for sig in (signal.SIGSTOP, signal.SIGKILL):
+        for pid in tree:
+            try:
+                os.kill(pid, sig)
+            except ProcessLookupError:
+                pass
+    proc.wait()
+    if not last.exists():
+        raise RuntimeError(f"{run}: no checkpoint was written:\n{proc.stderr.read().decode()[-3000:]}")
+    return int(torch.load(last, weights_only=True)["step"])
+
+
+def last_weights(run: Path) -> tuple[int, dict[str, torch.Tensor]]:
+    """(step, trainable state_dict) of ``run/checkpoints/last.pt``."""
+    ckpt = torch.load(run / "checkpoints" / "last.pt", weights_only=True, map_location="cpu")
+    return int(ckpt["step"]), ckpt["model"]
+
+
+def weight_difference(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> float:
+    """||a - b|| / ||a|| over all parameters together (float64). Not a per-element maximum: AdamW's first
+    steps move each weight by about lr * sign(gradient), so a gradient that is float noise around zero
+    flips a few elements by a whole step whatever the world size."""
+    if a.keys() != b.keys():
+        raise ValueError(f"different parameters: {sorted(a.keys() ^ b.keys())}")
+    diff = sum(float(((a[k].double() - b[k].double()) ** 2).sum()) for k in a)
+    return (diff / max(sum(float((a[k].double() ** 2).sum()) for k in a), 1e-300)) ** 0.5
+
+
+def records(run: Path) -> list[dict]:
+    return [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line.strip()]
+
+
+def pairs_per_second(run: Path, batch: int, skip: int) -> tuple[float, float]:
+    """(pairs/s, median step ms) over the training records after step ``skip``."""
+    ms = [r["step_ms"] for r in records(run) if "step_ms" in r and r["step"] > skip]
+    if not ms:
+        raise ValueError(f"{run}/metrics.jsonl: no step_ms records after step {skip}")
+    median = statistics.median(ms)
+    return batch / (median / 1e3), median
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                allow_abbrev=False)
+    p.add_argument("--data", type=Path, required=True, help="a dataset built by `scenesplat-stereo build`")
+    p.add_argument("--work", type=Path, required=True, help="folder for the runs (created)")
+    p.add_argument("--ranks", type=int, default=2, help="processes (GPUs) of the several-GPU runs (default 2)")
+    p.add_argument("--device", default="cuda", help="cuda (NCCL) or cpu (gloo)")
+    p.add_argument("--steps", type=int, default=200, help="steps of every run (default 200)")
+    p.add_argument("--batch-size", type=int, default=32, help="pairs a step over all ranks (default 32)")
+    p.add_argument("--skip", type=int, default=20, help="steps left out of the throughput (default 20)")
+    p.add_argument("--out", type=Path, help="also write the markdown report here")
+    p.add_argument("extra", nargs=argparse.REMAINDER, help="after --: more `sgmodel train` flags")
+    args = p.parse_args(argv)
+    extra = args.extra[1:] if args.extra[:1] == ["--"] else args.extra
+    flags = ["--device", args.device, "--steps", str(args.steps), "--batch-size", str(args.batch_size),
+             "--val-every", str(max(1, args.steps // 4)), "--log-every", "1", "--no-progress", *extra]
+    work = args.work
+    runs = {"one": work / "one", "many": work / f"ranks{args.ranks}", "many-then-one": work / f"{args.ranks}to1",
+            "one-then-many": work / f"1to{args.ranks}"}
+    train(1, args.data, runs["one"], flags)
+    train(args.ranks, args.data, runs["many"], flags)
+    stopped = {"many-then-one": stop_at_first_checkpoint(args.ranks, args.data, runs["many-then-one"], flags),
+               "one-then-many": stop_at_first_checkpoint(1, args.data, runs["one-then-many"], flags)}
+    train(1, args.data, runs["many-then-one"], flags)
+    train(args.ranks, args.data, runs["one-then-many"], flags)
+
+    (one_pps, one_ms), (many_pps, many_ms) = (pairs_per_second(runs[k], args.batch_size, args.skip)
+                                              for k in ("one", "many"))
+    reference = last_weights(runs["one"])[1]
+    lines = [f"`sgmodel train` on {args.device}, {args.steps} steps, batch {args.batch_size} over all ranks, "
+             f"flags `{' '.join(extra)}`; throughput from the median step after step {args.skip}.", "",
+             "| processes | median step (ms) | pairs/s | speed-up |", "|---:|---:|---:|---:|",
+             f"| 1 | {one_ms:.1f} | {one_pps:.1f} | 1.00 |",
+             f"| {args.ranks} | {many_ms:.1f} | {many_pps:.1f} | {many_pps / one_pps:.2f} |", "",
+             "| run | stopped at step | final step | weights vs one process (rel. L2 diff) |", "|---|---:|---:|---:|",
+             f"| {args.ranks} processes, uninterrupted | - | {last_weights(runs['many'])[0]} | "
+             f"{weight_difference(reference, last_weights(runs['many'])[1]):.2e} |"]
+    for key, label in (("many-then-one", f"{args.ranks} processes, resumed on 1"),
+                       ("one-then-many", f"1 process, resumed on {args.ranks}")):
+        step, w = last_weights(runs[key])
+        lines.append(f"| {label} | {stopped[key]} | {step} | {weight_difference(reference, w):.2e} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        args.out.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,215 @@
+"""Measuring one method on one split of one dataset (``evaluate``) and its report folder; the command that
+runs it, and what it writes, is ``sgmodel.evaluation.command``."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
+from scenesplat_stereo.common.text import markdown_table, whole_number
+from sgmodel.config import EncoderParams
+from sgmodel.data.loader import eval_batches, read_split, to_device
+from sgmodel.encoders import DEFAULT_ENCODER
+from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
+from sgmodel.metrics import image as metrics
+from sgmodel.metrics.lpips import create_lpips
+from sgmodel.metrics.sheets import target_sheet
+from sgmodel.model.network import load_predictor
+from sgmodel.model.render import render_views
+from sgmodel.predict.inference import Reconstructor
+from sgmodel.weights import SHIPPED, checkpoint_path, describe_checkpoint
+
+METHODS = ("naive-gs", "forward-splat")
+METRICS = ("psnr", "ssim", "lpips")
+SHEET_TARGETS = 4  # worst and best targets shown in sheet.png
+OWNER = "sgmodel eval"  # recorded in REPORT (files.OWNER_FILE): a later evaluation may replace it
+
+
+@dataclass
+class Method:
+    """What renders a batch's targets: name, encoder name, resolution S, and ``render(batch) -> [B,T,3,S,S]``."""
+
+    name: str
+    encoder: str
+    resolution: int
+    render: object
+
+
+def checkpoint_method(checkpoint: str | Path | None, device: str, encoder_weights: str | None = None,
+                      encoder_repo: str | None = None, encoder: str | None = None) -> Method:
+    """The trained model (``--checkpoint``; the shipped one for None or its name), its encoder rebuilt as
+    ``load_predictor`` does (the flags over the checkpoint's)."""
+    predictor = load_predictor(checkpoint_path(checkpoint), device, encoder_weights, encoder_repo, encoder)
+
+    def render(batch: dict) -> torch.Tensor:
+        gaussians = predictor.predict(batch["left"], batch["right"], batch["K"], batch["baseline"]).gaussians
+        S = batch["targets"].shape[-1]
+        return render_views(gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
+
+    return Method(describe_checkpoint(checkpoint), predictor.model.encoder.name, predictor.resolution, render)
+
+
+def baseline_method(name: str, encoder_params: EncoderParams, resolution: int, device: str) -> Method:
+    """A baseline without learned prediction on the encoder ``encoder_params`` describes."""
+    reconstructor = Reconstructor(method=name, encoder=build_encoder(encoder_params, device))
+
+    def render(batch: dict) -> torch.Tensor:
+        scenes = reconstructor(batch["left"], batch["right"], batch["K"], batch["baseline"])
+        S = batch["targets"].shape[-1]
+        return scenes.render(batch["target_viewmats"], batch["target_Ks"], S, S)
+
+    return Method(name, encoder_params.name, resolution, render)
+
+
+def measure(method: Method, loader, device: str, lpips_net, progress: bool = True) -> tuple[list[dict], list[dict]]:
+    """Per-target rows, and the worst and best targets' images for the sheet."""
+    rows, kept = [], []
+    bar = tqdm(loader, disable=not progress, unit="pair", desc=f"eval {method.name}")
+    for batch in bar:
+        batch = to_device(batch, device)
+        renders = method.render(batch).float().clamp(0, 1)
+        B, T = renders.shape[:2]
+        pred, gt, mask = renders.flatten(0, 1), batch["targets"].flatten(0, 1), batch["masks"].flatten(0, 1)
+        values = {"psnr": metrics.psnr(pred, gt), "ssim": metrics.ssim(pred, gt),
+                  "psnr_masked": metrics.psnr(pred, gt, mask), "ssim_masked": metrics.ssim(pred, gt, mask)}
+        if lpips_net is not None:
+            values["lpips"] = metrics.lpips(lpips_net, pred, gt)
+            values["lpips_masked"] = metrics.lpips(lpips_net, pred, gt, mask)
+        valid = mask.float().flatten(1).mean(1)
+        for i in range(B * T):
+            b, t = divmod(i, T)
+            row = {"key": batch["keys"][b], "scene": batch["scenes"][b], "target": int(batch["target_ids"][b, t]),
+                   "valid_fraction": round(valid[i].item(), 6)}
+            row.update({k: v[i].item() for k, v in values.items()})
+            rows.append(row)
+            kept.append({"psnr": row["psnr"], "target": gt[i].cpu(), "render": pred[i].cpu(),
+                         "caption": f"{row['key']} target {row['target']}: {row['psnr']:.2f} dB"})
+        kept = sorted(kept, key=lambda e: e["psnr"])
+        kept = kept[:SHEET_TARGETS] + kept[-SHEET_TARGETS:] if len(kept) > 2 * SHEET_TARGETS else kept
+        bar.set_postfix(psnr=f"{sum(r['psnr'] for r in rows) / len(rows):.2f}")
+    if not rows:
+        raise ValueError("the split has no targets to evaluate")
+    return rows, kept
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Means over targets; a masked metric of a target without a valid pixel (NaN) is left out of its mean
+    (NaN only when no target has one)."""
+    keys = [k for k in rows[0] if k not in ("key", "scene", "target")]
+    values = {k: [r[k] for r in rows if not math.isnan(r[k])] for k in keys}
+    return {k: sum(v) / len(v) if v else math.nan for k, v in values.items()}
+
+
+def scene_table(rows: list[dict]) -> str:
+    scenes = sorted({r["scene"] for r in rows})
+    cols = [k for k in ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "lpips_masked") if k in rows[0]]
+    body = []
+    for s in scenes + ["all"]:
+        sel = [r for r in rows if s == "all" or r["scene"] == s]
+        mean = summarise(sel)
+        body.append([s, len(sel)] + [f"{mean[c]:.4f}" if "psnr" not in c else f"{mean[c]:.2f}" for c in cols])
+    return markdown_table(["scene", "targets"] + cols, body)
+
+
+def _csv(rows: list[dict]) -> bytes:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue().encode()
+
+
+def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpips_vgg: str | None,
+             batch_size: int = 4, progress: bool = True) -> dict:
+    """Run the evaluation and write the report; returns metrics.json's content."""
+    loader = eval_batches(data, split, batch_size, method.resolution)
+    lpips_net = create_lpips(lpips_vgg, device=device)
+    rows, kept = measure(method, loader, device, lpips_net, progress)
+    result = {"method": method.name, "encoder": method.encoder, "split": split, "data": str(Path(data).resolve()),
+              "resolution": method.resolution, "targets": len(rows),
+              "lpips": "LPIPS-VGG v0.1" if lpips_net is not None else "not computed (no VGG16 ImageNet weights)",
+              "mean": summarise(rows)}
+    with StagedFolder(out, OWNER) as tmp:
+        (tmp / "metrics.json").write_text(json.dumps(result, indent=2) + "\n")
+        (tmp / "targets.csv").write_bytes(_csv(rows))
+        (tmp / "scenes.md").write_text(scene_table(rows) + "\n")
+        (tmp / "sheet.png").write_bytes(target_sheet(kept))
+    return result
+
+
+def benchmark_flag(text: str) -> tuple[str, Path]:
+    """``--data [NAME=]PATH``: a benchmark's name (default: its folder's name) and folder (a path that holds
+    '=' needs a NAME)."""
+    name, _, path = text.partition("=") if "=" in text else ("", "", text)
+    path = Path(path)
+    return (name or path.resolve().name), path
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=benchmark_flag, action="append", required=True, metavar="[NAME=]PATH",
+                   help="dataset folder written by `scenesplat-stereo build` or `import`; repeat it for a table over "
+                        "several benchmarks (NAME labels its columns; default: the folder's name)")
+    p.add_argument("--split", choices=("val", "test"), default="val", help="split to evaluate (default val)")
+    p.add_argument("--checkpoint", help=f"a checkpoint written by `sgmodel train` (best.pt), or {SHIPPED.name!r}: the "
+                   "model shipped in the package (the default when neither --checkpoint nor --method is given)")
+    p.add_argument("--method", choices=METHODS, action="append",
+                   help="a baseline without learned prediction; repeat it (with or without --checkpoint) for a table")
+    add_encoder_arguments(p, f"the checkpoint's; {DEFAULT_ENCODER} for --method")
+    p.add_argument("--resolution", type=whole_number("--resolution", 16), default=256,
+                   help="S for a baseline (a checkpoint uses its own)")
+    p.add_argument("--out", type=Path, required=True, help="report folder")
+    p.add_argument("--batch-size", type=whole_number("--batch-size"), default=4, help="pairs per batch (default 4)")
+    p.add_argument("--lpips-vgg", help="VGG16 ImageNet weights for LPIPS (default: torch's hub cache)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def check_report_folder(out: Path, inputs: dict[str, Path | None]) -> None:
+    """REPORT may be replaced by a new report: absent, empty or an earlier report, writable, apart from the
+    ``inputs`` ({flag: path}: the data, the checkpoint); ValueError naming --out. Reads only."""
+    check_replaceable(out, "--out", OWNER)
+    check_apart(out, "--out", inputs, replaced=True)
+
+
+def methods_of(args: argparse.Namespace) -> list[str]:
+    """What ``sgmodel eval`` measures: "checkpoint" (``--checkpoint``) and the ``--method`` baselines, in
+    order, each once; ValueError when there is none. Several methods or ``--data`` folders make a table
+    (``sgmodel.evaluation.table2.run_table``), one of each a report (``report``)."""
+    methods = (["checkpoint"] if args.checkpoint or not args.method else []) + list(dict.fromkeys(args.method or []))
+    return methods
+
+
+
+def eval_inputs(args: argparse.Namespace) -> dict[str, Path | None]:
+    """The inputs a report must stay apart from, by flag: each ``--data`` folder (its split checked to exist)
+    and ``--checkpoint``."""
+    for _, path in args.data:
+        read_split(path, args.split)
+    checkpoint = checkpoint_path(args.checkpoint) if args.checkpoint or not args.method else None
+    return {f"--data {name}={path}": path for name, path in args.data} | {"--checkpoint": checkpoint}
+
+
+def method_of(name: str, args: argparse.Namespace, device: str) -> Method:
+    """The Method an ``eval_methods`` name stands for: the ``--checkpoint`` or a baseline with the encoder flags."""
+    if name == "checkpoint":
+        return checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
+    return baseline_method(name, encoder_params(args), args.resolution, device)
+
+
+def report(args: argparse.Namespace, method_name: str, device: str) -> int:
+    """``sgmodel eval`` with one ``--data`` folder and one method: REPORT is ``--out``."""
+    check_report_folder(args.out, eval_inputs(args))
+    method = method_of(method_name, args, device)
+    result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
+                      not args.no_progress)
+    print((args.out / "scenes.md").read_text())
+    print(f"{result['targets']} targets; report in {args.out}")
+    return 0

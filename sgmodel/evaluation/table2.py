@@ -1,0 +1,155 @@
+"""The paper's Table 2 (zero-shot comparison): ``sgmodel eval`` over several benchmarks and methods at once.
+
+    sgmodel eval --split test --data StereoNVS=data/stereonvs --data ReplicaGS=data/replicags \\
+        --checkpoint run/checkpoints/best.pt --method forward-splat --method naive-gs --out table2/
+
+Every (benchmark, method) pair is one ``sgmodel eval`` run with its own report in
+``OUT/<benchmark>/<method>/`` (metrics.json, targets.csv, scenes.md, sheet.png). ``OUT/table2.md`` and
+``OUT/table2.json`` hold the table: one row per method in the paper's order (the baselines without
+learned prediction, forward-splat then naive-GS, then the model), per benchmark PSNR, SSIM and LPIPS
+(means over all targets), the best value of each column in bold.
+
+Which numbers: a benchmark folder's ``benchmark.json`` (scenesplat_stereo.shards.benchmark_file) says whether it is
+measured over the valid masks (rendered test sets such as ReplicaGS: ``psnr_masked`` and so on, as the
+paper does) or over the full image (captured ones such as StereoNVS); a folder without one (a train/val
+build) is measured over the full image, and the notes say so. Without the VGG16 ImageNet weights LPIPS is
+not computed: its cells read "n/a" and the notes say why.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from scenesplat_stereo.common.files import atomic_write_bytes, check_apart, check_replaceable, check_writable
+from scenesplat_stereo.common.text import key_safe_name, markdown_table
+from scenesplat_stereo.shards.benchmark_file import read_benchmark
+from sgmodel.data.loader import read_split
+from sgmodel.evaluation.evaluate import OWNER, eval_inputs, evaluate, method_of
+
+TABLE_MD, TABLE_JSON = "table2.md", "table2.json"
+#: Row order and labels of the paper's Table 2 ("Stereo geometry without learned prediction", then ours).
+ROWS = (("forward-splat", "forward-splat"), ("naive-gs", "naive-GS"), ("checkpoint", "StereoGaussians"))
+BASELINE_GROUP = "*Stereo geometry without learned prediction*"
+COLUMNS = (("psnr", "PSNR ↑", 3, max), ("ssim", "SSIM ↑", 4, max), ("lpips", "LPIPS ↓", 4, min))
+
+
+@dataclass(frozen=True)
+class Column:
+    """One benchmark of the table: its name, folder, and whether it is measured over the valid masks
+    (``masked``), with the reason (``region``: what benchmark.json says, or that there is none)."""
+
+    name: str
+    data: Path
+    masked: bool
+    region: str
+
+
+@dataclass(frozen=True)
+class Row:
+    """One method of the table: ``method`` ("checkpoint", "naive-gs", "forward-splat"), its label, and the
+    per-benchmark means (``metrics.json``'s ``mean``) keyed by column name."""
+
+    method: str
+    label: str
+    encoder: str
+    resolution: int
+    means: dict[str, dict]
+
+
+def columns(data: list[tuple[str, Path]], split: str) -> list[Column]:
+    """The benchmarks of ``--data``, checked before anything runs: unique names usable as folder names,
+    the split present (DataError), a readable benchmark.json (BenchmarkError) or none."""
+    out, seen = [], set()
+    for name, path in data:
+        if key_safe_name(name) != name or name in seen:
+            raise ValueError(f"--data {name}={path}: the name must be unique and without '.', '/', blanks or '__' "
+                             "(it names a report folder); give NAME=PATH")
+        seen.add(name)
+        read_split(path, split)
+        bench = read_benchmark(path)
+        if bench is None:
+            out.append(Column(name, Path(path), False, "full image (no benchmark.json)"))
+        else:
+            what = "valid-mask pixels" if bench.masked else "full image"
+            out.append(Column(name, Path(path), bench.masked, f"{what} ({bench.source}: {bench.protocol})"))
+    return out
+
+
+def cell(means: dict, metric: str, masked: bool) -> float | None:
+    """One number of a row's means: ``<metric>_masked`` over valid masks, else ``<metric>``; None when it
+    was not computed (LPIPS without weights) or undefined (NaN: no target had a valid pixel)."""
+    value = means.get(f"{metric}_masked" if masked else metric)
+    return None if value is None or math.isnan(value) else value
+
+
+def table_markdown(cols: list[Column], rows: list[Row]) -> str:
+    """The table: a header per benchmark and metric, the baselines' group line, one row per method; the
+    best value of each column in bold, "n/a" where a metric was not computed."""
+    header = ["Method"] + [f"{c.name} {label}" for c in cols for _, label, _, _ in COLUMNS]
+    values = {(r.method, c.name, m): cell(r.means[c.name], m, c.masked) for r in rows for c in cols
+              for m, _, _, _ in COLUMNS}
+    best = {}
+    for c in cols:
+        for m, _, _, pick in COLUMNS:
+            got = [v for r in rows if (v := values[(r.method, c.name, m)]) is not None]
+            best[(c.name, m)] = pick(got) if len(got) > 1 else None
+    body = []
+    if any(r.method != "checkpoint" for r in rows):
+        body.append([BASELINE_GROUP] + [""] * (len(header) - 1))
+    for r in rows:
+        line = [f"**{r.label}**" if r.method == "checkpoint" else r.label]
+        for c in cols:
+            for m, _, digits, _ in COLUMNS:
+                v = values[(r.method, c.name, m)]
+                text = "n/a" if v is None else f"{v:.{digits}f}"
+                line.append(f"**{text}**" if v is not None and v == best[(c.name, m)] else text)
+        body.append(line)
+    return markdown_table(header, body)
+
+
+def notes(cols: list[Column], rows: list[Row], split: str, targets: dict[str, int], lpips: str) -> str:
+    """What each column measures, how many targets, each method's encoder and size, and what was not
+    computed."""
+    lines = [f"- {c.name}: `{c.data}`, split {split}, {targets[c.name]} targets; {c.region}" for c in cols]
+    lines += [f"- {r.label}: encoder {r.encoder}, {r.resolution}x{r.resolution}" for r in rows]
+    if not lpips.startswith("LPIPS"):
+        lines.append(f"- LPIPS {lpips}: give `--lpips-vgg` (torchvision's vgg16-397923af.pth)")
+    return "\n".join(lines)
+
+
+def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:
+    """Evaluate every method on every ``--data`` folder, write the reports and the table, print it. OUT and
+    each report folder in it (replaced as a whole) are checked before anything runs."""
+    cols = columns(args.data, args.split)
+    check_writable(args.out, "--out", create=False)
+    check_apart(args.out, "--out", eval_inputs(args))
+    for c in cols:
+        for m in methods:
+            check_replaceable(Path(args.out) / c.name / m, "--out", OWNER)
+    labels = dict(ROWS)
+    order = [m for m, _ in ROWS if m in methods]
+    built = {m: method_of(m, args, device) for m in order}  # every checkpoint and encoder loads before any run
+    rows, targets, lpips = [], {}, ""
+    for m in order:
+        means = {}
+        for c in cols:
+            result = evaluate(built[m], c.data, args.split, Path(args.out) / c.name / m, device, args.lpips_vgg,
+                              args.batch_size, not args.no_progress)
+            means[c.name], targets[c.name], lpips = result["mean"], result["targets"], result["lpips"]
+        rows.append(Row(m, labels[m], built[m].encoder, built[m].resolution, means))
+    text = table_markdown(cols, rows) + "\n\n" + notes(cols, rows, args.split, targets, lpips) + "\n"
+    doc = {"split": args.split, "lpips": lpips,
+           "benchmarks": [{"name": c.name, "data": str(c.data.resolve()), "masked": c.masked, "region": c.region,
+                           "targets": targets[c.name]} for c in cols],
+           "rows": [{"method": r.method, "label": r.label, "encoder": r.encoder, "resolution": r.resolution,
+                     "cells": {c.name: {m: cell(r.means[c.name], m, c.masked) for m, _, _, _ in COLUMNS}
+                               for c in cols}} for r in rows]}
+    atomic_write_bytes(Path(args.out) / TABLE_MD, text.encode())
+    atomic_write_bytes(Path(args.out) / TABLE_JSON, (json.dumps(doc, indent=2) + "\n").encode())
+    print(text)
+    print(f"reports in {args.out}/<benchmark>/<method>/; table in {Path(args.out) / TABLE_MD}")
+    return 0

@@ -1,0 +1,39 @@
+"""Every GPU kernel of the model, and the one place that says whether they run.
+
+The Triton kernels (``bias_gelu``, ``concat``, ``group_norm``, ``lpips_tap``, ``ssim``, ``upsample``) and the
+Warp soft-argmin of PSMNet's disparity regression (``soft_argmin``): each module holds a forward and, where
+training needs one, a backward; the operation that dispatches to it (``sgmodel.model.layers``,
+``sgmodel.metrics``) keeps its PyTorch path as the reference it is tested against in float64. Public names
+here: ``triton_installed``, ``triton_kernels_run``, ``channels_last_kernels_run``, ``CAT_KERNEL_SOURCES``.
+This package and ``scenesplat_stereo.raster`` are the only ones that import Warp or Triton
+(tests/test_import_cycles.py); importing this package itself imports neither.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+
+import torch
+
+#: the most tensors ``layers.cat_channels`` concatenates in one launch of ``concat``'s kernel (its source slots)
+CAT_KERNEL_SOURCES = 3
+
+
+def triton_kernels_run(x: torch.Tensor) -> bool:
+    """Whether our Triton kernels of 4D activations take ``x``: a 4D CUDA tensor in float32, float16 or
+    bfloat16, with Triton installed (``channels_last_kernels_run``; LPIPS's tap distance in any strides)."""
+    return (x.is_cuda and x.dim() == 4 and x.dtype in (torch.float32, torch.float16, torch.bfloat16)
+            and triton_installed())
+
+
+def channels_last_kernels_run(x: torch.Tensor) -> bool:
+    """Whether the Triton kernels for channels-last activations (``group_norm_gelu``, ``bias_gelu``,
+    ``upsample_bilinear``'s 2x) run for ``x``: ``triton_kernels_run`` and channels-last."""
+    return triton_kernels_run(x) and x.is_contiguous(memory_format=torch.channels_last)
+
+
+@functools.cache
+def triton_installed() -> bool:
+    """Whether Triton can be imported (the fused GroupNorm kernels; torch.compile's GPU code)."""
+    return importlib.util.find_spec("triton") is not None

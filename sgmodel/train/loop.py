@@ -1,0 +1,432 @@
+"""The training loop: a step function (``train_step``), validation (``validate``) and the loop (``train``); what
+a run does and writes is the command's description (``sgmodel.train.command``)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from scenesplat_stereo.common.commandline import Interrupted
+from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, append_line, atomic_write_bytes,
+                                            check_apart, check_writable, read_json, read_json_lines, remove_temp_files)
+from scenesplat_stereo.common.text import format_table
+from sgmodel.config import ModelParams, TrainParams
+from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
+from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split, to_device
+from sgmodel.metrics import image as metrics
+from sgmodel.metrics.sheets import validation_sheet
+from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
+from sgmodel.model.layers import amp_autocast, compiles
+from sgmodel.model.network import StereoGaussians, create_model
+from sgmodel.model.render import render_views
+from sgmodel.train.distributed import World, all_sum, broadcast_flag, close_world, init_world
+from sgmodel.train.losses import create_objective
+
+log = logging.getLogger(__name__)
+
+
+class TrainingDiverged(ValueError):
+    """The loss, a gradient or a weight became NaN or infinite; training stopped and saved nothing of it.
+    ``step``: the step it happened at; ``checkpoint``: the last checkpoint written (holding
+    ``checkpoint_step``), or None; ``lr``: the peak learning rate used."""
+
+    def __init__(self, message: str, step: int | None = None, checkpoint: Path | None = None,
+                 checkpoint_step: int | None = None, lr: float | None = None) -> None:
+        super().__init__(message)
+        self.step, self.checkpoint, self.checkpoint_step, self.lr = step, checkpoint, checkpoint_step, lr
+
+
+@dataclass(frozen=True)
+class RunPaths:
+    """The files of one training run (see the module docstring)."""
+
+    root: Path
+
+    @property
+    def config(self) -> Path:
+        return self.root / "config.json"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.jsonl"
+
+    @property
+    def last(self) -> Path:
+        return self.root / "checkpoints" / "last.pt"
+
+    @property
+    def best(self) -> Path:
+        return self.root / "checkpoints" / "best.pt"
+
+    def sheet(self, step: int) -> Path:
+        return self.root / "sheets" / f"val_{step:06d}.png"
+
+
+def render_targets(model: StereoGaussians | DistributedDataParallel, batch: dict, amp: bool):
+    """Predict Gaussians for the batch's pairs and render every target: (rgb [B,T,3,S,S], alpha, Prediction).
+    The convolutions run under bf16 autocast on CUDA when ``amp``; the composer and rasteriser in float32."""
+    left = batch["left"]
+    with amp_autocast(left, amp):
+        pred = model(left, batch["right"], batch["K"], batch["baseline"], encoded=cached_encoding(batch))
+    S = batch["targets"].shape[-1]
+    rgb, alpha = render_views(pred.gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)
+    return rgb, alpha, pred
+
+
+def create_optimizer(params, device: torch.device, **settings) -> torch.optim.AdamW:
+    """AdamW over ``params`` (``settings``: lr, betas, weight_decay); on CUDA its fused kernel (one launch
+    for every parameter: 0.4 ms against 6.5 ms a step on an H100, the same update)."""
+    return torch.optim.AdamW(params, fused=device.type == "cuda", **settings)
+
+
+def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, scheduler, amp: bool) -> dict:
+    """One optimiser step on one batch; returns loss, its parts, PSNR (dB) and the learning rate used."""
+    optimizer.zero_grad(set_to_none=True)
+    rgb, _, _ = render_targets(model, batch, amp)
+    loss, parts = objective(rgb.flatten(0, 1), batch["targets"].flatten(0, 1))
+    loss.backward()
+    # checked once the backward is queued (the GPU is not left idle while the host starts it), before the
+    # optimiser: a non-finite loss still changes no weight
+    if not torch.isfinite(loss):
+        raise TrainingDiverged(f"the loss is {loss.item()}")
+    lr = optimizer.param_groups[0]["lr"]
+    optimizer.step()
+    scheduler.step()
+    psnr = metrics.psnr(rgb.detach(), batch["targets"]).mean()
+    values = torch.stack([loss.detach(), psnr, *parts.values()]).tolist()  # one transfer for all of them
+    return {"loss": values[0], "psnr": values[1], "lr": lr, **dict(zip(parts, values[2:]))}
+
+
+@torch.no_grad()
+def validate(model, loader, world: World, amp: bool, sheet_samples: int, limit: int | None = None
+             ) -> tuple[dict, list]:
+    """Mean PSNR over every target of the split (full image and valid pixels only), summed over ranks;
+    and the first ``sheet_samples`` samples of this rank for the contact sheet. ``limit`` caps the
+    samples each rank validates on (None: all)."""
+    was_training = model.training
+    model.eval()
+    total, total_masked, count, shown = 0.0, 0.0, 0, []
+    samples = 0
+    for batch in loader:
+        if limit is not None and samples >= limit:
+            break
+        samples += len(batch["keys"])
+        batch = to_device(batch, world.device)
+        rgb, _, pred = render_targets(model, batch, amp)
+        total += metrics.psnr(rgb, batch["targets"]).sum().item()
+        total_masked += metrics.psnr(rgb, batch["targets"], batch["masks"]).sum().item()
+        count += rgb.shape[0] * rgb.shape[1]
+        for i in range(rgb.shape[0]):
+            if len(shown) < sheet_samples:
+                shown.append({"left": batch["left"][i], "depth": pred.depth[i], "targets": batch["targets"][i],
+                              "renders": rgb[i], "key": batch["keys"][i]})
+    model.train(was_training)
+    total, total_masked, count = all_sum(world, [total, total_masked, float(count)])
+    if count == 0:
+        raise ValueError("the validation split has no targets")
+    return {"val_psnr": total / count, "val_psnr_masked": total_masked / count, "val_targets": int(count)}, shown
+
+
+def mean_over_ranks(world: World, stats: dict) -> dict:
+    """The step's loss, its parts and PSNR averaged over ranks (each rank measured its share of the global
+    batch, all shares the same size), so a record means the same on any number of GPUs; lr as it is."""
+    keys = [k for k in stats if k != "lr"]
+    return {**stats, **dict(zip(keys, (v / world.size for v in all_sum(world, [stats[k] for k in keys]))))}
+
+
+def cached_encoding(batch: dict) -> tuple[torch.Tensor, list[torch.Tensor]] | None:
+    """The batch's frozen-encoder outputs read from an encoder cache (disparity, features), or None."""
+    return (batch["encoder_disparity"], batch["encoder_features"]) if "encoder_disparity" in batch else None
+
+
+def all_finite(tensors: list[torch.Tensor]) -> torch.Tensor:
+    """True (a 0-d bool tensor on their device, no sync) when every value of every tensor is finite: one
+    fused multi-tensor norm (``torch._foreach_norm``), which is NaN or infinite exactly when a value is (or
+    when a float32 norm overflows, above 1e19: a divergence too)."""
+    if not tensors:
+        return torch.tensor(True)
+    return torch.stack(torch._foreach_norm(tensors)).isfinite().all()
+
+
+def _trim_metrics(path: Path, step: int | None) -> None:
+    """On resume at ``step``, drop records written after it (they will be written again), and a torn last
+    line (with a warning); a new run (``step`` None) starts the file afresh."""
+    if not path.exists():
+        return
+    if step is None:
+        path.unlink()
+        return
+    keep = [json.dumps(r) for r in read_json_lines(path) if r.get("step", 0) <= step]
+    atomic_write_bytes(path, "".join(line + "\n" for line in keep).encode())
+
+
+def run_config(model_params: ModelParams, train_params: TrainParams, data: Path, encoder, objective,
+               init_from: dict | None = None, cache: EncoderCache | None = None) -> dict:
+    """The record written to RUN/config.json; a resumed run must match it (except the worker count and the
+    encoder cache, which changes no number)."""
+    return {"model": model_params.to_dict(), "train": train_params.to_dict(), "data": str(Path(data).resolve()),
+            "encoder": {"name": encoder.name, "weights_sha256": encoder.weights_sha256},
+            "loss": objective.to_config(), "init_from": init_from,
+            "encoder_cache": str(cache.root.resolve()) if cache is not None else None}
+
+
+def open_run_cache(path: Path, data: Path, encoder, resolution: int, device: str | torch.device, amp: bool
+                   ) -> EncoderCache:
+    """The encoder cache at ``path`` checked for a training run (both splits, the run's encoder, resolution
+    and precision): ``encoder_cache.open_cache``."""
+    return open_cache(path, data, encoder, resolution, precision_of(device, amp), list(RUN_SPLITS))
+
+
+def _run_files(root: Path) -> list[Path]:
+    """What RUN holds besides the lock and the temp files of killed writes."""
+    return [p for p in root.iterdir() if p.name != LOCK_FILE and not p.name.startswith(TMP_PREFIX)] \
+        if root.is_dir() else []
+
+
+def check_run_folder(paths: RunPaths, data: Path) -> None:
+    """``--out`` can hold a run: a folder (or creatable), writable, not inside ``--data``, and either free
+    of other files or a run (config.json). Reads only."""
+    check_writable(paths.root, "--out", create=False)
+    check_apart(paths.root, "--out", {"--data": data})
+    if _run_files(paths.root) and not paths.config.exists():
+        raise ValueError(f"--out {paths.root}: exists and is not a training run (no config.json); choose another "
+                         f"--out")
+
+
+def _check_resumable(paths: RunPaths, config: dict) -> bool:
+    """True to resume from last.pt; False for a new run; ValueError when RUN holds a run of other settings
+    that saved a checkpoint (a run without one is started afresh, with a warning)."""
+    if not paths.config.exists():
+        return False
+    old, config = read_json(paths.config), json.loads(json.dumps(config))  # as JSON sees it
+    if not isinstance(old, dict):
+        raise ValueError(f"{paths.config}: not a JSON object; choose another --out")
+    differs = [part for part in ("model", "data", "encoder", "loss", "init_from") if old.get(part) != config[part]]
+    # workers do not change results, compilation only their rounding (and a run from before a compile flag
+    # existed resumes)
+    ignore = ("workers", "compile_lpips", "compile_composer")
+    if {k: v for k, v in old.get("train", {}).items() if k not in ignore} != \
+            {k: v for k, v in config["train"].items() if k not in ignore}:
+        differs.append("train")
+    if differs and paths.last.exists():
+        raise ValueError(f"--out {paths.root}: holds a run trained with other settings ({', '.join(differs)} "
+                         f"differ); rerun with its flags to resume it, or choose a new --out (add --init-from "
+                         f"{paths.last} to start from its weights)")
+    if differs:
+        log.warning(f"--out {paths.root}: an earlier attempt with other settings saved no checkpoint; starting "
+                    f"afresh with these settings")
+        return False
+    return paths.last.exists()
+
+
+def _init_from(path: Path | None, model: StereoGaussians) -> dict | None:
+    """Load ``--init-from``'s weights into ``model`` (CheckpointError naming the flag and file when they do not
+    fit); the record kept in config.json."""
+    if path is None:
+        return None
+    try:
+        ckpt = load_checkpoint(path)
+    except CheckpointError as e:
+        raise CheckpointError(f"--init-from {e}") from None
+    load_weights(model, ckpt, f"--init-from {path}")
+    theirs = ckpt.get("encoder", {}) or {}
+    if theirs.get("name") not in (None, model.encoder.name):
+        log.warning(f"--init-from {path}: trained with encoder {theirs.get('name')!r}, this run uses "
+                    f"{model.encoder.name!r}")
+    return {"checkpoint": str(Path(path).resolve()), "step": ckpt["step"]}
+
+
+def train(model_params: ModelParams, train_params: TrainParams, data: Path, out: Path, device: str = "cpu",
+          vgg_path: str | None = None, progress: bool = True, init_from: Path | None = None,
+          encoder_cache: Path | None = None) -> dict:
+    """Train (or resume) a run in ``out``; returns the summary (steps, best validation PSNR, wall time).
+    ``init_from``: a checkpoint whose weights start a new run (its optimiser, schedule and step are not
+    taken). ``encoder_cache``: a cache of the encoder's outputs on ``data`` (``sgmodel encode``), read in
+    place of running the encoder (the same numbers; it may be given or left out when a run resumes)."""
+    model_params.validate()
+    train_params.validate()
+    world = init_world(device)
+    try:
+        return _train(model_params, train_params, Path(data), RunPaths(Path(out)), world, vgg_path, progress,
+                      init_from, encoder_cache)
+    finally:
+        close_world(world)
+
+
+def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPaths, world: World,
+           vgg_path: str | None, progress: bool, init_from: Path | None, encoder_cache: Path | None) -> dict:
+    if tp.batch_size % world.size:
+        raise ValueError(f"--batch-size {tp.batch_size} must be divisible by the {world.size} ranks")
+    check_run_folder(paths, data)
+    read_split_checked(data, model_params.resolution, tp.targets)
+    torch.manual_seed(tp.seed)
+    # every training step has the same shapes: let cuDNN time its algorithms once (8% of a step on an H100)
+    torch.backends.cudnn.benchmark = world.device.type == "cuda"
+    model = create_model(model_params, world.device)
+    if compiles(world.device, tp.compile_composer):
+        model.compile_composer()
+    objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp,
+                                 compile_trunk=compiles(world.device, tp.compile_lpips))
+    cache = open_run_cache(encoder_cache, data, model.encoder, model_params.resolution, world.device, tp.amp) \
+        if encoder_cache is not None else None
+    config = run_config(model_params, tp, data, model.encoder, objective, _init_from(init_from, model), cache)
+    lock = FolderLock(paths.root, "--out", "sgmodel train")
+    if world.main:
+        lock.acquire()  # the first write: RUN and its .lock (both undone if what follows refuses the run)
+    try:
+        return _run(model, objective, config, model_params, tp, data, paths, world, progress, cache)
+    finally:
+        lock.release()
+
+
+def _resume_state(paths: RunPaths, config: dict, model, optimizer, scheduler, world: World) -> tuple:
+    """(step, best PSNR, best step, resumed) to start from: last.pt's, loaded into the model, the optimiser,
+    the scheduler and the RNG; or a new run's. CheckpointError naming last.pt when it does not fit."""
+    if not _check_resumable(paths, config):
+        return 0, float("-inf"), None, False
+    ckpt = load_checkpoint(paths.last, map_location=world.device)
+    load_weights(model, ckpt, paths.last)
+    try:
+        optimizer.load_state_dict(ckpt["optimizer"])
+        scheduler.load_state_dict(ckpt["scheduler"])
+        torch.set_rng_state(ckpt["rng"]["torch"].cpu())
+        if world.device.type == "cuda" and ckpt["rng"].get("cuda") is not None:
+            torch.cuda.set_rng_state(ckpt["rng"]["cuda"].cpu(), world.device)
+        return ckpt["step"], ckpt["best_val_psnr"], ckpt["best_step"], True
+    except (KeyError, ValueError, RuntimeError, TypeError) as e:
+        raise CheckpointError(f"{paths.last}: its optimiser, schedule or RNG state does not fit this run "
+                              f"({type(e).__name__}: {e})") from None
+
+
+def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPaths,
+         world: World, progress: bool, cache: EncoderCache | None) -> dict:
+    local_batch, S = tp.batch_size // world.size, model_params.resolution
+    params = [p for p in model.parameters() if p.requires_grad]
+    optimizer = create_optimizer(params, world.device, lr=tp.lr, betas=tp.betas, weight_decay=tp.weight_decay)
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=tp.lr, total_steps=tp.steps,
+                                                    pct_start=tp.warmup, div_factor=tp.div_factor,
+                                                    final_div_factor=tp.final_div_factor)
+    step, best, best_step, resume = _resume_state(paths, config, model, optimizer, scheduler, world)
+    pinned = world.device.type == "cuda"  # page-locked batches: the copy to the GPU does not block the host
+    train_loader = make_loader(data, "train", local_batch, S, tp.targets, tp.seed, tp.workers, world.rank,
+                               world.size, train=True, start_step=step, cache=cache, pin_memory=pinned)
+    val_loader = make_loader(data, "val", local_batch, S, None, tp.seed, tp.workers, world.rank, world.size,
+                             train=False, cache=cache, pin_memory=pinned)
+    if world.main:
+        print(f"sgmodel train: {'resuming at step ' + str(step) if resume else 'new run'} in {paths.root}; "
+              f"loss {objective.description}; encoder {model.encoder.name}"
+              f"{' (its outputs from ' + str(cache.root) + ')' if cache is not None else ''}; {world.size} rank(s) on "
+              f"{world.device}; batch {tp.batch_size} ({local_batch} per rank) at {S}x{S}", flush=True)
+        remove_temp_files(paths.root)  # of a killed run's unfinished writes (we hold the lock)
+        atomic_write_bytes(paths.config, (json.dumps(config, indent=2) + "\n").encode())
+        _trim_metrics(paths.metrics, step if resume else None)
+    net = DistributedDataParallel(model, device_ids=[world.device] if world.device.type == "cuda" else None) \
+        if world.size > 1 else model
+    net.train()
+    t_start = time.perf_counter()
+    bar = tqdm(total=tp.steps, initial=step, disable=not (progress and world.main), unit="step", dynamic_ncols=True)
+    saved = step if resume else None  # the step last.pt holds
+
+    def validation(step: int, best: float) -> tuple[bool, float]:
+        """Validate, log, draw the sheet; (is it the best so far, its PSNR). Step 0 is never the best."""
+        val, shown = validate(net, val_loader, world, tp.amp, tp.sheet_samples, tp.val_samples)
+        improved = broadcast_flag(world, step > 0 and val["val_psnr"] > best)
+        if world.main:
+            bar.write(f"step {step}: val PSNR {val['val_psnr']:.2f} dB (valid pixels {val['val_psnr_masked']:.2f})"
+                      f"{' best' if improved else ''}")
+            append_line(paths.metrics, json.dumps({"step": step, **val}))
+            atomic_write_bytes(paths.sheet(step), validation_sheet(shown))
+        return improved, val["val_psnr"]
+
+    def diverged(at: int, what: str) -> TrainingDiverged:
+        held = f"{paths.last} holds step {saved}" if saved is not None else "no checkpoint was written before it"
+        go_on = (f"start a new run from its last checkpoint: --init-from {paths.last} --out NEW_RUN"
+                 if saved is not None else f"rerun in the same --out {paths.root}")
+        return TrainingDiverged(f"training diverged at step {at}: {what}; nothing of it was saved ({held}). To go "
+                                f"on with other settings (a lower --lr, say {tp.lr / 2:g}), {go_on}", at,
+                                paths.last if saved is not None else None, saved, tp.lr)
+
+    grads_finite = torch.ones((), dtype=torch.bool, device=world.device)
+    try:
+        if step == 0:  # where training starts from, for the PSNR curve
+            validation(0, best)
+        batches = iter(train_loader)
+        while step < tp.steps:
+            t0 = time.perf_counter()
+            batch = to_device(next(batches), world.device)
+            try:
+                stats = train_step(net, batch, objective, optimizer, scheduler, tp.amp)
+            except TrainingDiverged as e:
+                raise diverged(step + 1, str(e)) from None
+            step += 1
+            grads_finite &= all_finite([p.grad for p in params if p.grad is not None])
+            ms = (time.perf_counter() - t0) * 1e3
+            bar.update(1)
+            bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", ms=f"{ms:.0f}")
+            logged = step % tp.log_every == 0 or step == tp.steps
+            checkpoint = step % tp.val_every == 0 or step == tp.steps
+            if logged or checkpoint:  # one sync for both flags, where the step's .item() calls synced anyway
+                grads_ok, weights_ok = torch.stack([grads_finite, all_finite(params)]).tolist()
+                if not (grads_ok and weights_ok):
+                    raise diverged(step, "a gradient is NaN or infinite" if not grads_ok else
+                                   "a weight is NaN or infinite")
+            if logged:
+                stats = mean_over_ranks(world, stats)
+                if world.main:
+                    append_line(paths.metrics, json.dumps({"step": step, **stats, "step_ms": ms}))
+            if checkpoint:
+                improved, psnr = validation(step, best)
+                if improved:
+                    best, best_step = psnr, step
+                if world.main:
+                    state = _state(model, config, optimizer, scheduler, step, best, best_step, world)
+                    save_checkpoint(paths.last, state)
+                    if improved:
+                        save_checkpoint(paths.best, state)
+                saved = step
+    except KeyboardInterrupt:
+        bar.close()
+        kept = f"{paths.last} holds step {saved}" if saved is not None else "no checkpoint was written yet"
+        raise Interrupted(f"at step {step}; {kept}: rerun the same command to "
+                          f"{'resume' if saved is not None else 'start again'}") from None
+    bar.close()
+    summary = {"steps": step, "best_val_psnr": best, "best_step": best_step,
+               "wall_s": time.perf_counter() - t_start, "run": str(paths.root)}
+    if world.main:
+        print(summary_table(paths.metrics, summary), flush=True)
+    return summary
+
+
+def _state(model, config, optimizer, scheduler, step, best, best_step, world: World) -> dict:
+    rng = {"torch": torch.get_rng_state(),
+           "cuda": torch.cuda.get_rng_state(world.device) if world.device.type == "cuda" else None}
+    return {"model_params": config["model"], "train_params": config["train"], "encoder": config["encoder"],
+            "loss": config["loss"], "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(), "step": step, "best_val_psnr": best, "best_step": best_step,
+            "rng": rng}
+
+
+def summary_table(metrics_path: Path, summary: dict) -> str:
+    """The validation history as a text table, then the best step."""
+    rows = [r for r in read_json_lines(metrics_path) if "val_psnr" in r]
+    table = format_table([["step", "val PSNR (dB)", "valid-pixel PSNR (dB)", "targets"]] +
+                         [[r["step"], f"{r['val_psnr']:.2f}", f"{r['val_psnr_masked']:.2f}", r["val_targets"]]
+                          for r in rows], rule=True)
+    return (f"{table}\nbest validation PSNR {summary['best_val_psnr']:.2f} dB at step {summary['best_step']}; "
+            f"{summary['steps']} steps in {summary['wall_s']:.0f} s; checkpoints in {summary['run']}/checkpoints")
+
+
+def read_split_checked(data: Path, resolution: int, targets: int) -> None:
+    """Both splits a run needs exist, list readable shards, and their first samples decode at
+    ``resolution`` with ``targets`` training targets. DataError naming the file (and the flag) otherwise.
+    Reads only."""
+    for split in RUN_SPLITS:
+        check_first_sample(read_split(Path(data), split), lambda key, members, source, split=split: load_sample(
+            key, members, source, resolution, targets if split == "train" else None))

@@ -1,0 +1,232 @@
+"""The model's rooms: canvas, decoder, predictor, the assembled model, gradients and bad input."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from sgmodel.config import ComposerParams, DecoderParams, ModelParams, PredictorParams
+from sgmodel.model import canvas
+from sgmodel.model.decoder import DPTDecoder
+from sgmodel.model.network import create_model
+from sgmodel.model.predictor import CHANNELS, LAYER_CHANNELS, GaussianPredictor
+from sgmodel.model.render import render_views
+from tests.support.model_helpers import StandInEncoder, record_compile, textured_batch
+
+
+def small_params(**changes) -> ModelParams:
+    p = ModelParams(resolution=32, padding=4, decoder=DecoderParams(channels=16, groups=4),
+                    predictor=PredictorParams(channels=16, groups=4))
+    for k, v in changes.items():
+        setattr(p, k, v)
+    return p
+
+
+def test_canvas_intrinsics_shift_principal_point_only():
+    K = torch.tensor([[[100.0, 0, 31.5], [0, 90.0, 20.25], [0, 0, 1]]])
+    Kc = canvas.canvas_intrinsics(K, 16)
+    assert torch.equal(Kc[0, 0, 0], K[0, 0, 0]) and torch.equal(Kc[0, 1, 1], K[0, 1, 1])
+    assert Kc[0, 0, 2].item() == 47.5 and Kc[0, 1, 2].item() == 36.25
+    # a pixel's ray is unchanged by the canvas: canvas pixel (u + P, v + P) is image pixel (u, v)
+    ray = torch.linalg.inv(K[0]) @ torch.tensor([10.5, 7.5, 1.0])
+    ray_c = torch.linalg.inv(Kc[0]) @ torch.tensor([26.5, 23.5, 1.0])
+    assert torch.allclose(ray, ray_c, atol=1e-6)
+
+
+def test_canvas_extend_replicates_edges():
+    x = torch.arange(12.0).view(1, 1, 3, 4)
+    y = canvas.extend(x, 2)
+    assert y.shape == (1, 1, 7, 8)
+    assert torch.equal(y[0, 0, 2:5, 2:6], x[0, 0])
+    assert torch.equal(y[0, 0, 0, :2], torch.full((2,), x[0, 0, 0, 0].item()))
+    assert torch.equal(y[0, 0, -1, -2:], torch.full((2,), x[0, 0, -1, -1].item()))
+    assert canvas.extend(x, 0) is x
+
+
+@pytest.mark.parametrize("features", [True, False])
+def test_decoder_shapes(features):
+    B, S = 2, 32
+    rgb, z = torch.rand(B, 3, S, S), torch.rand(B, 1, S, S) * 5 + 0.1
+    if features:
+        dec = DPTDecoder((6, 8), (2, 4), 16, 4, rgbd=True, rgbd_scales=(2, 4, 8))
+        feats = [torch.rand(B, 6, S // 2, S // 2), torch.rand(B, 8, S // 4, S // 4)]
+    else:
+        dec = DPTDecoder((), (), 16, 4, rgbd=True, rgbd_scales=(2, 4, 8))
+        feats = []
+    phi = dec(feats, rgb, z)
+    assert phi.shape == (B, 16, S, S) and torch.isfinite(phi).all()
+    with pytest.raises(ValueError, match="RGB-D"):
+        DPTDecoder((), (), 16, 4, rgbd=False, rgbd_scales=(2, 4))
+
+
+def test_predictor_zero_initialised_heads():
+    pred = GaussianPredictor(PredictorParams(channels=16, groups=4), descriptor_channels=16, rgbd=True)
+    Hc = 20
+    front, back, dz = pred(torch.rand(2, 3, Hc, Hc), torch.rand(2, 1, Hc, Hc) + 1, torch.rand(2, 16, Hc, Hc))
+    assert front.shape == back.shape == (2, LAYER_CHANNELS, Hc, Hc) and dz.shape == (2, 1, Hc, Hc)
+    for layer in (front, back):
+        assert torch.all(layer[:, CHANNELS["scale"]] == 0) and torch.all(layer[:, CHANNELS["sh"]] == 0)
+        for name in ("opacity", "offset", "quat"):  # small and non-zero
+            v = layer[:, CHANNELS[name]].abs()
+            assert 0 < v.max() < 0.5, name
+    assert torch.all(dz == 0)
+    assert sorted((s.start, s.stop) for s in CHANNELS.values()) == [(0, 1), (1, 3), (3, 6), (6, 10), (10, 37)]
+
+
+def test_predictor_without_back_layer_has_no_back_branch():
+    pred = GaussianPredictor(PredictorParams(channels=16, groups=4), 0, rgbd=True, back_layer=False)
+    front, back, dz = pred(torch.rand(1, 3, 8, 8), torch.ones(1, 1, 8, 8), None)
+    assert back is None and dz is None and front.shape == (1, 37, 8, 8)
+    assert not any(n.startswith(("back", "dz")) for n, _ in pred.named_parameters())
+
+
+def test_model_outputs_and_initial_gaussians():
+    batch = textured_batch(B=2, S=32)
+    model = create_model(small_params(), encoder=StandInEncoder(disparity=8.0))
+    out = model(batch["left"], batch["right"], batch["K"], batch["baseline"])
+    Hc = 32 + 2 * 4
+    g = out.gaussians
+    assert g["means"].shape == (2, 2 * Hc * Hc, 3) and g["sh"].shape == (2, 2 * Hc * Hc, 9, 3)
+    # front layer at the stereo depth z = fx B / d = 32 * 0.1 / 8 = 0.4 m
+    assert torch.allclose(out.depth, torch.full_like(out.depth, 0.4))
+    assert torch.allclose(g["means"][:, : Hc * Hc, 2], torch.full((2, Hc * Hc), 0.4), atol=1e-6)
+    # the encoder is frozen and outside the module tree
+    ids = {id(p) for p in model.parameters()}
+    assert ids and not any(id(p) in ids for p in model.encoder.parameters())
+    assert not any("encoder" in k for k in model.state_dict())
+    assert all(not p.requires_grad for p in model.encoder.parameters())
+
+
+def test_gradients_reach_every_trainable_parameter_through_the_rasteriser():
+    batch = textured_batch(B=2, T=2, S=32)
+    model = create_model(small_params(), encoder=StandInEncoder())
+    opt = torch.optim.SGD(model.parameters(), lr=1e-2)
+
+    def loss_and_grads():
+        opt.zero_grad()
+        out = model(batch["left"], batch["right"], batch["K"], batch["baseline"])
+        rgb, _ = render_views(out.gaussians, batch["target_viewmats"], batch["target_Ks"], 32, 32)
+        ((rgb - batch["targets"]) ** 2).mean().backward()
+        return [n for n, p in model.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all()
+                or p.grad.abs().sum() == 0]
+
+    # the zero-initialised heads pass no gradient back on the very first step (their weights are zero),
+    # except into the heads themselves; after one update every parameter receives one
+    first = loss_and_grads()
+    assert first and all(n.startswith("predictor.dz.") and not n.startswith("predictor.dz.3") for n in first), first
+    opt.step()
+    assert loss_and_grads() == []
+    assert all(p.grad is None for p in model.encoder.parameters())
+
+
+@pytest.mark.parametrize("change", [dict(descriptor=False), dict(rgbd=False),
+                                    dict(composer=ComposerParams(back_layer=False)),
+                                    dict(composer=ComposerParams(edge_mask="soft")),
+                                    dict(composer=ComposerParams(composer=False)), dict(padding=0)])
+def test_ablation_variants_build_and_run(change):
+    batch = textured_batch(B=1, S=32)
+    model = create_model(small_params(**change), encoder=StandInEncoder())
+    g = model(batch["left"], batch["right"], batch["K"], batch["baseline"]).gaussians
+    layers = 1 if "composer" in change and not change["composer"].back_layer else 2
+    Hc = 32 + 2 * model.params.padding
+    assert g["means"].shape[1] == layers * Hc * Hc
+    assert all(torch.isfinite(v).all() for v in g.values())
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("baseline", torch.zeros(2), "baseline"), ("baseline", torch.tensor([0.1, float("nan")]), "baseline"),
+    ("K", torch.zeros(2, 3, 3), "focal"), ("left", torch.rand(2, 3, 8, 8), "too small|same"),
+])
+def test_bad_inputs_are_named(field, value, match):
+    batch = textured_batch(B=2, S=32)
+    model = create_model(small_params(), encoder=StandInEncoder())
+    batch[field] = value
+    if field == "left":
+        batch["right"] = value
+    with pytest.raises(ValueError, match=match):
+        model(batch["left"], batch["right"], batch["K"], batch["baseline"])
+
+
+def test_non_finite_disparity_is_an_error():
+    batch = textured_batch(B=2, S=32)
+    model = create_model(small_params(), encoder=StandInEncoder(disparity=float("nan")))
+    with pytest.raises(ValueError, match="non-finite disparity"):
+        model(batch["left"], batch["right"], batch["K"], batch["baseline"])
+
+
+def test_invalid_configurations_are_refused():
+    with pytest.raises(ValueError, match="resolution"):
+        small_params(resolution=30).validate()
+    with pytest.raises(ValueError, match="--edge-mask .maybe.: must be one of"):
+        small_params(composer=ComposerParams(edge_mask="maybe")).validate()
+    with pytest.raises(ValueError, match="--edge-mask hard: .* --no-back-layer"):
+        small_params(composer=ComposerParams(edge_mask="hard", back_layer=False)).validate()
+    with pytest.raises(ValueError, match="multiple"):
+        small_params(decoder=DecoderParams(channels=10, groups=4)).validate()
+    assert ModelParams.from_dict(small_params().to_dict()) == small_params()
+
+
+def test_compiled_composer_is_handed_to_torch_compile_and_computes_the_same(monkeypatch):
+    """``compile_composer`` gives the composer (with its inputs' float32 casts) to ``torch.compile`` with static
+    shapes and the model's forward runs it, with the eager values. Compilation is replaced by a recorder here
+    (CI has no Triton); the real compiled kernels are the CUDA test below. ``sgmodel train`` compiles by
+    default only where ``layers.compiles`` says (CUDA with Triton); --no-compile-composer turns it off."""
+    from sgmodel.args import params_from_args
+    from sgmodel.cli import build_parser
+
+    torch.manual_seed(0)
+    model = create_model(small_params(), "cpu", encoder=StandInEncoder())
+    batch = textured_batch(2, 1, 32)
+    args = (batch["left"], batch["right"], batch["K"], batch["baseline"])
+    with torch.no_grad():
+        want = model(*args).gaussians
+        seen = record_compile(monkeypatch)
+        got = model.compile_composer()(*args).gaussians
+    assert seen == [{"dynamic": False}, "call"]
+    for k in want:
+        assert torch.equal(got[k], want[k]), k
+    argv = ["train", "--data", "d", "--out", "o"]
+    assert params_from_args(build_parser().parse_args(argv))[1].compile_composer
+    assert not params_from_args(build_parser().parse_args(argv + ["--no-compile-composer"]))[1].compile_composer
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (torch.compile's Triton kernels)")
+@pytest.mark.parametrize("composer,back_layer,edge_mask", [(True, True, "none"), (False, True, "soft"),
+                                                          (True, False, "none")])
+def test_compiled_composer_matches_eager_on_cuda(composer, back_layer, edge_mask):
+    """The compiled composer against the eager one on the predictor's bf16 outputs (37 of 40 channels, as the
+    branches give them): every attribute within float32 rounding, the gradients of every input within one bf16
+    ulp of the largest (they are rounded to the inputs' bf16)."""
+    from sgmodel.kernels import triton_installed
+    from sgmodel.model.network import _compose_float
+    if not triton_installed():
+        pytest.skip("Triton is not installed")
+    torch.manual_seed(0)
+    B, H = 3, 72
+    branch = [(torch.randn(B, 40, H, H, device="cuda") * 2).to(torch.bfloat16)
+              .contiguous(memory_format=torch.channels_last)[:, :37] for _ in range(2)]
+    dz = torch.randn(B, 1, H, H, device="cuda").to(torch.bfloat16)
+    depth = torch.rand(B, 1, H, H, device="cuda") * 5 + 0.2
+    depth[:, :, 20:40, 30:] = 9.5  # a depth edge (the edge band and the caps)
+    rgb = torch.rand(B, 3, H, H, device="cuda")
+    K = torch.tensor([[60.0, 0, 36], [0, 60.0, 36], [0, 0, 1]], device="cuda").expand(B, 3, 3).contiguous()
+    baseline = torch.full((B,), 0.12, device="cuda")
+    options = (back_layer, edge_mask, composer)
+    results = []
+    for fn in (_compose_float, torch.compile(_compose_float, dynamic=False)):
+        inputs = [t.detach().clone().requires_grad_(True) for t in (*branch, dz, depth, rgb)]
+        out = fn(*inputs, K, baseline, *options)
+        g = torch.Generator(device="cuda").manual_seed(1)
+        cot = {k: torch.randn(v.shape, device="cuda", generator=g) for k, v in out.items()}
+        wrt = inputs if back_layer else [inputs[0], inputs[3], inputs[4]]
+        results.append((out, torch.autograd.grad([out[k] for k in cot], wrt, [cot[k] for k in cot],
+                                                 allow_unused=True)))  # without the composer rgb is unused
+    (want, want_g), (got, got_g) = results
+    for k in want:
+        torch.testing.assert_close(got[k], want[k], rtol=1e-5, atol=1e-6)
+    for u, v in zip(got_g, want_g):
+        assert (u is None) == (v is None)
+        if v is None:
+            continue
+        scale = v.abs().max().item()
+        assert (u.float() - v.float()).abs().max().item() <= 2 ** -7 * scale + 1e-6 * (1 + scale)

@@ -1,0 +1,143 @@
+"""Training: the step function overfits, a short run learns, an interrupted run resumes exactly, and bad
+input is refused before anything is written."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+import torch
+
+from sgmodel.cli import main as sgmodel_main
+from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
+from sgmodel.model.network import create_model
+from sgmodel.train import loop as train_mod
+from sgmodel.train.losses import create_objective
+from tests.support.model_helpers import StandInEncoder, textured_batch
+
+
+def tiny_model_params() -> ModelParams:
+    p = ModelParams(resolution=32, padding=2, decoder=DecoderParams(channels=16, groups=4),
+                    predictor=PredictorParams(channels=16, groups=4))
+    p.encoder.name = "sgbm"
+    return p
+
+
+def tiny_schedule(**changes) -> TrainParams:
+    t = TrainParams(steps=12, batch_size=2, targets=2, val_every=6, log_every=2, workers=0, lr=2e-3, amp=False,
+                    sheet_samples=2)
+    for k, v in changes.items():
+        setattr(t, k, v)
+    return t
+
+
+def test_overfitting_one_batch_raises_psnr_by_10db():
+    torch.manual_seed(0)
+    batch = textured_batch(B=2, T=2, S=32)
+    batch["targets"] = 1.0 - batch["targets"]  # colours the initial Gaussians do not have
+    model = create_model(ModelParams(resolution=32, padding=2, decoder=DecoderParams(channels=16, groups=4),
+                                     predictor=PredictorParams(channels=16, groups=4)), encoder=StandInEncoder())
+    objective = create_objective(None, device="cpu")
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=3e-3)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0)
+    first = train_mod.train_step(model, batch, objective, opt, sched, amp=False)["psnr"]
+    for _ in range(150):
+        last = train_mod.train_step(model, batch, objective, opt, sched, amp=False)["psnr"]
+    assert last >= first + 10.0, (first, last)
+
+
+def _records(run):
+    return [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_short_run_raises_validation_psnr_and_writes_its_files(demo_dataset, tmp_path):
+    run = tmp_path / "run"
+    summary = train_mod.train(tiny_model_params(), tiny_schedule(steps=30, val_every=15, lr=4e-3), demo_dataset, run,
+                              progress=False)
+    vals = [r for r in _records(run) if "val_psnr" in r]
+    assert [r["step"] for r in vals] == [0, 15, 30]
+    assert vals[-1]["val_psnr"] > vals[0]["val_psnr"], vals
+    assert summary["best_step"] in (15, 30)
+    config = json.loads((run / "config.json").read_text())
+    assert config["encoder"]["name"] == "sgbm" and config["loss"]["name"] == "mse+ssim"
+    for name in ("checkpoints/last.pt", "checkpoints/best.pt", "sheets/val_000015.png"):
+        assert (run / name).is_file(), name
+    ckpt = torch.load(run / "checkpoints/last.pt", weights_only=True)
+    assert not any("encoder" in k for k in ckpt["model"]) and ckpt["step"] == 30
+
+
+def test_resume_gives_the_same_weights(demo_dataset, tmp_path, monkeypatch):
+    params, schedule = tiny_model_params(), tiny_schedule()
+    train_mod.train(params, schedule, demo_dataset, tmp_path / "a", progress=False)
+
+    real_step, calls = train_mod.train_step, {"n": 0}
+
+    def interrupted(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 9:  # after the checkpoint at step 6
+            raise KeyboardInterrupt
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(train_mod, "train_step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train_mod.train(params, schedule, demo_dataset, tmp_path / "b", progress=False)
+    monkeypatch.setattr(train_mod, "train_step", real_step)
+    assert torch.load(tmp_path / "b/checkpoints/last.pt", weights_only=True)["step"] == 6
+    train_mod.train(params, schedule, demo_dataset, tmp_path / "b", progress=False)
+    a = torch.load(tmp_path / "a/checkpoints/last.pt", weights_only=True)
+    b = torch.load(tmp_path / "b/checkpoints/last.pt", weights_only=True)
+    assert a["step"] == b["step"] == 12
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+    timeless = [[{k: v for k, v in r.items() if k != "step_ms"} for r in _records(tmp_path / x)] for x in "ab"]
+    assert timeless[0] == timeless[1]  # the resumed run logged the same steps, losses and validations
+
+
+def test_resume_refuses_other_settings(demo_dataset, tmp_path):
+    train_mod.train(tiny_model_params(), tiny_schedule(steps=6), demo_dataset, tmp_path / "r", progress=False)
+    before = (tmp_path / "r/config.json").read_bytes()
+    with pytest.raises(ValueError, match="other settings"):
+        train_mod.train(tiny_model_params(), tiny_schedule(steps=6, lr=1e-3), demo_dataset, tmp_path / "r",
+                        progress=False)
+    assert (tmp_path / "r/config.json").read_bytes() == before
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["--data", "{missing}"], "missing|no such|not found|does not exist"),
+    (["--steps", "0"], "--steps"),
+    (["--resolution", "30"], "resolution"),
+    (["--encoder", "nope"], "nope"),
+    (["--device", "tpu"], "--device"),
+])
+def test_cli_bad_input_exits_2_and_writes_nothing(demo_dataset, tmp_path, capsys, argv, match):
+    out = tmp_path / "run"
+    args = ["train", "--data", str(demo_dataset), "--out", str(out), "--preset", "cpu-small", "--steps", "2",
+            "--no-progress"]
+    args += [a.format(missing=tmp_path / "nothing-here") for a in argv]
+    try:
+        code = sgmodel_main(args)
+    except SystemExit as e:  # argparse's own refusals
+        code = e.code
+    assert code == 2
+    assert re.search(match, capsys.readouterr().err)
+    assert not out.exists()
+
+
+def test_torchrun_two_ranks_split_the_batch_and_only_rank_0_writes(demo_dataset, tmp_path):
+    """DDP on the CPU (gloo): two processes, batch 4 split 2 + 2; validation sums both ranks' targets."""
+    import subprocess
+    import sys
+
+    run = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone", "-m",
+           "sgmodel.cli", "train", "--data", str(demo_dataset), "--out", str(run), "--device", "cpu",
+           "--preset", "cpu-small", "--resolution", "32", "--padding", "2", "--batch-size", "4", "--steps", "2",
+           "--val-every", "2", "--workers", "0", "--no-progress"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.count("sgmodel train: new run") == 1  # rank 0 alone speaks
+    assert "2 rank(s)" in done.stdout and "(2 per rank)" in done.stdout
+    vals = [r for r in _records(run) if "val_psnr" in r]
+    assert [r["step"] for r in vals] == [0, 2] and all(r["val_targets"] == 20 for r in vals)
+    assert (run / "checkpoints/best.pt").is_file()
