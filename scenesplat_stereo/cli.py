@@ -2,10 +2,10 @@
 its flags (``add_arguments``) and its work (``run``).
 
 Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``import multiview``, ``inspect``,
-``demo-teachers``, ``bench render``, ``bench build``, ``bench encode``. Units and conventions are stated in each
-command's ``--help``. Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2 bad arguments or input (one line
-naming the flag or file), 130 interrupted, 1 internal error (traceback with ``--debug``); ``build`` exits 3 when
-a teacher failed, ``inspect`` 1 when a check failed.
+``demo-teachers``, ``bench render``, ``bench build``, ``bench encode``, ``bench scenes``. Units and conventions
+are stated in each command's ``--help``. Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2
+bad arguments or input (one line naming the flag or file), 130 interrupted, 1 internal error (traceback with
+``--debug``); ``build`` exits 3 when a teacher failed, ``inspect`` 1 when a check failed.
 """
 
 from __future__ import annotations
@@ -36,7 +36,9 @@ COMMANDS = (
         Command("build", "dataset build throughput: pairs/s, renders/s, time split, projections",
                 "scenesplat_stereo.bench.build"),
         Command("encode", "host JPEG/PNG encoding: per-image cost, threads against processes (no GPU)",
-                "scenesplat_stereo.bench.encode"))),
+                "scenesplat_stereo.bench.encode"),
+        Command("scenes", "every scene writer's time and file size at N Gaussians, SH degree 0 and 2",
+                "scenesplat_stereo.bench.scenes"))),
 )
 
 

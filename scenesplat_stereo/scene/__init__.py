@@ -1,6 +1,7 @@
 """A 3DGS scene on disk, and the teacher it becomes: one owner per file format (``ply``, ``gaussians`` for the
 INRIA layout, ``compressed_ply``, ``spz``), ``scene_files`` (any of them by its bytes), ``cameras``
-(the conventions) and ``teachers`` (finding teacher folders and their trajectories).
+(the conventions), ``teachers`` (finding teacher folders and their trajectories) and ``row_tasks`` (the
+shared thread pool the compact writers quantise on).
 
 Public names: ``GaussianScene``, ``load_ply``/``save_ply``, ``scene_files.load_scene``/``save_scene``,
 ``teachers.discover_teachers``.

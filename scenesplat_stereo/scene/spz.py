@@ -34,15 +34,19 @@ Python 3.11's standard library has no zstd. This writer writes version 3, which 
 
 from __future__ import annotations
 
+import concurrent.futures
 import gzip
 import math
 import os
+import struct
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.scene import row_tasks
 from scenesplat_stereo.scene.gaussians import GaussianScene
 
 #: "NGSP" read as a little-endian uint32.
@@ -66,76 +70,143 @@ class SpzError(ValueError):
     """A ``.spz`` file that cannot be read (or a scene that cannot be written); names the file and field."""
 
 
-def _round_away(x: np.ndarray) -> np.ndarray:
-    """std::round: half away from zero."""
-    return np.sign(x) * np.floor(np.abs(x) + 0.5)
-
-
-def _to_u8(x: np.ndarray) -> np.ndarray:
-    return np.clip(_round_away(x), 0, 255).astype(np.uint8)
-
-
-def _pack_positions(means: np.ndarray, path: Path) -> tuple[np.ndarray, int]:
-    """means [N, 3] -> (uint8 [N, 9] of 24-bit fixed point, fractional bits): 12 bits, fewer for large scenes."""
+def _fraction_bits(means: np.ndarray, path: Path) -> int:
+    """Fractional bits of the 24-bit fixed-point positions: 12, fewer when the largest |coordinate| would not
+    fit (|round(x 2^bits)| <= 2^23 - 1, rounded half away from zero as below)."""
     m = np.abs(means).max() if len(means) else 0.0
     bits = FRACTIONAL_BITS if m == 0 else min(FRACTIONAL_BITS, math.floor(math.log2((2**23 - 1) / m)))
-    while bits >= 0 and np.abs(_round_away(means.astype(np.float64) * 2.0**bits)).max(initial=0) > 2**23 - 1:
+    while bits >= 0 and math.floor(float(m) * 2.0**bits + 0.5) > 2**23 - 1:  # round half away is monotone
         bits -= 1
     if bits < 0:
         raise SpzError(f"{path}: positions up to {m:g} do not fit 24-bit fixed point (|x| < 2^23)")
-    fixed = _round_away(means.astype(np.float64) * 2.0**bits).astype(np.int32)
-    return fixed.astype("<i4").view(np.uint8).reshape(len(means), 3, 4)[:, :, :3].reshape(-1, 9), bits
+    return bits
 
 
-def _pack_rotations(quats: np.ndarray) -> np.ndarray:
-    """wxyz unit quaternions [N, 4] -> uint8 [N, 4]: the smallest-three uint32 of version 3."""
+def _fill_bytes(out: np.ndarray, x: np.ndarray, scale: float, offset: float) -> None:
+    """out (uint8) = clip(round half away from zero(x scale + offset), 0, 255), computed in float64 as the
+    reference writer's ``std::round`` of its float products: for v = x scale + offset >= 0 that is
+    floor(v + 1/2), and a v < 0 stores 0 either way (so clip(v + 1/2, 0, 255) truncated)."""
+    v = np.multiply(x, scale, dtype=np.float64)
+    v += offset
+    v += 0.5
+    np.clip(v, 0.0, 255.0, out=v)
+    np.copyto(out, v, casting="unsafe")  # truncation: floor of a value >= 0
+
+
+def _fill_positions(out: np.ndarray, means: np.ndarray, bits: int) -> None:
+    """out uint8 [n, 9]: each coordinate round-half-away(x 2^bits) as 24-bit little-endian two's complement.
+    x 2^bits + copysign(1/2) is exact in float64 for a float32 x (|x 2^bits| < 2^23), and truncation towards
+    zero then rounds half away from zero."""
+    y = np.multiply(means, 2.0**bits, dtype=np.float64)
+    y += np.copysign(0.5, y)
+    fixed = y.astype("<i4")
+    out[:] = fixed.view(np.uint8).reshape(len(means), 3, 4)[:, :, :3].reshape(-1, 9)
+
+
+def _fill_rotations(out: np.ndarray, quats: np.ndarray) -> None:
+    """wxyz unit quaternions [n, 4] -> out uint8 [n, 4]: the smallest-three uint32 of version 3: bits 30-31 the
+    index of the largest |component| (xyzw order), then each other component in xyzw order (the first in
+    the highest bits) as a sign bit (of the component, made relative to a positive largest one) and 9 bits
+    of floor(511 |c| / sqrt(1/2) + 1/2)."""
     q = quats[:, [1, 2, 3, 0]].astype(np.float64)  # xyzw, the format's order
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     n = len(q)
     largest = np.abs(q).argmax(1)
     negate = q[np.arange(n), largest] < 0
-    comp = largest.astype(np.uint32)
-    for i in range(4):
-        mag = np.floor(511.0 * np.abs(q[:, i]) / _SQRT1_2 + 0.5).astype(np.uint32)
-        sign = ((q[:, i] < 0) ^ negate).astype(np.uint32)
-        word = (comp << np.uint32(10)) | (sign << np.uint32(9)) | mag
-        comp = np.where(largest == i, comp, word)
-    return comp.astype("<u4").view(np.uint8).reshape(n, 4)
+    word = np.floor(511.0 * np.abs(q) / _SQRT1_2 + 0.5).astype(np.uint32)
+    word |= ((q < 0) ^ negate[:, None]).astype(np.uint32) << np.uint32(9)
+    packed = largest.astype(np.uint32) << np.uint32(30)
+    for j, shift in enumerate((20, 10, 0)):  # the j-th component other than the largest
+        packed |= np.where(largest <= j, word[:, j + 1], word[:, j]) << np.uint32(shift)
+    out[:] = packed.astype("<u4").view(np.uint8).reshape(n, 4)
 
 
-def _quantise_sh(x: np.ndarray, bits: int) -> np.ndarray:
-    """The reference quantizeSH: q = round(128 x) + 128 snapped to buckets of 2^(8 - bits), clamped."""
-    bucket = 1 << (8 - bits)
-    q = _round_away(x.astype(np.float64) * 128.0) + 128.0
-    q = np.floor((q + bucket // 2) / bucket) * bucket  # a negative q clamps to 0 whichever way it rounds
-    return np.clip(q, 0, 255).astype(np.uint8)
+def _fill_sh(out: np.ndarray, x: np.ndarray, bits: int) -> None:
+    """out uint8 = the reference quantizeSH of x: q = round-half-away(128 x) + 128 snapped to a bucket of
+    b = 2^(8 - bits) by floor((q + b/2) / b) b, clamped to 0..255.
+
+    Computed as idx = floor(u), u = x 128/b + (128 + b/2 + 1/2)/b (exact in float64), which equals the
+    bucket index for every x except an exact tie of a negative 128 x (round half away goes down there, so
+    the index is ceil(u) - 1): those get u - 2^-30 first (a u that is not an integer lies at least 2^-25
+    above the integer below it, so nothing else moves). Then min(idx b, 255) for idx in 0..256/b."""
+    b = 1 << (8 - bits)
+    u = np.multiply(x, 128.0 / b, dtype=np.float64)
+    u += (128 + b // 2 + 0.5) / b
+    u -= (x < 0) * 2.0**-30  # (a masked subtract, where=, is several times slower)
+    np.clip(u, 0.0, 256 // b + 0.5, out=u)
+    idx = u.astype(np.uint8)  # floor of u >= 0: 0..256/b
+    idx_b = idx << np.uint8(8 - bits)  # idx b, 256 (the top index) wrapping to 0
+    idx >>= np.uint8(bits)  # 1 for the top index only
+    np.subtract(idx_b, idx, out=out, casting="unsafe")  # the top index's 0 - 1 wraps to 255
+
+
+def _encoded_blocks(scene: GaussianScene, path: Path) -> Iterator[np.ndarray]:
+    """The uncompressed version-3 stream (module docstring) as its blocks in file order: header, positions,
+    alphas, colours, scales, rotations, SH. Every block's rows are quantised in tasks on the shared pool
+    (``row_tasks``), all queued at once in file order; each block is yielded when its own tasks are done,
+    so a consumer (gzip) works on it while later blocks are quantised."""
+    n, k = len(scene), (scene.sh_degree + 1) ** 2
+    bits = _fraction_bits(scene.means, path)
+    header = np.zeros((), _HEADER)
+    header[()] = (MAGIC, WRITE_VERSION, n, scene.sh_degree, bits, 0, 0)
+    widths = [9, 1, 3, 3, 4, 3 * (k - 1)]
+    body = np.empty((n * sum(widths),), np.uint8)
+    blocks = np.split(body, np.cumsum([n * w for w in widths])[:-1])
+    positions, alphas, colours, scales, rotations, sh = (b.reshape(n, w) for b, w in zip(blocks, widths))
+    sh = sh.reshape(n, k - 1, 3)
+    fills = [
+        lambda a, b: _fill_positions(positions[a:b], scene.means[a:b], bits),
+        lambda a, b: _fill_bytes(alphas[a:b, 0], scene.opacities[a:b], 255.0, 0.0),
+        lambda a, b: _fill_bytes(colours[a:b], scene.sh[a:b, 0, :], COLOR_SCALE * 255.0, 0.5 * 255.0),
+        lambda a, b: _fill_bytes(scales[a:b], np.log(scene.scales[a:b].astype(np.float64)) + 10.0, 16.0, 0.0),
+        lambda a, b: _fill_rotations(rotations[a:b], scene.quats[a:b]),
+    ]
+    if k > 1:
+        def fill_sh(a: int, b: int) -> None:
+            _fill_sh(sh[a:b, :3], scene.sh[a:b, 1:4], SH1_BITS)
+            if k > 4:
+                _fill_sh(sh[a:b, 3:], scene.sh[a:b, 4:], SH_REST_BITS)
+        fills.append(fill_sh)
+    tasks = [row_tasks.submit_rows(fill, n) for fill in fills]
+    yield header.tobytes()
+    try:
+        for block, futures in zip(blocks, tasks):
+            row_tasks.wait_all(futures)
+            yield block
+    finally:
+        for futures in tasks:  # an abandoned stream: let its tasks end before the arrays go
+            concurrent.futures.wait(futures)
 
 
 def encode_spz(scene: GaussianScene, path: str | os.PathLike = "<memory>") -> bytes:
     """The uncompressed version-3 bytes (header and blocks) of ``scene`` (module docstring). The header's flags
     are 0: not antialiased (bit 0x1 marks scenes trained with mip-splatting's filter; ours render in
     gsplat's "classic" mode)."""
-    path = Path(path)
-    n, k = len(scene), (scene.sh_degree + 1) ** 2
-    positions, bits = _pack_positions(scene.means, path)
-    header = np.zeros((), _HEADER)
-    header[()] = (MAGIC, WRITE_VERSION, n, scene.sh_degree, bits, 0, 0)
-    alphas = _to_u8(scene.opacities.astype(np.float64) * 255.0)
-    colours = _to_u8(scene.sh[:, 0, :].astype(np.float64) * (COLOR_SCALE * 255.0) + 0.5 * 255.0)
-    scales = _to_u8((np.log(scene.scales.astype(np.float64)) + 10.0) * 16.0)
-    sh = np.empty((n, k - 1, 3), np.uint8)
-    if k > 1:
-        sh[:, :3] = _quantise_sh(scene.sh[:, 1:4], SH1_BITS)
-        sh[:, 3:] = _quantise_sh(scene.sh[:, 4:], SH_REST_BITS)
-    blocks = [header, positions, alphas, colours, scales, _pack_rotations(scene.quats), sh]
-    return b"".join(np.ascontiguousarray(b).tobytes() for b in blocks)
+    return b"".join(bytes(b) for b in _encoded_blocks(scene, Path(path)))
+
+
+def _gzip_header() -> bytes:
+    """The 10 bytes ``gzip.compress(..., compresslevel=GZIP_LEVEL, mtime=0)`` starts with in this Python (they
+    do not depend on the data; the OS byte, the 10th, is zlib's 3 on Linux up to Python 3.12 and 255 from
+    3.13 on, CPython gh-112346)."""
+    return gzip.compress(b"", compresslevel=GZIP_LEVEL, mtime=0)[:10]
 
 
 def save_spz(scene: GaussianScene, path: str | os.PathLike, durable: bool = True) -> Path:
-    """Write ``scene`` as a version-3 ``.spz`` (gzip level ``GZIP_LEVEL``), atomically. Returns the path."""
+    """Write ``scene`` as a version-3 ``.spz``, atomically. Returns the path.
+
+    The bytes are ``gzip.compress(encode_spz(scene), compresslevel=GZIP_LEVEL, mtime=0)``'s: its header, one
+    raw deflate stream at that level (zlib's output does not depend on how its input is split between
+    calls) and the CRC-32 and length trailer. The stream is deflated block by block while the later blocks
+    are quantised; deflate is the writer's one serial step."""
     path = Path(path)
-    data = gzip.compress(encode_spz(scene, path), compresslevel=GZIP_LEVEL, mtime=0)
-    atomic_write_bytes(path, data, durable=durable)
+    deflate = zlib.compressobj(GZIP_LEVEL, zlib.DEFLATED, -zlib.MAX_WBITS)
+    parts, crc, size = [_gzip_header()], 0, 0
+    for block in _encoded_blocks(scene, path):
+        parts.append(deflate.compress(block))
+        crc, size = zlib.crc32(block, crc), size + len(memoryview(block))
+    parts += [deflate.flush(), struct.pack("<II", crc, size & 0xFFFFFFFF)]
+    atomic_write_bytes(path, parts, durable=durable)
     return path
 
 

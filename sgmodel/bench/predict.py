@@ -7,10 +7,11 @@ rasteriser's kernels loaded, the model on the device): encoder, decoder + predic
 to the host (Gaussians without a stereo depth dropped, SH cut to the content's degree), the ``.ply`` write
 (as predict writes it: atomic, no fsync) and the rendering of one novel view, each synchronised; medians
 of ``--repeats`` pairs after ``--warmup``. A second table times every scene format's write (and the ``.ply``
-with fsync) with its size. A cold ``sgmodel predict`` adds the process start, the model load and the first
-launches (its own table says how long each took). The pair is synthetic (smooth random texture shifted by
-a few pixels) at ``--size``; with ``--checkpoint`` the trained model runs, else a fresh one of the given
-flags (the time does not depend on the weights). On CUDA the model runs under bf16 autocast (``--no-amp``:
+with fsync, and the ``.spz``'s deflate alone) with its size (``scenesplat_stereo.bench.scenes.writer_rows``).
+A cold ``sgmodel predict`` adds the process start, the model load and the first launches (its own table says
+how long each took). The pair is synthetic (smooth random texture shifted by a few pixels) at ``--size``;
+with ``--checkpoint`` the trained model runs, else a fresh one of the given flags (the time does not depend
+on the weights). On CUDA the model runs under bf16 autocast (``--no-amp``:
 float32), as trained.
 """
 
@@ -19,15 +20,15 @@ from __future__ import annotations
 import argparse
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from scenesplat_stereo.bench.scenes import COLUMNS, writer_rows
 from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
-from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
+from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from sgmodel.bench import describe, report, synthetic_pair
@@ -36,6 +37,7 @@ from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import Predictor, create_model, load_predictor
 from sgmodel.model.render import SH_DEGREE, render_views
 from sgmodel.predict import export
+from sgmodel.predict.video import SCENE_WRITERS
 
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
 
@@ -96,38 +98,23 @@ def run(args: argparse.Namespace) -> int:
            f"pairs after {args.warmup} warm-up.\n\n"
            f"{markdown_table(['stage', 'median ms'], rows)}\n\n"
            f"Writing that scene ({len(scene):,} Gaussians) in each format, median of {args.repeats}:\n\n"
-           f"{markdown_table(['scene', 'format', 'median ms', 'MB', 'x smaller than .ply'], formats)}\n", args.out)
+           f"{markdown_table(COLUMNS, formats)}\n", args.out)
     return 0
 
 
 def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) -> list[list[str]]:
-    """Rows (scene, format, median ms, MB, ratio to its .ply) of writing ``scene`` in every format as predict
-    does (atomic, no fsync), and the ``.ply`` with fsync (what the fsync costs). When the prediction has no
-    higher SH (a fresh model's SH heads start at zero), the same Gaussians with degree-2 SH as a trained
-    model predicts are timed too (coefficients drawn from N(0, 0.02^2): sizes of incompressible values)."""
-    scenes = [(f"as predicted (SH degree {scene.sh_degree})", scene)]
+    """Rows (``scenesplat_stereo.bench.scenes.COLUMNS``) of writing ``scene`` with every writer as predict does
+    (atomic, no fsync), the ``.ply`` with fsync and the ``.spz``'s deflate alone (``writer_rows``). When the
+    prediction has no higher SH (a fresh model's SH heads start at zero), the same Gaussians with degree-2 SH
+    as a trained model predicts are timed too (coefficients drawn from N(0, 0.02^2): sizes of incompressible
+    values)."""
+    scenes = [(f"as predicted ({scene.sh_degree})", scene)]
     if scene.sh_degree < SH_DEGREE:
         rng = np.random.default_rng(0)
         rest = rng.normal(0, 0.02, (len(scene), (SH_DEGREE + 1) ** 2 - scene.sh.shape[1], 3)).astype(np.float32)
-        scenes.append((f"SH degree {SH_DEGREE} (a trained model's)", GaussianScene(
+        scenes.append((f"{SH_DEGREE} (a trained model's)", GaussianScene(
             scene.means, scene.quats, scene.scales, scene.opacities, np.concatenate([scene.sh, rest], 1), SH_DEGREE)))
-    rows = []
-    for label, s in scenes:
-        writers = [(name, lambda p, f=name, s=s: export.write_scene(s, p, f), FORMATS[name].suffix)
-                   for name in FORMATS]
-        writers.append(("ply, fsync'd", lambda p, s=s: save_ply(s, p, durable=True), ".ply"))
-        sizes = {}
-        for name, write, suffix in writers:
-            path, times = folder / f"export{suffix}", []
-            for i in range(warmup + repeats):
-                t = time.perf_counter()
-                write(path)
-                if i >= warmup:
-                    times.append(time.perf_counter() - t)
-            sizes[name] = path.stat().st_size
-            rows.append([label, name, f"{1e3 * statistics.median(times):.1f}", f"{sizes[name] / 1e6:.2f}",
-                         f"{sizes['ply'] / sizes[name]:.1f}"])
-    return rows
+    return [row for label, s in scenes for row in writer_rows(s, folder, warmup, repeats, label)]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -143,4 +130,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "latency of the model alone and end to end (decode, model, one novel view, encode)")
     p.add_argument("--batch-size", type=int, default=1, help="video: pairs per model call (default 1)")
     p.add_argument("--frames", type=int, default=120, help="video: frames of the synthetic video (default 120)")
+    p.add_argument("--scene-formats", nargs="*", choices=list(FORMATS), default=list(FORMATS),
+                   help="video: also run end to end with a scene per frame in each of these formats, as "
+                   "`predict --video --frames` does (default: every format; none: only without scenes)")
+    p.add_argument("--scene-writers", type=int, default=SCENE_WRITERS,
+                   help=f"video: threads writing those scenes (default as predict: the usable cores but 4, 2 to "
+                   f"12; {SCENE_WRITERS} here)")
     p.add_argument("--out", type=Path, help="also write the markdown table here")

@@ -11,6 +11,8 @@ the pair transform, the model, one novel view per frame, encode (mp4v, writer th
 * end to end: the whole video through ``stream``; frames/s = frames / wall time, latency of a frame = its
   batch's decode time plus the time from the batch's model start to the end of its encode (a frame waits for
   its batch; the wait of frames decoded ahead for the model to finish the batch before is not counted).
+  Then again for each of ``--scene-formats`` with a scene per frame written as ``predict --video --frames``
+  writes them (``--scene-writers`` threads beside the model; a batch is done when its scenes are written).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import torch
 
 from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.text import markdown_table
+from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.shards.encode import to_uint8
 from sgmodel.bench import describe, report, synthetic_pair
 from sgmodel.model.network import Predictor
@@ -78,17 +81,28 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
             reconstructor(pair.left, pair.right, K, baseline)
             if i >= args.warmup:
                 model_times.append(now() - t)
-        source = StereoSource(str(video))
         w, h = pair.left.shape[-1], pair.left.shape[-2]
-        sink = VideoSink(Path(tmp) / "novel_view.mp4", "mp4v", source.fps, w, h)
-        result = stream(source, calib, None, prepare, reconstructor, Trajectory("offset", offset=OFFSET), sink,
-                        device, b, progress=False)
-        source.close()
-    latency = [x.latency for x in result.batches for _ in range(x.frames)]
-    e2e = [_rate(result.frames / result.wall), f"{1e3 * np.median(latency):.1f}",
-           f"{1e3 * np.percentile(latency, 99):.1f}"]
-    rows = [["model alone (encoder to Gaussians)", b, *_stats(model_times, b)],
-            ["end to end (decode, model, one novel view, encode)", b, *e2e]]
+        runs = {}
+        for fmt in [None, *args.scene_formats]:
+            source = StereoSource(str(video))
+            frames = None if fmt is None else Path(tmp) / f"frames_{fmt}"
+            if frames is not None:
+                frames.mkdir()
+            sink = VideoSink(Path(tmp) / "novel_view.mp4", "mp4v", source.fps, w, h, frames, fmt or "spz",
+                             scene_writers=args.scene_writers)
+            try:
+                runs[fmt] = stream(source, calib, None, prepare, reconstructor, Trajectory("offset", offset=OFFSET),
+                                   sink, device, b, progress=False)
+            finally:
+                source.close()
+    rows = [["model alone (encoder to Gaussians)", b, *_stats(model_times, b)]]
+    for fmt, run in runs.items():
+        latency = [x.latency for x in run.batches for _ in range(x.frames)]
+        scenes = "" if fmt is None else f", a {FORMATS[fmt].suffix} scene per frame"
+        rows.append([f"end to end (decode, model, one novel view, encode{scenes})", b,
+                     _rate(run.frames / run.wall), f"{1e3 * np.median(latency):.1f}",
+                     f"{1e3 * np.percentile(latency, 99):.1f}"])
+    result = runs[None]
     stages = {k: sum(getattr(x, e) - getattr(x, s) for x in result.batches) / result.frames * 1e3
               for k, s, e in (("decode", "decode_start", "decode_end"), ("model", "model_start", "model_end"),
                               ("render", "model_end", "render_end"))}
@@ -96,5 +110,6 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
            f"{args.warmup} warm-up.\n\n"
            f"{markdown_table(['measure', 'batch', 'pairs/s', 'latency median ms', 'latency p99 ms'], rows)}\n\n"
            f"End to end per frame: decode {stages['decode']:.1f} ms (reader thread), model {stages['model']:.1f} ms, "
-           f"render {stages['render']:.1f} ms (main thread); encode in the writer thread.\n", args.out)
+           f"render {stages['render']:.1f} ms (main thread); encode in the writer thread, and the scenes (copy to "
+           f"the host and write) in {args.scene_writers} scene writer threads.\n", args.out)
     return 0

@@ -2,6 +2,7 @@
 
     decode (reader thread) -> batches of raw ``Pair`` s -> the pair transform (``sgmodel.pairs.prepare``) ->
     ``inference.Reconstructor`` (the path of a still pair) -> one novel view per frame -> encode (writer thread)
+    and, with ``--frames``, each frame's scene to the host and its file (``SCENE_WRITERS`` scene writer threads)
 
 Input: one side-by-side video (left eye in the left half) or a left and a right video of one size and frame
 rate, with the calibration of one eye's frame (as for a still pair). Output: the novel view of every frame
@@ -32,6 +33,7 @@ import torch
 from tqdm import tqdm
 
 from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.scene import row_tasks
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.shards.encode import to_uint8
@@ -59,8 +61,13 @@ CODECS = {"mp4v": Codec("mp4v", ".mp4", False), "mjpg": Codec("MJPG", ".avi", Fa
 DEFAULT_FPS = 30.0
 #: The orbit's default radius (a fraction of the first frame's median depth) and its period in seconds.
 ORBIT_RADIUS, ORBIT_PERIOD = 0.15, 8.0
-#: Batches queued for the writer thread at most: the model waits beyond that (frames and scenes held in memory).
+#: Batches queued for the writer threads at most: the model waits beyond that (frames and scenes held in memory).
 MAX_QUEUED = 2
+#: Threads writing the per-frame scenes of ``--frames``: the usable cores but 4 (the model's thread, the
+#: reader, the encoder and one spare), 2 to 12. The serial part of a writer, the .spz's deflate (100-250 ms a
+#: 200K-Gaussian scene), is what several writers overlap; their quantisation runs on the shared pool of
+#: ``scenesplat_stereo.scene.row_tasks``.
+SCENE_WRITERS = max(2, min(12, row_tasks.workers() - 4))
 
 
 # ---------------------------------------------------------------- input
@@ -177,33 +184,51 @@ def parse_trajectory(text: str) -> Trajectory:
 class VideoSink:
     """The novel-view video (``codec`` of CODECS at ``fps``, width x height) and, when ``scene_folder`` is
     given, one scene per frame named by frame number, its Gaussians moved by ``scene_frame`` first (a raw
-    rig's left camera frame; None: the model's); written in order by one writer thread."""
+    rig's left camera frame; None: the model's).
+
+    The frames are encoded in order by one writer thread; the scenes are written by ``scene_writers``
+    threads side by side (each file atomically, ``export.write_scene``), so a format whose writer takes
+    longer than a frame's prediction still keeps up: the stream runs at the rate of the slower of the model
+    and ``scene_writers`` writers, not of their sum. A batch counts as written when its frames and all its
+    scenes are; the first error of a scene writer is raised from the batch's future, once (``close`` then
+    drops the batches not yet started)."""
 
     def __init__(self, path: Path, codec: str, fps: float, width: int, height: int,
                  scene_folder: Path | None = None, scene_format: str = "spz",
-                 scene_frame: Callable[[dict], dict] | None = None) -> None:
+                 scene_frame: Callable[[dict], dict] | None = None, scene_writers: int = SCENE_WRITERS) -> None:
         self.writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*CODECS[codec].fourcc), fps, (width, height))
         if not self.writer.isOpened():
             raise PredictError(f"--codec {codec}: OpenCV cannot write {CODECS[codec].fourcc} to {path.name}")
         self.scene_folder, self.scene_format, self.scene_frame = scene_folder, scene_format, scene_frame
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="video-writer")
+        self.scene_writers = max(1, scene_writers)
+        self.scene_pool = ThreadPoolExecutor(self.scene_writers, thread_name_prefix="scene-writer")
 
-    def submit(self, first: int, frames: np.ndarray, scenes: list[GaussianScene]) -> Future:
-        """Queue uint8 RGB frames [n,H,W,3] (frame numbers first..) and their scenes; the future's result is
-        the time the batch was written (perf_counter seconds)."""
-        return self.pool.submit(self._write, first, frames, scenes)
+    def submit(self, first: int, frames: np.ndarray, scene: Callable[[int], GaussianScene] | None = None) -> Future:
+        """Queue uint8 RGB frames [n,H,W,3] (frame numbers first..) and, with a scene folder, their scenes:
+        ``scene(i)`` makes frame first + i's (called in a scene writer, so the copy of its Gaussians to the
+        host overlaps the model too). The future's result is the time the batch was written (perf_counter
+        seconds)."""
+        written = [] if self.scene_folder is None else \
+            [self.scene_pool.submit(self._write_scene, scene, i, first + i) for i in range(len(frames))]
+        return self.pool.submit(self._write, frames, written)
 
-    def _write(self, first: int, frames: np.ndarray, scenes: list[GaussianScene]) -> float:
+    def _write_scene(self, scene: Callable[[int], GaussianScene], i: int, number: int) -> Path:
+        path = self.scene_folder / f"{number:06d}{FORMATS[self.scene_format].suffix}"
+        return write_scene(scene(i), path, self.scene_format)
+
+    def _write(self, frames: np.ndarray, scenes: list[Future]) -> float:
         for f in frames:
             self.writer.write(np.ascontiguousarray(f[..., ::-1]))
-        if self.scene_folder is not None:
-            for i, scene in enumerate(scenes):
-                write_scene(scene, self.scene_folder / f"{first + i:06d}{FORMATS[self.scene_format].suffix}",
-                            self.scene_format)
+        for future in scenes:
+            future.result()
         return time.perf_counter()
 
-    def close(self) -> None:
-        self.pool.shutdown(wait=True)
+    def close(self, cancel: bool = False) -> None:
+        """Wait for the queued writes (``cancel``: only for those already started, after an error or Ctrl-C),
+        then close the video."""
+        self.scene_pool.shutdown(wait=True, cancel_futures=cancel)
+        self.pool.shutdown(wait=True, cancel_futures=cancel)
         self.writer.release()
 
 
@@ -213,7 +238,7 @@ class VideoSink:
 class BatchTimes:
     """One batch's frames and times (perf_counter seconds): decode start and end (reader thread, ahead of
     the model), model start and end (pair transform and prediction), render end (the frames on the host),
-    written (encoded and its scenes written, writer thread)."""
+    written (encoded, writer thread, and its scenes written, scene writer threads)."""
 
     frames: int
     decode_start: float
@@ -273,6 +298,7 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
     total = min(x for x in (source.frame_count, max_frames) if x is not None) \
         if (source.frame_count or max_frames) else None
     report, pending, done, written = StreamReport(), [], 0, 0
+    queued = max(MAX_QUEUED, -(-sink.scene_writers // batch_size) + 1)  # keep every scene writer busy
     reader = ThreadPoolExecutor(1, thread_name_prefix="video-reader")
 
     def read(n: int) -> tuple[float, float, np.ndarray, np.ndarray]:
@@ -280,7 +306,7 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
         left, right = source.read(n)
         return start, time.perf_counter(), left, right
 
-    start = time.perf_counter()
+    start, finished = time.perf_counter(), False
     bar = tqdm(total=total, unit="frame", disable=not progress, desc="video", dynamic_ncols=True)
     try:
         ahead = reader.submit(read, batch_size if total is None else min(batch_size, total))
@@ -309,22 +335,19 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
             t_render = time.perf_counter()
             kept, produced = scenes.counts()
             report.kept, report.produced = report.kept + kept, report.produced + produced
-            if sink.scene_folder is not None:
-                moved = scenes.in_frame(sink.scene_frame)
-                scene_list = [moved.scene(i) for i in range(n)]
-            else:
-                scene_list = []
             report.batches.append(BatchTimes(n, t0, t1, t_start, t_model, t_render))
-            pending.append(sink.submit(done, frames, scene_list))
+            pending.append(sink.submit(done, frames, scenes.in_frame(sink.scene_frame).scene
+                                       if sink.scene_folder is not None else None))
             done += n
             bar.update(n)
-            while len(pending) - written > MAX_QUEUED:  # back-pressure: the writer is behind
+            while len(pending) - written > queued:  # back-pressure: the writers are behind
                 report.batches[written].written, written = pending[written].result(), written + 1
         for batch, future in zip(report.batches[written:], pending[written:]):
             batch.written = future.result()
+        finished = True
     finally:
         bar.close()
         reader.shutdown(wait=True)
-        sink.close()
+        sink.close(cancel=not finished)  # after an error or Ctrl-C: only the writes already started end
     report.wall = time.perf_counter() - start
     return report

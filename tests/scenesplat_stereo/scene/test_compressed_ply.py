@@ -125,3 +125,93 @@ def test_morton_order_matches_a_bit_by_bit_version() -> None:
     means[600:700] = [0.5, 0.5, 0.5]  # identical points keep their order
     means[700:800, 2] = 0.25  # a flat slab
     np.testing.assert_array_equal(morton_order(means), reference_morton(means))
+
+
+def _unorm(t: float, bits: int) -> int:
+    top = (1 << bits) - 1
+    return int(min(top, max(0, math.floor(t * top + 0.5))))
+
+
+def reference_file(scene: GaussianScene) -> bytes:
+    """The compressed layout from its description (module docstring of scenesplat_stereo.compressed_ply, as
+    splat-transform writes it), chunk by chunk and value by value in Python floats, in ``reference_morton``'s
+    order: boxes of the float32 values (the last chunk padded with its last row; log scales clamped to +-20
+    in the box), t = (v - lo) / (hi - lo) (0 at or below lo, 1 at or above hi, 0 in a range under 1e-5),
+    unorm fields floor(t (2^b - 1) + 1/2), SH trunc(256 (f / 8 + 1/2)) clamped, channel-major."""
+    n, k = len(scene), (scene.sh_degree + 1) ** 2
+    order = reference_morton(scene.means)
+    f32 = lambda x: float(np.float32(x))  # noqa: E731
+    fields = {"position": [[float(v) for v in scene.means[i]] for i in order],
+              "scale": [[f32(math.log(float(s))) for s in scene.scales[i]] for i in order],
+              "colour": [[f32(float(c) * SH_C0 + 0.5) for c in scene.sh[i, 0]] for i in order]}
+    chunks, vertex = [], []
+    for start in range(0, n, 256):
+        rows = list(range(start, min(start + 256, n)))
+        padded = rows + [n - 1] * (256 - len(rows))
+        t, box = {}, []
+        for name, values in fields.items():
+            lo = [min(values[r][a] for r in padded) for a in range(3)]
+            hi = [max(values[r][a] for r in padded) for a in range(3)]
+            if name == "scale":
+                lo, hi = ([min(20.0, max(-20.0, v)) for v in x] for x in (lo, hi))
+            box += [(lo, hi)]
+
+            def unit(v: float, a: int, lo=lo, hi=hi) -> float:
+                if v <= lo[a]:
+                    return 0.0
+                if v >= hi[a]:
+                    return 1.0
+                return 0.0 if hi[a] - lo[a] < 1e-5 else (v - lo[a]) / (hi[a] - lo[a])
+            t[name] = [[unit(values[r][a], a) for a in range(3)] for r in rows]
+        chunks.append([v for lo, hi in box for v in lo + hi])
+        for j, r in enumerate(rows):
+            pos, scl, col = (t[name][j] for name in ("position", "scale", "colour"))
+            q = [float(v) for v in scene.quats[order[r]]]
+            norm = math.sqrt(sum(v * v for v in q))
+            q = [v / norm for v in q]
+            big = max(range(4), key=lambda i: (abs(q[i]), -i))  # the first of equal magnitudes
+            q = [-v for v in q] if q[big] < 0 else q
+            codes = [_unorm(q[i] * math.sqrt(0.5) + 0.5, 10) for i in range(4) if i != big]
+            vertex.append([
+                _unorm(pos[0], 11) << 21 | _unorm(pos[1], 10) << 11 | _unorm(pos[2], 11),
+                big << 30 | codes[0] << 20 | codes[1] << 10 | codes[2],
+                _unorm(scl[0], 11) << 21 | _unorm(scl[1], 10) << 11 | _unorm(scl[2], 11),
+                _unorm(col[0], 8) << 24 | _unorm(col[1], 8) << 16 | _unorm(col[2], 8) << 8
+                | _unorm(float(scene.opacities[order[r]]), 8)])
+    sh = [[int(min(255, max(0, math.trunc((float(scene.sh[i, j, c]) / 8 + 0.5) * 256))))
+           for c in range(3) for j in range(1, k)] for i in order]
+    lines = ["ply", "format binary_little_endian 1.0", f"element chunk {len(chunks)}"]
+    lines += [f"property float {m}_{a}" for m in ("min", "max") for a in "xyz"]
+    lines += [f"property float {m}_scale_{a}" for m in ("min", "max") for a in "xyz"]
+    lines += [f"property float {m}_{c}" for m in ("min", "max") for c in "rgb"]
+    lines += [f"element vertex {n}"] + [f"property uint packed_{p}" for p in ("position", "rotation", "scale",
+                                                                              "color")]
+    body = np.array(chunks, "<f4").tobytes() + np.array(vertex, "<u4").tobytes()
+    if k > 1:
+        lines += [f"element sh {n}"] + [f"property uchar f_rest_{i}" for i in range(3 * (k - 1))]
+        body += np.array(sh, np.uint8).tobytes()
+    return "\n".join(lines + ["end_header\n"]).encode() + body
+
+
+@pytest.mark.parametrize("degree,n", [(0, 1900), (2, 1500)])
+def test_writer_bytes_equal_the_layout_point_by_point(tmp_path: Path, degree: int, n: int) -> None:
+    """Rows split over many slices (``row_tasks``), clumps, flat and clamped chunks, equal quaternion
+    components, SH beyond the ends: the bytes of the layout's description."""
+    from scenesplat_stereo.scene import row_tasks
+
+    rng = np.random.default_rng(20 + degree)
+    scene = random_scene(rng, n, degree)
+    scene.means[:300] = rng.normal(0, 1e-4, (300, 3))  # a clump: refined Morton runs
+    scene.means[300:812] = [0.5, -0.5, 2.0]  # flat chunks (range 0): 512 points hold a whole chunk
+    scene.means[812:1324] = [0.3, -0.2, 0.25]
+    scene.means[812:1324, 2] += rng.integers(0, 4, 512) * 2.0**-25  # narrow ones (0 < range < 1e-5)
+    scene.scales[:200] = np.exp(rng.choice([-25.0, 22.0], (200, 3)))  # log scales beyond +-20
+    scene.quats[900:1200] = rng.choice([-0.5, 0.5], (300, 4))
+    scene.sh[:, 1:] = rng.uniform(-4.5, 4.5, scene.sh[:, 1:].shape)
+    original = row_tasks.ROWS_PER_TASK
+    try:
+        row_tasks.ROWS_PER_TASK = 512
+        data = save_compressed_ply(scene, tmp_path / "s.compressed.ply").read_bytes()
+    finally:
+        row_tasks.ROWS_PER_TASK = original
+    assert data == reference_file(scene)

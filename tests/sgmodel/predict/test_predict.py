@@ -196,20 +196,22 @@ def test_bench_predict_times_every_stage_on_the_cpu(tmp_path, capsys):
         assert re.search(rf"\| {re.escape(stage)} \| \d+\.\d \|", text), stage
     n = (48 + 2 * 4) * (32 + 2 * 4) * 2  # two layers on the padded canvas (cpu-small: padding 4)
     assert f"to {n:,} Gaussians" in text
-    for scene in ("as predicted (SH degree 0)", "SH degree 2 (a trained model's)"):  # a fresh model: SH 0
+    for scene in ("as predicted (0)", "2 (a trained model's)"):  # a fresh model: SH 0
         for fmt in ("ply", "compressed-ply", "spz", "ply, fsync'd"):
-            assert re.search(rf"\| {re.escape(scene)} \| {re.escape(fmt)} \| \d+\.\d \| \d+\.\d\d \| \d+\.\d \|",
-                             text), (scene, fmt)
+            assert re.search(rf"\| {re.escape(fmt)} \| {re.escape(scene)} \| [\d,]+ \| \d+\.\d \| \d+\.\d \| "
+                             rf"\d+\.\d \| \d+\.\d\d \| \d+\.\d \|", text), (scene, fmt)
+        assert re.search(rf"\| spz: its deflate alone \(zlib 6, one thread\) \| {re.escape(scene)} \| [\d,]+ \|", text)
 
 
 def test_bench_predict_video_on_the_cpu(tmp_path):
     out = tmp_path / "bench.md"
     assert sgmodel_main(["bench", "predict", "--video", "--preset", "cpu-small", "--device", "cpu", "--size", "48x32",
                          "--frames", "5", "--batch-size", "2", "--warmup", "0", "--repeats", "2",
-                         "--out", str(out)]) == 0
+                         "--scene-formats", "spz", "--out", str(out)]) == 0
     text = out.read_text()
     assert "Stereo video of 48x32 per eye" in text and "5 frames in batches of 2" in text
-    for row in ("model alone (encoder to Gaussians)", "end to end (decode, model, one novel view, encode)"):
+    for row in ("model alone (encoder to Gaussians)", "end to end (decode, model, one novel view, encode)",
+                "end to end (decode, model, one novel view, encode, a .spz scene per frame)"):
         assert re.search(rf"\| {re.escape(row)} \| 2 \| [\d.]+ \| [\d.]+ \| [\d.]+ \|", text), row
 
 

@@ -1,11 +1,14 @@
 """``sgmodel predict --video`` on a short stereo clip rendered from a demo teacher (scripts/figures/video_demo.py,
 lossless FFV1): the same Gaussians as per-frame ``predict`` and the same rendered frames; side-by-side and
-left/right inputs agree; the codecs OpenCV writes here; trajectories; bad input (exit 2, nothing written)."""
+left/right inputs agree; the codecs OpenCV writes here; trajectories; bad input (exit 2, nothing written);
+the scene writer threads: the serial bytes, one clean error, nothing left after an error or Ctrl-C."""
 
 from __future__ import annotations
 
 import math
 import re
+import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -14,13 +17,15 @@ import pytest
 import torch
 
 from scenesplat_stereo.scene.gaussians import load_ply
+from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scripts.figures.video_demo import read_frames, render_clip
 from sgmodel.model.render import render_views
 from sgmodel.predict import command as predict_mod
-from sgmodel.predict import video
+from sgmodel.predict import export, video
 from sgmodel.predict.export import offset_camera, orbit_camera
 from tests.support.model_helpers import predict_status as run
+from tests.support.ply_helpers import random_scene
 
 W, H, FRAMES = 96, 64, 6
 COMMON = ["--method", "naive-gs", "--encoder", "sgbm", "--resolution", H, "--device", "cpu", "--no-progress"]
@@ -221,3 +226,72 @@ def test_a_raw_rigs_video_is_rectified_frame_by_frame_like_a_pair(raw_rig, tmp_p
     assert (tmp_path / "v" / "frames" / "000000.ply").read_bytes() == scene
     assert (tmp_path / "v" / "frames" / "000001.ply").read_bytes() == scene
     assert (tmp_path / "v" / "settings.json").read_text() == (tmp_path / "p" / "settings.json").read_text()
+
+
+# ---------------------------------------------------------------- scene writers beside the model
+
+@pytest.mark.parametrize("fmt", sorted(FORMATS))
+def test_scene_writer_threads_write_the_serial_files(tmp_path, fmt):
+    """Several scene writers at once (and the quantisation's row tasks) write each frame's scene byte for byte
+    as ``export.write_scene`` writes it alone, named by frame number, whatever order they finish in."""
+    rng = np.random.default_rng(7)
+    scenes = [random_scene(rng, 3000 + 4099 * i, i % 3) for i in range(7)]
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, folder, fmt, scene_writers=3)
+    futures = [sink.submit(first, np.zeros((n, 16, 16, 3), np.uint8), lambda i, first=first: scenes[first + i])
+               for first, n in ((0, 3), (3, 1), (4, 3))]
+    assert all(f.result() > 0 for f in futures)
+    sink.close()
+    suffix = FORMATS[fmt].suffix
+    assert sorted(p.name for p in folder.iterdir()) == [f"{i:06d}{suffix}" for i in range(7)]
+    for i, scene in enumerate(scenes):
+        serial = export.write_scene(scene, tmp_path / f"serial{suffix}", fmt)
+        assert (folder / f"{i:06d}{suffix}").read_bytes() == serial.read_bytes(), i
+
+
+def _scene_frames_argv(clip: Path, out: Path) -> list:
+    return ["--video", clip / "sbs.mkv", "--calib", clip / "K.txt", "--out", out, "--frames", "--format", "spz",
+            "--batch-size", 2, *COMMON]
+
+
+@pytest.mark.parametrize("error,status", [(ValueError, 2), (RuntimeError, 1)])
+def test_a_scene_writers_error_ends_predict_once_and_writes_nothing(clip, tmp_path, monkeypatch, capsys, error,
+                                                                    status):
+    """An error in a scene writer thread (bad input: ValueError or OSError, exit 2; anything else a bug,
+    exit 1) ends the command with its one line, and OUT is not written."""
+    def failing(scene, path, format):
+        if path.name.startswith("000003"):
+            raise error(f"{path.name}: broken on purpose")
+        return export.write_scene(scene, path, format)
+
+    monkeypatch.setattr(video, "write_scene", failing)
+    assert run(_scene_frames_argv(clip, tmp_path / "out")) == status
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]  # (not the warnings)
+    assert len(errors) == 1 and errors[0].startswith("sgmodel predict: error: "), errors
+    assert "000003.spz: broken on purpose" in errors[0]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ctrl_c_while_scenes_are_written_leaves_no_file(clip, tmp_path, monkeypatch):
+    """Ctrl-C in the main thread while scene writers are writing: exit 130 once the started writes end, and
+    neither OUT nor a staging folder or temp file remains."""
+    writing = threading.Event()
+
+    def slow(scene, path, format):
+        writing.set()
+        time.sleep(0.2)
+        return export.write_scene(scene, path, format)
+
+    submit = video.VideoSink.submit
+
+    def interrupt_second(self, first, *rest):
+        if first > 0:
+            assert writing.wait(30)
+            raise KeyboardInterrupt
+        return submit(self, first, *rest)
+
+    monkeypatch.setattr(video, "write_scene", slow)
+    monkeypatch.setattr(video.VideoSink, "submit", interrupt_second)
+    assert run(_scene_frames_argv(clip, tmp_path / "out")) == 130
+    assert list(tmp_path.iterdir()) == []
