@@ -1,4 +1,4 @@
-"""A Gaussian scene in a rotated frame (sgmodel.pairs.rotate): SH colours against a float64 evaluation of the
+"""A Gaussian scene in a rotated frame (scenesplat_stereo.scene.transform): SH colours against a float64 evaluation of the
 basis, orientations against rotation matrices, and the rasteriser's image of the rotated scene seen by the
 rotated camera against the original's."""
 
@@ -11,7 +11,7 @@ import torch
 
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.raster.reference import quat_to_rotmat, sh_colors
-from sgmodel.pairs.rotate import rotate_gaussians, rotation_to_quaternion, sh_rotation
+from scenesplat_stereo.scene.transform import rotate_gaussians, rotation_to_quaternion, sh_rotation
 
 
 def random_rotation(rng, angle=None) -> np.ndarray:
