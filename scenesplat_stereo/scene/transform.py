@@ -1,35 +1,48 @@
-"""A Gaussian scene seen from a rotated camera frame: means, orientations and view-dependent colour.
+"""A Gaussian scene under a similarity transform p -> k R p + t: means, orientations, sizes and view-dependent
+colour, in float64 (numpy).
 
-``rotate_gaussians(g, R)`` returns the scene with every point p expressed as R p: means R m, rotations
-R Rot(q) (quaternion q(R) * q, wxyz), scales and opacities unchanged, and each SH band rotated so that the
-colour seen along a direction d of the new frame is the colour the old scene showed along R^T d. The SH basis
-is the rasteriser's (INRIA / gsplat order and signs: ``scenesplat_stereo.raster.sh.sh_basis``), degrees 0..3.
+``transform_scene(scene, R, k, t)`` returns the scene with every point p at k R p + t: means k R m + t,
+rotations R Rot(q) (quaternion q(R) * q, wxyz), scales k s (log-scales log s + log k), opacities unchanged,
+and each SH band rotated so that the colour seen along a direction d of the new frame is the colour the old
+scene showed along R^T d (scaling and moving do not change directions). The SH basis is the scene's
+(``scenesplat_stereo.scene.harmonics``: INRIA / gsplat order and signs), degrees 0..3.
 
 Band l of the real SH basis is closed under rotation: Y_l(R^T d) = M_l Y_l(d) for a (2l+1) x (2l+1) matrix
 M_l. ``sh_rotation`` finds M_l in float64 by least squares on a fixed set of directions (exact up to
 rounding, since both sides lie in the same space), and the coefficients become a'_l = M_l^T a_l, so that
-sum a'_l Y_l(d) = sum a_l Y_l(R^T d).
+sum a'_l Y_l(d) = sum a_l Y_l(R^T d). ``sgmodel.pairs.rotate`` applies the same matrices to torch tensors.
 """
 
 from __future__ import annotations
 
-import numpy as np
-import torch
+import math
 
-from scenesplat_stereo.raster.sh import sh_basis
+import numpy as np
+
 from scenesplat_stereo.scene.cameras import fibonacci_directions
+from scenesplat_stereo.scene.gaussians import GaussianScene
+from scenesplat_stereo.scene.harmonics import sh_basis
 
 #: Directions the band matrices are fitted on (more than the 7 unknowns per row of band 3, well spread).
 _FIT_DIRECTIONS = 64
+
+
+def check_rotation(R: np.ndarray, where: str) -> np.ndarray:
+    """R as a float64 [3, 3] rotation matrix (orthonormal within 1e-9, det > 0); ValueError naming ``where``."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.isfinite(R).all() or not np.allclose(R.T @ R, np.eye(3), atol=1e-9) \
+            or np.linalg.det(R) <= 0:
+        raise ValueError(f"{where}: R must be a 3x3 rotation matrix, got {R.tolist()}")
+    return R
 
 
 def sh_rotation(R: np.ndarray, degree: int) -> np.ndarray:
     """The [(degree+1)^2, (degree+1)^2] float64 matrix A with coefficients' = A coefficients (block-diagonal
     per band, A[0, 0] = 1) for the scene rotated by R [3,3] (new point = R old point)."""
     R = np.asarray(R, dtype=np.float64)
-    d = torch.from_numpy(fibonacci_directions(_FIT_DIRECTIONS))
-    Y = sh_basis(degree, d).numpy()                                   # [n, K] at d
-    Y_old = sh_basis(degree, d @ torch.from_numpy(R)).numpy()         # [n, K] at R^T d (rows d^T R)
+    d = fibonacci_directions(_FIT_DIRECTIONS)
+    Y = sh_basis(degree, d)                                           # [n, K] at d
+    Y_old = sh_basis(degree, d @ R)                                   # [n, K] at R^T d (rows d^T R)
     A = np.zeros((Y.shape[1], Y.shape[1]))
     A[0, 0] = 1.0                                                     # band 0 is constant: exactly kept
     for l in range(1, degree + 1):
@@ -50,31 +63,29 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
-def quaternion_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product a * b of wxyz quaternions [..., 4] (broadcast)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+def quaternion_left_matrix(q: np.ndarray) -> np.ndarray:
+    """The float64 [4, 4] matrix L with L p = q * p (Hamilton product of wxyz quaternions): a rotation's
+    quaternion applied to every row p of a table is ``table @ L.T``."""
+    w, x, y, z = np.asarray(q, dtype=np.float64)
+    return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
 
 
-def rotate_gaussians(gaussians: dict[str, torch.Tensor], R: np.ndarray) -> dict[str, torch.Tensor]:
-    """The Gaussians dict (means [B,N,3], quats [B,N,4] wxyz, scales, opacities, sh [B,N,K,3]) with every
-    point p replaced by R p (R [3,3] a rotation, float64); computed in float64, returned in the input dtypes
-    on the input device. Quaternions keep their norm."""
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9) or np.linalg.det(R) <= 0:
-        raise ValueError(f"rotate_gaussians: R must be a 3x3 rotation matrix, got {R.tolist()}")
-    means, quats, sh = gaussians["means"], gaussians["quats"], gaussians["sh"]
-    k = sh.shape[-2]
-    degree = round(k ** 0.5) - 1
-    if (degree + 1) ** 2 != k or degree > 3:
-        raise ValueError(f"rotate_gaussians: sh must hold (d+1)^2 coefficients, d in 0..3, got {k}")
-    Rt = torch.from_numpy(R).to(means.device)
-    q = torch.from_numpy(rotation_to_quaternion(R)).to(means.device)
-    A = torch.from_numpy(sh_rotation(R, degree)).to(means.device)
-    out = dict(gaussians)
-    out["means"] = (means.double() @ Rt.T).to(means.dtype)
-    out["quats"] = quaternion_multiply(q, quats.double()).to(quats.dtype)
-    out["sh"] = torch.einsum("ij,...jc->...ic", A, sh.double()).to(sh.dtype)
-    return out
+def transform_scene(scene: GaussianScene, R: np.ndarray = np.eye(3), scale: float = 1.0,
+                    offset: np.ndarray = (0.0, 0.0, 0.0)) -> GaussianScene:
+    """The scene with every point p at ``scale`` R p + ``offset`` (R [3, 3] a rotation, ``scale`` > 0, offset in
+    the new frame's units); computed in float64, returned as a float32 ``GaussianScene``. ValueError for a
+    bad R, scale or offset."""
+    R = check_rotation(R, "transform_scene")
+    offset = np.asarray(offset, dtype=np.float64)
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise ValueError(f"transform_scene: scale must be a finite number > 0, got {scale!r}")
+    if offset.shape != (3,) or not np.isfinite(offset).all():
+        raise ValueError(f"transform_scene: offset must be 3 finite numbers, got {offset.tolist()}")
+    L = quaternion_left_matrix(rotation_to_quaternion(R))
+    A = sh_rotation(R, scene.sh_degree)
+    means = scale * (scene.means.astype(np.float64) @ R.T) + offset
+    quats = scene.quats.astype(np.float64) @ L.T
+    sh = np.einsum("ij,njc->nic", A, scene.sh.astype(np.float64))
+    scales = np.exp(np.log(scene.scales.astype(np.float64)) + math.log(scale))
+    return GaussianScene(means.astype(np.float32), quats.astype(np.float32), scales.astype(np.float32),
+                         scene.opacities.copy(), sh.astype(np.float32), scene.sh_degree)

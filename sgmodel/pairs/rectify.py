@@ -9,7 +9,7 @@ rectified left camera's frame.
 
 Frames: the rectified left camera shares its centre with the raw left camera and is rotated from it by R1
 (p_rect = R1 p_raw, OpenCV axes, metres). ``to_raw_frame`` takes Gaussians predicted in the rectified frame
-back to the raw left camera's (rotation R1^T of means, orientations and SH colours: ``scenesplat_stereo.scene.transform``), so
+back to the raw left camera's (rotation R1^T of means, orientations and SH colours: ``sgmodel.pairs.rotate``), so
 the scene lines up with the user's raw images and poses. Depth maps stay images of the rectified left camera.
 
 K conventions: OpenCV's matrices have pixel centres at integer coordinates; ``Rectification.K`` is in this
@@ -34,7 +34,7 @@ from sgmodel.pairs import rig as rig_mod
 from sgmodel.pairs import stereo_check
 from sgmodel.pairs.calib import Calibration, foundation_stereo_text
 from sgmodel.pairs.rig import FISHEYE, RigError, StereoRig
-from scenesplat_stereo.scene.transform import rotate_gaussians
+from sgmodel.pairs.rotate import rotate_gaussians
 from sgmodel.pairs.stereo_pair import Pair, read_image, resize_pair
 
 #: OpenCV's free scaling parameter (alpha for pinhole lenses, balance for fisheye): 0 = only valid pixels.

@@ -1,17 +1,19 @@
-"""A Gaussian scene in a rotated frame (scenesplat_stereo.scene.transform): SH colours against a float64 evaluation of the
-basis, orientations against rotation matrices, and the rasteriser's image of the rotated scene seen by the
-rotated camera against the original's."""
+"""A scene under p -> k R p + t (scenesplat_stereo.scene.transform), in float64 numpy: the SH band matrices
+(orthogonal, composing like rotations), colours seen along turned directions against a float64 evaluation of the
+basis, means, orientations and sizes against matrices written here."""
 
 from __future__ import annotations
+
+import math
 
 import cv2
 import numpy as np
 import pytest
-import torch
 
-from scenesplat_stereo.raster import rasterization
-from scenesplat_stereo.raster.reference import quat_to_rotmat, sh_colors
-from scenesplat_stereo.scene.transform import rotate_gaussians, rotation_to_quaternion, sh_rotation
+from scenesplat_stereo.scene.gaussians import GaussianScene
+from scenesplat_stereo.scene.harmonics import sh_basis
+from scenesplat_stereo.scene.transform import (quaternion_left_matrix, rotation_to_quaternion, sh_rotation,
+                                               transform_scene)
 
 
 def random_rotation(rng, angle=None) -> np.ndarray:
@@ -20,29 +22,27 @@ def random_rotation(rng, angle=None) -> np.ndarray:
     return cv2.Rodrigues(axis * (rng.uniform(0, np.pi) if angle is None else angle))[0]
 
 
-def random_gaussians(n: int, degree: int, seed: int = 0, dtype=torch.float64) -> dict:
-    g = torch.Generator().manual_seed(seed)
-    means = torch.randn(1, n, 3, generator=g, dtype=dtype) * 0.3 + torch.tensor([0, 0, 3.0], dtype=dtype)
-    return dict(means=means, quats=torch.randn(1, n, 4, generator=g, dtype=dtype),
-                scales=torch.rand(1, n, 3, generator=g, dtype=dtype) * 0.08 + 0.01,
-                opacities=torch.rand(1, n, generator=g, dtype=dtype) * 0.8 + 0.1,
-                sh=torch.randn(1, n, (degree + 1) ** 2, 3, generator=g, dtype=dtype) * 0.4)
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices [N, 3, 3] of wxyz quaternions [N, 4] (any norm), the textbook formula."""
+    w, x, y, z = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
 
 
-@pytest.mark.parametrize("degree", [0, 1, 2, 3])
-def test_colour_along_a_rotated_direction_is_the_original_colour(degree):
-    """c_new(d) = c_old(R^T d) for every direction d, evaluated in float64 with the rasteriser's SH basis."""
-    rng = np.random.default_rng(degree)
-    for _ in range(5):
-        R = random_rotation(rng)
-        g = random_gaussians(50, degree, seed=degree)
-        g["sh"][..., 0, :] += 10.0                       # keep colours above the clamp at 0
-        out = rotate_gaussians(g, R)
-        d = torch.from_numpy(rng.normal(size=(50, 3)))
-        new = sh_colors(degree, d, out["sh"][0])
-        old = sh_colors(degree, d @ torch.from_numpy(R), g["sh"][0])   # rows (R^T d)^T
-        torch.testing.assert_close(new, old, atol=1e-12, rtol=1e-12)
-        assert torch.equal(out["sh"][0, :, 0], g["sh"][0, :, 0])        # the DC term does not turn
+def random_scene(n: int, degree: int, seed: int = 0) -> GaussianScene:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    sh = rng.normal(size=(n, (degree + 1) ** 2, 3)) * 0.4
+    return GaussianScene(rng.normal(size=(n, 3)).astype(np.float32), (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+                         rng.uniform(0.01, 0.1, (n, 3)).astype(np.float32), rng.uniform(0.1, 0.9, n).astype(np.float32),
+                         sh.astype(np.float32), degree)
+
+
+def colour(degree: int, sh: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Float64 colour before the clamp: sum_k sh[n, k] Y_k(d_n) + 0.5."""
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.einsum("nk,nkc->nc", sh_basis(degree, d), sh.astype(np.float64)) + 0.5
 
 
 def test_band_matrices_are_orthogonal_and_compose():
@@ -55,45 +55,45 @@ def test_band_matrices_are_orthogonal_and_compose():
     np.testing.assert_allclose(sh_rotation(np.eye(3), 3), np.eye(16), atol=1e-13)
 
 
-def test_means_and_orientations_turn_with_the_frame():
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_colour_along_a_turned_direction_is_the_original_colour(degree):
+    """c_new(d) = c_old(R^T d), scaling and moving the scene aside (float32 storage: 1e-5)."""
+    rng = np.random.default_rng(degree)
+    scene = random_scene(60, degree, seed=degree)
+    R = random_rotation(rng)
+    out = transform_scene(scene, R, 0.37, (1.0, -2.0, 0.5))
+    d = rng.normal(size=(60, 3))
+    np.testing.assert_allclose(colour(degree, out.sh, d), colour(degree, scene.sh, d @ R), atol=1e-5)
+    assert np.array_equal(out.sh[:, 0], scene.sh[:, 0])        # the DC term does not turn
+
+
+def test_means_orientations_and_sizes_follow_the_similarity():
     rng = np.random.default_rng(2)
-    for angle in (None, np.pi, 1e-9):                   # a generic rotation, a half turn, almost nothing
-        R = random_rotation(rng, angle)
+    scene = random_scene(40, 2, seed=3)
+    for angle in (None, np.pi, 1e-9):                           # a generic rotation, a half turn, almost nothing
+        R, k, t = random_rotation(rng, angle), 0.05, np.array([2.0, 3.0, 0.7])
         q = rotation_to_quaternion(R)
-        np.testing.assert_allclose(quat_to_rotmat(torch.from_numpy(q)[None])[0].numpy(), R, atol=1e-14)
-        g = random_gaussians(40, 2, seed=3)
-        out = rotate_gaussians(g, R)
-        torch.testing.assert_close(out["means"][0], g["means"][0] @ torch.from_numpy(R).T, atol=1e-14, rtol=0)
-        torch.testing.assert_close(quat_to_rotmat(out["quats"][0]), torch.from_numpy(R) @ quat_to_rotmat(g["quats"][0]),
-                                   atol=1e-14, rtol=0)
-        torch.testing.assert_close(out["quats"].norm(dim=-1), g["quats"].norm(dim=-1), atol=1e-14, rtol=0)
-        assert out["scales"] is g["scales"] and out["opacities"] is g["opacities"]
+        np.testing.assert_allclose(quat_to_matrix(q[None])[0], R, atol=1e-14)
+        out = transform_scene(scene, R, k, t)
+        np.testing.assert_allclose(out.means, k * scene.means.astype(np.float64) @ R.T + t, atol=1e-6)
+        np.testing.assert_allclose(quat_to_matrix(out.quats.astype(np.float64)),
+                                   R @ quat_to_matrix(scene.quats.astype(np.float64)), atol=1e-6)
+        np.testing.assert_allclose(np.log(out.scales), np.log(scene.scales) + math.log(k), atol=1e-6)
+        assert np.array_equal(out.opacities, scene.opacities)
 
 
-def test_the_rasteriser_sees_the_rotated_scene_from_the_rotated_camera_as_the_original():
-    """Render the scene from a camera V (world -> camera), and the rotated scene (p -> R p) from V R^T: the
-    same image, up to float32 rounding."""
-    R = random_rotation(np.random.default_rng(4), angle=0.6)
-    g = {k: v.float() for k, v in random_gaussians(300, 2, seed=5).items()}
-    out = rotate_gaussians(g, R)
-    assert all(v.dtype == torch.float32 for v in out.values())
-    view = torch.eye(4)
-    view[:3, 3] = torch.tensor([0.1, -0.05, 0.2])
-    turned = torch.eye(4, dtype=torch.float64)
-    turned[:3, :3] = torch.from_numpy(R.T)
-    views = [view[None], (view.double() @ turned).float()[None]]
-    K = torch.tensor([[[120.0, 0, 64], [0, 120.0, 48], [0, 0, 1]]])
-    images = [rasterization(s["means"][0], s["quats"][0], s["scales"][0], s["opacities"][0], s["sh"][0], v, K, 128, 96,
-                            sh_degree=2)[0] for s, v in ((g, views[0]), (out, views[1]))]
-    assert images[0].abs().max() > 0.3
-    torch.testing.assert_close(images[1], images[0], atol=2e-5, rtol=0)
+def test_the_left_product_matrix_is_the_hamilton_product():
+    a, b = np.array([0.5, 0.5, -0.5, 0.5]), np.array([0.3, 0.1, -0.7, 0.2])
+    # (w1 w2 - v1.v2, w1 v2 + w2 v1 + v1 x v2)
+    want = np.concatenate([[a[0] * b[0] - a[1:] @ b[1:]], a[0] * b[1:] + b[0] * a[1:] + np.cross(a[1:], b[1:])])
+    np.testing.assert_allclose(quaternion_left_matrix(a) @ b, want, atol=1e-15)
 
 
-def test_bad_rotations_and_sh_sizes_are_refused():
-    g = random_gaussians(3, 2)
+def test_bad_transforms_are_refused():
+    scene = random_scene(3, 1)
     with pytest.raises(ValueError, match="R must be a 3x3 rotation matrix"):
-        rotate_gaussians(g, np.diag([1.0, 1.0, -1.0]))
-    with pytest.raises(ValueError, match="R must be a 3x3 rotation matrix"):
-        rotate_gaussians(g, 2 * np.eye(3))
-    with pytest.raises(ValueError, match=r"sh must hold \(d\+1\)\^2 coefficients"):
-        rotate_gaussians({**g, "sh": torch.zeros(1, 3, 5, 3, dtype=torch.float64)}, np.eye(3))
+        transform_scene(scene, np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(ValueError, match="scale must be a finite number > 0"):
+        transform_scene(scene, np.eye(3), 0.0)
+    with pytest.raises(ValueError, match="offset must be 3 finite numbers"):
+        transform_scene(scene, np.eye(3), 1.0, (0.0, np.nan, 0.0))
