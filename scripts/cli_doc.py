@@ -23,6 +23,7 @@ COMMANDS = [
     ("scenesplat-stereo import stereonvs", "the StereoNVS-Real benchmark (LLFF poses, left/right images) to test shards"),
     ("scenesplat-stereo inspect", "Table 6 counts, a contact sheet and integrity checks of a built dataset"),
     ("scenesplat-stereo demo-teachers", "write the bundled procedural indoor teachers"),
+    ("scenesplat-stereo compose-teachers", "real captures composed into procedural rooms at the sizes and depths users shoot"),
     ("scenesplat-stereo bench render", "rasteriser speed/accuracy knobs against gsplat and the float64 reference"),
     ("scenesplat-stereo bench build", "dataset build throughput, split into render/encode/write, projected to the paper's size"),
     ("scenesplat-stereo bench encode", "host JPEG/PNG/EXR encoding without a GPU: per-image cost, encoder threads against processes"),

@@ -15,15 +15,16 @@ and the cameras circle it at the distances of one scale family (``FAMILIES``):
   then a random turn about z; ``transform.transform_scene`` turns the quaternions and the SH bands with it and
   adds log(k) to the log-scales.
 - placed: scaled to a metric size drawn from the family, centred on the room's centre, its lower bound on the
-  floor (``statue``) or on a table top (``tabletop``, ``demo.make_table``); the room grows so that every camera
-  fits (its Gaussian count grows with its surface).
+  floor (``statue``) or on a desk-sized table top (``tabletop``, ``demo.make_table``, ``DESK_TOP``); the room
+  grows so that every camera fits (its Gaussian count grows with its surface).
 - cameras (OpenCV c2w, metres): a full orbit at a distance to the object's centre that swings between two
   values drawn inside the family's range (never nearer than 0.9 times the object's size), at 5-35 degrees
   elevation, looking at the object with the room behind it; every ``PAST_EVERY``-th frame turns 50-80 degrees
   aside and looks past the object into the room. Horizontal field of view 60-75 degrees.
 - ``scene.json``: subset ``captures-in-rooms``, a PSNR label inside the family's tier (the object is a real
-  capture; its quality is not measured here), the family's stereo ``baseline`` and target radius ``rho``
-  (metres, read by ``teachers`` and used by ``protocol.plan_scene`` before the tier's), and where it came from.
+  capture; its quality is not measured here), the family's stereo ``baseline`` and target radius ``rho`` (at
+  most 0.4 times the nearest camera distance; metres, read by ``teachers`` and used by ``protocol.plan_scene``
+  before the tier's), and where it came from.
 
 Everything is deterministic for a seed. Every capture is read and measured before anything is written; OUT is
 replaced as a whole (``common.files.StagedFolder``).
@@ -40,9 +41,24 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from scenesplat_stereo.build.demo import DEFAULT_NUM_GAUSSIANS, ROOM_SIZE, make_room, make_table
-from scenesplat_stereo.common.files import StagedFolder, atomic_write_json, check_apart, check_replaceable
-from scenesplat_stereo.common.text import argtype, key_safe_name, parse_size, whole_number
+from scenesplat_stereo.build.demo import (
+    DEFAULT_NUM_GAUSSIANS,
+    ROOM_SIZE,
+    make_room,
+    make_table,
+)
+from scenesplat_stereo.common.files import (
+    StagedFolder,
+    atomic_write_json,
+    check_apart,
+    check_replaceable,
+)
+from scenesplat_stereo.common.text import (
+    argtype,
+    key_safe_name,
+    parse_size,
+    whole_number,
+)
 from scenesplat_stereo.scene.cameras import intrinsics_matrix, look_at
 from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene.ply import PlyRepairWarning
@@ -57,6 +73,7 @@ OUTLIER_FACTOR = 3.0  # x the weighted 90th percentile distance to the weighted 
 BOUNDS_PERCENTILES = (1.0, 99.0)  # opacity-weighted, per axis
 KEEP_MARGIN = 0.1  # of the largest side: Gaussians beyond the bounds by more are dropped
 PAST_EVERY = 4  # every 4th frame looks past the object into the room
+DESK_TOP = ((1.0, 1.6), (0.6, 0.9))  # m, the table top's x and y ranges (at least the object's footprint + 0.3 m)
 ROOM_MARGIN = 0.9  # m between the widest orbit and a wall (clear of the room's furniture)
 ELEVATION_DEG = (5.0, 35.0)
 FOV_X_DEG = (60.0, 75.0)
@@ -213,13 +230,13 @@ def compose_teacher(capture: Capture, family: ScaleFamily, rng: np.random.Genera
     max_eye_z = support + 0.5 * extent[2] + distance[1] * math.sin(math.radians(ELEVATION_DEG[1]))
     w, d = (max(s, 2 * (distance[1] + ROOM_MARGIN)) for s in ROOM_SIZE[:2])
     h = max(ROOM_SIZE[2], max_eye_z + 0.4, top_z + 0.4)
-    area = lambda x, y, z: 2 * (x * y + x * z + y * z)  # noqa: E731
+    area = lambda x, y, z: 2 * (x * y + x * z + y * z)
     n_room = max(2000, round(room_gaussians * area(w, d, h) / area(*ROOM_SIZE)))
     seed = int(rng.integers(2**31))
     parts = [make_room(seed, capture.scene.sh_degree, n_room, (w, d, h))]
     if family.support == "table":
         footprint = np.abs(Rz[:2, :2]) @ extent[:2]  # the turned bounds' axis-aligned footprint
-        top = (max(0.6, footprint[0] + 0.3), max(0.5, footprint[1] + 0.3))
+        top = (max(rng.uniform(*DESK_TOP[0]), footprint[0] + 0.3), max(rng.uniform(*DESK_TOP[1]), footprint[1] + 0.3))
         parts.append(make_table(seed + 1, (w / 2, d / 2), top, support, max(200, room_gaussians // 20),
                                 capture.scene.sh_degree))
     mid = 0.5 * (capture.lo + capture.hi)

@@ -4,7 +4,8 @@ rgb = max(SH(d) + 0.5, 0) with d = normalise(mean - camera centre), in the INRIA
 sign convention; the camera centre -R^T t of a rigid world-to-camera matrix [R t] is taken in the kernel
 (``view_direction``), so no [C, N, 3] direction tensor is built. The kernel is compiled per degree: a
 degree-0 scene never reads means or cameras and only touches its DC coefficient. Culled (camera, Gaussian)
-pairs (radii (0, 0)) get colour 0 and no work.
+pairs (radii (0, 0)) get colour 0 and no work. The basis and its constants are the scene's
+(``scenesplat_stereo.scene.harmonics``, evaluated in PyTorch by the float64 reference); this is its Warp kernel.
 """
 
 # No ``from __future__ import annotations``: Warp evaluates the annotations of the per-degree basis
@@ -15,7 +16,7 @@ import torch
 import warp as wp
 
 from scenesplat_stereo.raster._warp import launch, to_wp, vector_type
-from scenesplat_stereo.scene.harmonics import SH_C0, SH_C1, SH_C2, SH_C3, sh_basis  # noqa: F401 (the basis, re-exported)
+from scenesplat_stereo.scene.harmonics import SH_C0, SH_C1, SH_C2, SH_C3
 
 
 def num_sh_bases(degree: int) -> int:

@@ -70,12 +70,12 @@ def quaternion_left_matrix(q: np.ndarray) -> np.ndarray:
     return np.array([[w, -x, -y, -z], [x, w, -z, y], [y, z, w, -x], [z, -y, x, w]])
 
 
-def transform_scene(scene: GaussianScene, R: np.ndarray = np.eye(3), scale: float = 1.0,
+def transform_scene(scene: GaussianScene, R: np.ndarray | None = None, scale: float = 1.0,
                     offset: np.ndarray = (0.0, 0.0, 0.0)) -> GaussianScene:
     """The scene with every point p at ``scale`` R p + ``offset`` (R [3, 3] a rotation, ``scale`` > 0, offset in
-    the new frame's units); computed in float64, returned as a float32 ``GaussianScene``. ValueError for a
-    bad R, scale or offset."""
-    R = check_rotation(R, "transform_scene")
+    the new frame's units; R None: no turn); computed in float64, returned as a float32 ``GaussianScene``.
+    ValueError for a bad R, scale or offset."""
+    R = check_rotation(np.eye(3) if R is None else R, "transform_scene")
     offset = np.asarray(offset, dtype=np.float64)
     if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
         raise ValueError(f"transform_scene: scale must be a finite number > 0, got {scale!r}")

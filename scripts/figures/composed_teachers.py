@@ -44,8 +44,8 @@ def teacher_row(teacher, thumb: tuple[int, int], n_look: int, device: str) -> np
     tiles = [(np.clip(i[..., :3], 0, 1) * 255 + 0.5).astype(np.uint8) for i in img]
     tiles.append(depth_png(img[0, ..., 3]))
     meta = json.loads((teacher.ply_path.parent / "scene.json").read_text())
-    text = (f"{teacher.scene_id}: {meta['object_size_m']:.2f} m, cameras {meta['distance_m'][0]:.2f}-"
-            f"{meta['distance_m'][1]:.2f} m, B {meta['baseline']} m")
+    text = (f"{teacher.scene_id}: {meta['object_size_m']:.2f} m seen from {meta['distance_m'][0]:.1f}-"
+            f"{meta['distance_m'][1]:.1f} m")
     return labelled_row(tiles, text)
 
 

@@ -8,7 +8,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from scenesplat_stereo.scene.transform import check_rotation, quaternion_left_matrix, rotation_to_quaternion, sh_rotation
+from scenesplat_stereo.scene.transform import (
+    check_rotation,
+    quaternion_left_matrix,
+    rotation_to_quaternion,
+    sh_rotation,
+)
 
 
 def rotate_gaussians(gaussians: dict[str, torch.Tensor], R: np.ndarray) -> dict[str, torch.Tensor]:

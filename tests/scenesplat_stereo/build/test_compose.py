@@ -11,7 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenesplat_stereo.build.compose import FAMILIES, compose_teacher, measure_capture, read_capture
+from scenesplat_stereo.build.compose import (
+    FAMILIES,
+    compose_teacher,
+    measure_capture,
+    read_capture,
+)
 from scenesplat_stereo.cli import main
 from scenesplat_stereo.scene.gaussians import GaussianScene, load_ply, save_ply
 from scenesplat_stereo.scene.harmonics import sh_basis

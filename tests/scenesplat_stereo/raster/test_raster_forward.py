@@ -15,9 +15,15 @@ import pytest
 import torch
 
 from scenesplat_stereo.raster.reference import reference_rasterization
-from scenesplat_stereo.raster.sh import SH_C1, sh_basis
-from tests.support.scenes import (assert_matches_reference, camera_rig, knife_edge_pixels, orbit_cameras, random_scene,
-                                  render_both)
+from scenesplat_stereo.scene.harmonics import SH_C1, sh_basis
+from tests.support.scenes import (
+    assert_matches_reference,
+    camera_rig,
+    knife_edge_pixels,
+    orbit_cameras,
+    random_scene,
+    render_both,
+)
 
 W, H = 64, 48  # random-scene image size (not a multiple of 32: partial tiles at tile_size 32)
 

@@ -12,8 +12,12 @@ import pytest
 
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.harmonics import sh_basis
-from scenesplat_stereo.scene.transform import (quaternion_left_matrix, rotation_to_quaternion, sh_rotation,
-                                               transform_scene)
+from scenesplat_stereo.scene.transform import (
+    quaternion_left_matrix,
+    rotation_to_quaternion,
+    sh_rotation,
+    transform_scene,
+)
 
 
 def random_rotation(rng, angle=None) -> np.ndarray:
