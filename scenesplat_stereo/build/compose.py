@@ -18,9 +18,10 @@ and the cameras circle it at the distances of one scale family (``FAMILIES``):
   floor (``statue``) or on a desk-sized table top (``tabletop``, ``demo.make_table``, ``DESK_TOP``); the room
   grows so that every camera fits (its Gaussian count grows with its surface).
 - cameras (OpenCV c2w, metres): a full orbit at a distance to the object's centre that swings between two
-  values drawn inside the family's range (never nearer than 0.9 times the object's size), at 5-35 degrees
-  elevation, looking at the object with the room behind it; every ``PAST_EVERY``-th frame turns 50-80 degrees
-  aside and looks past the object into the room. Horizontal field of view 60-75 degrees.
+  values drawn inside the family's range (the near one in its nearest quarter, the far one in its farther half;
+  never nearer than ``NEAREST`` times the object's size), at 5-35 degrees elevation, looking at the object with
+  the room behind it; every ``PAST_EVERY``-th frame turns 50-80 degrees aside and looks past the object into
+  the room. Horizontal field of view 60-75 degrees.
 - ``scene.json``: subset ``captures-in-rooms``, a PSNR label inside the family's tier (the object is a real
   capture; its quality is not measured here), the family's stereo ``baseline`` and target radius ``rho`` (at
   most 0.4 times the nearest camera distance; metres, read by ``teachers`` and used by ``protocol.plan_scene``
@@ -75,6 +76,7 @@ KEEP_MARGIN = 0.1  # of the largest side: Gaussians beyond the bounds by more ar
 PAST_EVERY = 4  # every 4th frame looks past the object into the room
 DESK_TOP = ((1.0, 1.6), (0.6, 0.9))  # m, the table top's x and y ranges (at least the object's footprint + 0.3 m)
 ROOM_MARGIN = 0.9  # m between the widest orbit and a wall (clear of the room's furniture)
+NEAREST = 0.75  # x the object's size: the nearest camera distance to its centre (it then fills about 67 deg)
 ELEVATION_DEG = (5.0, 35.0)
 FOV_X_DEG = (60.0, 75.0)
 UP_AXES = {f"{s}{a}": np.eye(3)[i] * (1.0 if s == "+" else -1.0) for i, a in enumerate("xyz") for s in "+-"}
@@ -183,8 +185,9 @@ def read_capture(path: Path, up: str = "-y") -> Capture:
         warnings.simplefilter("error", PlyRepairWarning)
         try:
             scene = load_scene(path)
-        except PlyRepairWarning as e:
-            raise ValueError(f"{path}: {e}") from None
+        except PlyRepairWarning as e:  # "<path>: k of N Gaussians have bad rows: ...; those rows were dropped"
+            detail = str(e).removeprefix(f"{path}: ").split(";")[0]
+            raise ValueError(f"{path}: {detail}; a capture is refused, not repaired") from None
     if len(scene) == 0:
         raise ValueError(f"{path}: zero Gaussians")
     return measure_capture(scene, path, up)
@@ -218,9 +221,9 @@ def compose_teacher(capture: Capture, family: ScaleFamily, rng: np.random.Genera
                     size_px: tuple[int, int] = (256, 192), room_gaussians: int = DEFAULT_NUM_GAUSSIANS) -> Composed:
     """One teacher: ``capture`` at a size of ``family`` in a room sized to the orbit (module docstring)."""
     size = float(rng.uniform(*family.size))
-    d_lo, d_hi = max(family.distance[0], 0.9 * size), family.distance[1]
+    d_lo, d_hi = max(family.distance[0], NEAREST * size), family.distance[1]
     span = d_hi - d_lo
-    distance = (d_lo + 0.5 * span * float(rng.uniform()), d_hi - 0.5 * span * float(rng.uniform()))
+    distance = (d_lo + 0.25 * span * float(rng.uniform()), d_hi - 0.5 * span * float(rng.uniform()))
     k = size / capture.size
     yaw = rng.uniform(0, 2 * math.pi)
     Rz = np.array([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
