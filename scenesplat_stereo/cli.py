@@ -2,10 +2,10 @@
 its flags (``add_arguments``) and its work (``run``).
 
 Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``import multiview``, ``inspect``,
-``demo-teachers``, ``bench render``, ``bench build``, ``bench encode``, ``bench scenes``. Units and conventions
-are stated in each command's ``--help``. Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2
-bad arguments or input (one line naming the flag or file), 130 interrupted, 1 internal error (traceback with
-``--debug``); ``build`` exits 3 when a teacher failed, ``inspect`` 1 when a check failed.
+``demo-teachers``, ``compose-teachers``, ``bench render``, ``bench build``, ``bench encode``, ``bench scenes``.
+Units and conventions are stated in each command's ``--help``. Exit status (``scenesplat_stereo.common.commandline``):
+0 done, 2 bad arguments or input (one line naming the flag or file), 130 interrupted, 1 internal error (traceback
+with ``--debug``); ``build`` exits 3 when a teacher failed, ``inspect`` 1 when a check failed.
 """
 
 from __future__ import annotations
@@ -30,6 +30,8 @@ COMMANDS = (
             "scenesplat_stereo.build.inspection"),
     Command("demo-teachers", "write procedural indoor teacher scenes (plain layout) to OUT",
             "scenesplat_stereo.build.demo"),
+    Command("compose-teachers", "real captures composed into procedural rooms at metric sizes (plain-layout teachers)",
+            "scenesplat_stereo.build.compose"),
     Command("bench", "benchmarks: what accuracy costs in time (markdown tables)", dest="bench", commands=(
         Command("render", "rasteriser speed/accuracy knobs, against gsplat and the float64 reference",
                 "scenesplat_stereo.bench.render"),

@@ -264,6 +264,26 @@ def make_room(seed: int, sh_degree: int = 0, num_gaussians: int = DEFAULT_NUM_GA
     return _to_scene(b, sh_degree)
 
 
+def make_table(seed: int, centre: tuple[float, float], top: tuple[float, float], height: float,
+               num_gaussians: int, sh_degree: int = 0) -> GaussianScene:
+    """A table of ``num_gaussians`` Gaussians (metres, z up, standing on z = 0): a 4 cm top of ``top`` (x, y)
+    metres centred on ``centre`` (x, y) with its upper face at ``height``, on four thin legs; wood-like
+    texture from ``seed``. A support for objects composed into a room (``scenesplat_stereo.build.compose``)."""
+    if num_gaussians < 100:
+        raise ValueError(f"make_table: num_gaussians must be >= 100, got {num_gaussians}")
+    rng = np.random.default_rng(seed)
+    b = _Builder(rng)
+    (cx, cy), (sx, sy) = centre, top
+    lo, hi = (cx - sx / 2, cy - sy / 2), (cx + sx / 2, cy + sy / 2)
+    wood = rng.uniform([0.35, 0.2, 0.1], [0.65, 0.45, 0.3])
+    n_top, *legs = _shares(num_gaussians, [8, 1, 1, 1, 1])
+    b.box((lo[0], lo[1], height - 0.04), (hi[0], hi[1], height), n_top, _plain_texture(rng, wood, stripe=0.12))
+    for (x, y), n in zip([(lo[0] + 0.04, lo[1] + 0.04), (hi[0] - 0.04, lo[1] + 0.04), (lo[0] + 0.04, hi[1] - 0.04),
+                          (hi[0] - 0.04, hi[1] - 0.04)], legs):
+        b.rod((x, y, 0.0), height - 0.04, 0.02, n, wood * 0.6)
+    return _to_scene(b, sh_degree)
+
+
 def _to_scene(b: _Builder, sh_degree: int) -> GaussianScene:
     means, quats, scales, opacities, rgb = (np.concatenate(x) for x in zip(*b.parts))
     n, k = len(means), (sh_degree + 1) ** 2

@@ -10,7 +10,7 @@ orientation; a sample whose JSON lists ``target_frames``, as IRS samples do, has
 rigid and within rho of the left camera); images decode at width x height (RGB JPEGs, single-channel 0/255 PNG masks); and
 ``OUT/stats.json`` agrees with the counts read from the shards. ``--quick`` decodes the images of the
 first sample of each shard only. Baselines and radii that differ from the teacher's PSNR tier are noted,
-not failed (``--baseline``/``--rho`` override them on purpose).
+not failed (``--baseline``/``--rho`` and a teacher's ``scene.json`` ``baseline``/``rho`` override them on purpose).
 """
 
 from __future__ import annotations

@@ -150,7 +150,8 @@ def plan_scene(teacher: Teacher, split: Split, baseline: float | None = None, rh
 
     Frames: "train" every frame in order; "val" ``validation_frames`` with targets ``VAL_TARGETS``;
     "test" ``test_frames`` with all targets. ``num_targets`` (1..10) keeps the first targets of the
-    ten (val: of the first four). B and rho come from the teacher's tier unless given; a teacher with no
+    ten (val: of the first four). B and rho: as given (the build's ``--baseline``/``--rho``), else the
+    teacher's own (``scene.json`` ``baseline``/``rho``), else the teacher's tier; a teacher with no
     tier (no PSNR, or kept below 30 dB by a lower ``--min-psnr``) gets the first tier's values and a
     warning. ``resolution`` (W, H) overrides the native size; K is rescaled with ``scale_intrinsics``.
     """
@@ -161,6 +162,8 @@ def plan_scene(teacher: Teacher, split: Split, baseline: float | None = None, rh
     if teacher.c2w is None:
         raise ValueError(f"{teacher.scene_id}: orbit trajectory not resolved; call "
                          "teachers.resolve_trajectory(teacher, means) after loading the .ply")
+    baseline = teacher.baseline if baseline is None else baseline
+    rho = teacher.rho if rho is None else rho
     if baseline is None or rho is None:
         try:
             tier = tier_for_psnr(teacher.psnr)

@@ -29,7 +29,7 @@ import math
 
 import torch
 
-from scenesplat_stereo.raster.sh import sh_basis
+from scenesplat_stereo.scene.harmonics import sh_basis
 
 # SPEC section 2, step 3: tx/z, ty/z are clamped to the field of view widened by 0.15 W/fx (0.15 H/fy) per side.
 FOV_CLAMP_MARGIN = 0.15

@@ -4,7 +4,8 @@ rgb = max(SH(d) + 0.5, 0) with d = normalise(mean - camera centre), in the INRIA
 sign convention; the camera centre -R^T t of a rigid world-to-camera matrix [R t] is taken in the kernel
 (``view_direction``), so no [C, N, 3] direction tensor is built. The kernel is compiled per degree: a
 degree-0 scene never reads means or cameras and only touches its DC coefficient. Culled (camera, Gaussian)
-pairs (radii (0, 0)) get colour 0 and no work.
+pairs (radii (0, 0)) get colour 0 and no work. The basis and its constants are the scene's
+(``scenesplat_stereo.scene.harmonics``, evaluated in PyTorch by the float64 reference); this is its Warp kernel.
 """
 
 # No ``from __future__ import annotations``: Warp evaluates the annotations of the per-degree basis
@@ -15,44 +16,7 @@ import torch
 import warp as wp
 
 from scenesplat_stereo.raster._warp import launch, to_wp, vector_type
-
-# SPEC section 1: the standard real spherical-harmonics constants (degrees 0..3).
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (
-    -0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-    -0.4570457994644658, 1.445305721320277, -0.5900435899266435,
-)
-
-
-def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
-    """The rasteriser's real SH basis [..., (degree+1)^2] at unit directions [..., 3], in the INRIA / gsplat
-    order and signs, in PyTorch (any dtype: float64 for the reference and for rotating SH coefficients)."""
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, SH_C0)]
-    if degree >= 1:
-        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [
-            SH_C2[0] * x * y,
-            SH_C2[1] * y * z,
-            SH_C2[2] * (2 * zz - xx - yy),
-            SH_C2[3] * x * z,
-            SH_C2[4] * (xx - yy),
-        ]
-    if degree >= 3:
-        out += [
-            SH_C3[0] * y * (3 * xx - yy),
-            SH_C3[1] * x * y * z,
-            SH_C3[2] * y * (4 * zz - xx - yy),
-            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
-            SH_C3[4] * x * (4 * zz - xx - yy),
-            SH_C3[5] * z * (xx - yy),
-            SH_C3[6] * x * (xx - 3 * yy),
-        ]
-    return torch.stack(out, -1)
+from scenesplat_stereo.scene.harmonics import SH_C0, SH_C1, SH_C2, SH_C3
 
 
 def num_sh_bases(degree: int) -> int:

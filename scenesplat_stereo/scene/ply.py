@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-#: Real SH constant of band 0 (SPEC section 1): colour = 0.5 + SH_C0 * f_dc.
-SH_C0 = 0.28209479177387814
+from scenesplat_stereo.scene.harmonics import SH_C0  # noqa: F401 (band 0: colour = 0.5 + SH_C0 * f_dc; re-exported)
+
 #: Number of ``f_rest_*`` properties -> SH degree (3 channels x ((d+1)^2 - 1) coefficients).
 SH_DEGREE_OF_REST_COUNT = {0: 0, 9: 1, 24: 2, 45: 3}
 _HEADER_LIMIT = 1 << 20

@@ -12,7 +12,8 @@ reader each (nerfstudio dataparser style):
 - ``plain``: ``point_cloud.ply`` (or the folder's single ``.ply``), optional ``transforms.json``.
 
 Any layout may carry ``scene.json`` ``{"psnr": float, "camera_convention": "opencv"|"opengl",
-"subset": str}`` (its PSNR counts when the layout has none). Folders without these files are grouping
+"subset": str, "baseline": metres, "rho": metres}`` (its PSNR counts when the layout has none; ``baseline`` and
+``rho``, both > 0, replace the PSNR tier's for this teacher, e.g. a desk-scale scene's 0.06 m). Folders without these files are grouping
 folders (e.g. ``ScanNetGS/``), searched up to ``MAX_GROUP_DEPTH`` deep; hidden folders are skipped. A
 root that holds a teacher itself is the only one.
 
@@ -128,7 +129,8 @@ class Teacher:
     only for an orbit teacher before ``resolve_trajectory``. ``Ks`` [F, 3, 3] pixels at ``width`` x
     ``height`` (the native resolution). ``camera_convention`` is that of the source files ("opengl" or
     "opencv"; orbits are generated in "opencv"). ``trajectory`` names the source ("transforms.json",
-    "cameras.json", ..., or "orbit").
+    "cameras.json", ..., or "orbit"). ``baseline`` and ``rho`` (world units) are ``scene.json``'s, None
+    when it gives none (the PSNR tier's then apply).
     """
 
     scene_id: str
@@ -145,6 +147,8 @@ class Teacher:
     frame_names: list[str]
     trajectory: str = ""
     orbit: OrbitSpec | None = None
+    baseline: float | None = None
+    rho: float | None = None
 
     @property
     def num_frames(self) -> int:
@@ -387,6 +391,9 @@ def _scene_json(folder: Path) -> dict:
         raise TeacherError(path, "file", "expected a JSON object")
     if data.get("psnr") is not None:
         _number(data["psnr"], path, "psnr")
+    for key in ("baseline", "rho"):
+        if data.get(key) is not None:
+            _number(data[key], path, key, positive=True)
     conv = data.get("camera_convention")
     if conv not in (None, "opencv", "opengl"):
         raise TeacherError(path, "camera_convention", f"expected 'opencv' or 'opengl', got {conv!r}")
@@ -416,7 +423,7 @@ def _read_teacher(folder: Path, scene_id: str, orbit: OrbitSpec | None) -> Teach
     psnr = found.psnr if found.psnr is not None else (float(meta["psnr"]) if meta.get("psnr") is not None else None)
     subset = meta.get("subset") or _subset_from_folder(folder)
     common = dict(scene_id=scene_id, subset=subset, layout=found.layout, ply_path=found.ply_path,
-                  psnr=psnr, sh_degree=header.sh_degree)
+                  psnr=psnr, sh_degree=header.sh_degree, **{k: float(meta[k]) for k in ("baseline", "rho") if meta.get(k) is not None})
     if found.trajectory_path is None:
         if orbit is None:
             raise TeacherError(folder, "trajectory", "no transforms.json / transforms_train.json / "

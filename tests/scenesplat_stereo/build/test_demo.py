@@ -8,10 +8,21 @@ import numpy as np
 import pytest
 import torch
 
-from scenesplat_stereo.build.demo import (DEFAULT_NUM_GAUSSIANS, ROOM_SIZE, make_room, room_trajectory,
-                                          write_demo_teachers)
+from scenesplat_stereo.build.demo import (
+    DEFAULT_NUM_GAUSSIANS,
+    ROOM_SIZE,
+    make_room,
+    make_table,
+    room_trajectory,
+    write_demo_teachers,
+)
 from scenesplat_stereo.build.protocol import TIERS, plan_scene, tier_for_psnr
-from scenesplat_stereo.scene.cameras import fibonacci_directions, rigid_error, stereo_rig, viewmats_from_c2w
+from scenesplat_stereo.scene.cameras import (
+    fibonacci_directions,
+    rigid_error,
+    stereo_rig,
+    viewmats_from_c2w,
+)
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.scene.ply import SH_C0
 from scenesplat_stereo.scene.teachers import discover_teachers
@@ -140,3 +151,14 @@ def test_demo_teachers_render_with_texture(tmp_path):
         grad = np.abs(np.diff(gray, axis=2)).mean(axis=(1, 2))
         assert grad.min() > 0.005
         assert not torch.allclose(colors[0], colors[1])  # the right view differs
+
+
+def test_table_stands_on_the_floor_with_its_top_at_the_height_and_footprint_asked_for():
+    table = make_table(0, (2.0, 2.5), (0.8, 0.6), 0.75, 400, sh_degree=1)
+    m = table.means.astype(np.float64)
+    assert len(table) == 400 and table.sh_degree == 1
+    assert m[:, 2].max() == pytest.approx(0.75, abs=1e-6) and m[:, 2].min() >= 0.0
+    np.testing.assert_allclose(m[:, :2].min(0), [1.6, 2.2], atol=1e-6)
+    np.testing.assert_allclose(m[:, :2].max(0), [2.4, 2.8], atol=1e-6)
+    with pytest.raises(ValueError, match="num_gaussians must be >= 100"):
+        make_table(0, (0, 0), (1, 1), 0.7, 50)

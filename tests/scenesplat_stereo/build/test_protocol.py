@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import random
 from pathlib import Path
@@ -181,6 +182,17 @@ def test_plan_scene_without_tier_warns_and_uses_first_tier():
     assert (p.baseline, p.rho, p.teacher_psnr) == (0.05, 0.10, None)
     p = plan_scene(t, "train", baseline=0.3, rho=0.6)[0]  # both given: no tier needed, no warning
     assert (p.baseline, p.rho) == (0.3, 0.6)
+
+
+def test_plan_scene_takes_the_teachers_own_baseline_and_rho_before_the_tier():
+    """scene.json ``baseline``/``rho`` (Teacher fields) replace the tier's; the build's flags replace both."""
+    t = dataclasses.replace(make_teacher(n_frames=2, psnr=41.0), baseline=0.063, rho=0.04)
+    p = plan_scene(t, "train")[0]
+    assert (p.baseline, p.rho) == (0.063, 0.04)
+    np.testing.assert_allclose(np.linalg.norm(p.c2w_right[:3, 3] - p.c2w_left[:3, 3]), 0.063, rtol=1e-12)
+    assert (plan_scene(t, "train", baseline=0.2)[0].baseline, plan_scene(t, "train", rho=0.5)[0].rho) == (0.2, 0.5)
+    half = dataclasses.replace(make_teacher(n_frames=2, psnr=41.0), baseline=0.063)   # rho from the tier (0.30)
+    assert (plan_scene(half, "train")[0].baseline, plan_scene(half, "train")[0].rho) == (0.063, 0.30)
 
 
 def test_plan_scene_unresolved_orbit():

@@ -126,6 +126,13 @@ def test_plain_layout_scene_json(tmp_path):
     assert (room.layout, room.psnr, room.subset, room.sh_degree) == ("plain", 41.5, "MyRooms", 1)
     assert (hall.psnr, hall.subset) == (None, "default")  # "misc" is not a subset-style name
     np.testing.assert_allclose(room.c2w[0], POSE_CV, atol=1e-12)  # "opencv" in the file: no flip
+    assert (room.baseline, room.rho) == (None, None)
+
+
+def test_scene_json_baseline_and_rho(tmp_path):
+    make_plain(tmp_path / "desk", scene={"psnr": 41.5, "baseline": 0.063, "rho": 0.05})
+    (desk,) = discover_teachers(tmp_path).teachers
+    assert (desk.baseline, desk.rho) == (0.063, 0.05)
 
 
 def test_scene_json_convention_and_per_frame_intrinsics(tmp_path):
@@ -215,6 +222,9 @@ MALFORMED = {
                             write_json(f / "transforms.json", transforms([POSE_CV], camera_convention="opencv"))),
                  "'opencv' but scene.json says 'opengl'"),
     "bad_psnr": (lambda f: write_json(f / "scene.json", {"psnr": "high"}), "scene.json: psnr: expected a finite"),
+    "bad_baseline": (lambda f: write_json(f / "scene.json", {"baseline": -0.06}),
+                     "scene.json: baseline: expected a positive number"),
+    "bad_rho": (lambda f: write_json(f / "scene.json", {"rho": "far"}), "scene.json: rho: expected a finite"),
     "two_plys": (lambda f: ((f / "point_cloud.ply").rename(f / "a.ply"), write_ply(f / "b.ply")),
                  "*.ply: 2 .ply files and none named point_cloud.ply"),
 }

@@ -1,6 +1,6 @@
-"""A Gaussian scene in a rotated frame (sgmodel.pairs.rotate): SH colours against a float64 evaluation of the
-basis, orientations against rotation matrices, and the rasteriser's image of the rotated scene seen by the
-rotated camera against the original's."""
+"""The model's Gaussians in a rotated frame (sgmodel.pairs.rotate, torch tensors): SH colours against a float64
+evaluation of the basis, orientations against rotation matrices, and the rasteriser's image of the rotated scene
+seen by the rotated camera against the original's."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import torch
 
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.raster.reference import quat_to_rotmat, sh_colors
-from sgmodel.pairs.rotate import rotate_gaussians, rotation_to_quaternion, sh_rotation
+from scenesplat_stereo.scene.transform import rotation_to_quaternion
+from sgmodel.pairs.rotate import rotate_gaussians
 
 
 def random_rotation(rng, angle=None) -> np.ndarray:
@@ -43,16 +44,6 @@ def test_colour_along_a_rotated_direction_is_the_original_colour(degree):
         old = sh_colors(degree, d @ torch.from_numpy(R), g["sh"][0])   # rows (R^T d)^T
         torch.testing.assert_close(new, old, atol=1e-12, rtol=1e-12)
         assert torch.equal(out["sh"][0, :, 0], g["sh"][0, :, 0])        # the DC term does not turn
-
-
-def test_band_matrices_are_orthogonal_and_compose():
-    rng = np.random.default_rng(1)
-    A, B = random_rotation(rng), random_rotation(rng)
-    for degree in (1, 2, 3):
-        MA, MB = sh_rotation(A, degree), sh_rotation(B, degree)
-        np.testing.assert_allclose(MA @ MA.T, np.eye((degree + 1) ** 2), atol=1e-12)
-        np.testing.assert_allclose(sh_rotation(A @ B, degree), MA @ MB, atol=1e-12)   # turn by B, then by A
-    np.testing.assert_allclose(sh_rotation(np.eye(3), 3), np.eye(16), atol=1e-13)
 
 
 def test_means_and_orientations_turn_with_the_frame():
