@@ -34,11 +34,11 @@ from scenesplat_stereo.build_settings import SPLITS_OF_MODE, BuildSettings, add_
 from scenesplat_stereo.commandline import NotAvailable
 from scenesplat_stereo.encode_pool import SampleEncoder
 from scenesplat_stereo.files import read_json
-from scenesplat_stereo.gaussians import load_ply
 from scenesplat_stereo.nvjpeg import NvJpegEncoder
 from scenesplat_stereo.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_PER_SCENE, VAL_SCENES, SamplePlan,
                                         filter_teachers, plan_scene, split_scenes)
 from scenesplat_stereo.render_pairs import start_render, stream_samples
+from scenesplat_stereo.scene_files import load_scene
 from scenesplat_stereo.teachers import (
     Discovery,
     Rejection,
@@ -124,7 +124,7 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
     sink = shards.PlannedShards(settings.out, job.split, job.chunks)
     encoder = jpeg = None
     try:
-        scene = load_ply(t.ply_path, strict=True)
+        scene = load_scene(t.ply_path, strict=True)
         teacher = resolve_trajectory(t, scene.means) if t.c2w is None else t
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the driver already reported the planning warnings

@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scenesplat_stereo.compressed_ply import morton_order
 from scenesplat_stereo.files import atomic_write_bytes
 from scenesplat_stereo.gaussians import GaussianScene, decoded_scene
 
@@ -316,17 +317,6 @@ def _kmeans(x: np.ndarray, k: int, iterations: int = 10) -> tuple[np.ndarray, np
         total = torch.zeros_like(C).index_add_(0, labels, X)
         C = torch.where(count[:, None] > 0, total / count.clamp(min=1)[:, None], C)
     return C.cpu().numpy(), assign().cpu().numpy()
-
-
-def morton_order(means: np.ndarray) -> np.ndarray:
-    """Indices [N] sorting ``means`` along a 3-D Morton (Z-order) curve of 10 bits an axis over their box."""
-    lo, hi = means.min(0), means.max(0)
-    q = ((means - lo) / np.where(hi > lo, hi - lo, 1.0) * 1023.0).astype(np.uint64)
-    code = np.zeros(len(means), np.uint64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + 2 - axis)
-    return np.argsort(code, kind="stable")
 
 
 def _pack_quats(quats: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Niantic's ``.spz`` (versions 2 and 3): reader and writer, pure numpy and the standard library's gzip.
+"""Niantic's ``.spz`` (versions 1 to 3): reader and writer, pure numpy and the standard library's gzip.
 
 Written from the format description of the public nianticlabs/spz repository (README "File Format",
 ``load-spz.cc``). A v2/v3 file is one gzip stream holding a 16-byte little-endian header
@@ -8,13 +8,15 @@ Written from the format description of the public nianticlabs/spz repository (RE
 
 followed by attribute blocks, each point after point:
 
-* positions: 3 x 24-bit signed fixed point, little-endian, value = integer / 2^fractionalBits;
+* positions: 3 x 24-bit signed fixed point, little-endian, value = integer / 2^fractionalBits (version 1:
+  3 x float16, which the reference still reads);
 * alphas: uint8 round(255 opacity);
 * colours: uint8 round(255 (0.15 f_dc + 0.5)) per channel (the SH DC coefficient, not SH_C0-scaled);
 * scales: uint8 round(16 (ln s + 10)) per axis;
 * rotations: v3 "smallest three": a little-endian uint32 whose bits 30-31 hold the index i of the largest
   |component| of the unit xyzw quaternion (made positive), then for each other component in xyzw order a
-  sign bit and 9 bits of round(511 |c| / sqrt(1/2)); v2: uint8 round(127.5 c + 127.5) for x, y, z with w >= 0;
+  sign bit and 9 bits of round(511 |c| / sqrt(1/2)); v1, v2: uint8 round(127.5 c + 127.5) for x, y, z with
+  w = sqrt(max(0, 1 - x^2 - y^2 - z^2)) >= 0;
 * SH (degree > 0): for each coefficient 1..K-1, the three colours (colour fastest), int8-like uint8
   round(128 f) + 128, quantised to buckets of 8 (degree 1, 5 bits) or 16 (degree 2 and 3, 4 bits) as the
   reference writer does; read back as (q - 128) / 128.
@@ -48,7 +50,7 @@ from scenesplat_stereo.gaussians import GaussianScene
 #: "NGSP" read as a little-endian uint32.
 MAGIC = 0x5053474E
 #: The version this module writes, and the versions it reads.
-WRITE_VERSION, READ_VERSIONS = 3, (2, 3)
+WRITE_VERSION, READ_VERSIONS = 3, (1, 2, 3)
 #: Fractional bits of the fixed-point positions (the reference writer's 12: 1/4096 m steps).
 FRACTIONAL_BITS = 12
 #: Colours store f_dc scaled by this around 0.5 (the format's colorScale).
@@ -140,10 +142,10 @@ def save_spz(scene: GaussianScene, path: str | os.PathLike, durable: bool = True
 
 
 def _unpack_rotations(raw: np.ndarray, version: int) -> np.ndarray:
-    """uint8 [N, 4] (v3) or [N, 3] (v2) -> unit wxyz float64 [N, 4]."""
+    """uint8 [N, 4] (v3) or [N, 3] (v1, v2) -> unit wxyz float64 [N, 4]."""
     n = len(raw)
     xyzw = np.empty((n, 4), dtype=np.float64)
-    if version == 2:
+    if version < 3:
         xyzw[:, :3] = raw.astype(np.float64) / 127.5 - 1.0
         xyzw[:, 3] = np.sqrt(np.maximum(0.0, 1.0 - (xyzw[:, :3] ** 2).sum(1)))
     else:
@@ -162,8 +164,27 @@ def _unpack_rotations(raw: np.ndarray, version: int) -> np.ndarray:
     return xyzw[:, [3, 0, 1, 2]]
 
 
+def spz_header(path: str | os.PathLike) -> tuple[int, int]:
+    """(numPoints, shDegree) of a version 1-3 ``.spz`` from its header (the first 16 bytes of the stream)."""
+    path = Path(path)
+    try:
+        with gzip.open(path) as f:
+            data = f.read(_HEADER.itemsize)
+    except OSError as e:  # also gzip.BadGzipFile: a v4 'NGSP' file or no .spz at all
+        raise SpzError(f"{path}: not a gzip'd .spz v1-v3 header ({e.strerror or e})") from None
+    except (EOFError, zlib.error) as e:
+        raise SpzError(f"{path}: corrupt gzip stream ({e})") from None
+    if len(data) < _HEADER.itemsize:
+        raise SpzError(f"{path}: header truncated ({len(data)} of {_HEADER.itemsize} bytes)")
+    h = np.frombuffer(data, _HEADER, 1)[0]
+    if int(h["magic"]) != MAGIC or int(h["version"]) not in READ_VERSIONS or int(h["sh_degree"]) > 3:
+        raise SpzError(f"{path}: header magic {int(h['magic']):#x}, version {int(h['version'])}, shDegree "
+                       f"{int(h['sh_degree'])}: not a .spz this reads (versions {READ_VERSIONS}, SH 0..3)")
+    return int(h["num_points"]), int(h["sh_degree"])
+
+
 def load_spz(path: str | os.PathLike) -> GaussianScene:
-    """Read a version 2 or 3 ``.spz`` into a ``GaussianScene``; ``SpzError`` naming the file and field."""
+    """Read a version 1, 2 or 3 ``.spz`` into a ``GaussianScene``; ``SpzError`` naming the file and field."""
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -190,8 +211,8 @@ def load_spz(path: str | os.PathLike) -> GaussianScene:
     if degree > 3:
         raise SpzError(f"{path}: header shDegree {degree}: SH degree 0..3 supported")
     k = (degree + 1) ** 2
-    sizes = {"positions": 9, "alphas": 1, "colours": 3, "scales": 3, "rotations": 4 if version >= 3 else 3,
-             "sh": 3 * (k - 1)}
+    sizes = {"positions": 9 if version > 1 else 6, "alphas": 1, "colours": 3, "scales": 3,
+             "rotations": 4 if version >= 3 else 3, "sh": 3 * (k - 1)}
     need = _HEADER.itemsize + n * sum(sizes.values())
     if len(data) < need:
         raise SpzError(f"{path}: body truncated: header numPoints {n} needs {need} bytes, the stream has "
@@ -200,13 +221,20 @@ def load_spz(path: str | os.PathLike) -> GaussianScene:
     for name, size in sizes.items():
         blocks[name] = np.frombuffer(data, np.uint8, n * size, offset).reshape(n, size)
         offset += n * size
-    p = blocks["positions"].reshape(n, 3, 3).astype(np.int32)
-    fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
-    fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+    if version == 1:
+        means = np.ascontiguousarray(blocks["positions"]).view("<f2").astype(np.float32)
+        if not np.isfinite(means).all():
+            raise SpzError(f"{path}: positions: {int((~np.isfinite(means)).any(1).sum())} float16 positions "
+                           "are inf or NaN")
+    else:
+        p = blocks["positions"].reshape(n, 3, 3).astype(np.int32)
+        fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
+        fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+        means = (fixed / 2.0 ** int(h["fractional_bits"])).astype(np.float32)
     sh = np.empty((n, k, 3), np.float32)
     sh[:, 0] = (blocks["colours"].astype(np.float64) / 255.0 - 0.5) / COLOR_SCALE
     sh[:, 1:] = ((blocks["sh"].astype(np.float64) - 128.0) / 128.0).reshape(n, k - 1, 3)
-    scene = GaussianScene((fixed / 2.0 ** int(h["fractional_bits"])).astype(np.float32),
+    scene = GaussianScene(means,
                           _unpack_rotations(blocks["rotations"], version).astype(np.float32),
                           np.exp(blocks["scales"].astype(np.float64) / 16.0 - 10.0).astype(np.float32),
                           (blocks["alphas"][:, 0] / 255.0).astype(np.float32), sh, degree)

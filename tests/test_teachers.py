@@ -222,7 +222,7 @@ MALFORMED = {
                  "'opencv' but scene.json says 'opengl'"),
     "bad_psnr": (lambda f: write_json(f / "scene.json", {"psnr": "high"}), "scene.json: psnr: expected a finite"),
     "two_plys": (lambda f: ((f / "point_cloud.ply").rename(f / "a.ply"), write_ply(f / "b.ply")),
-                 "*.ply: 2 .ply files and none named point_cloud.ply"),
+                 "scene file: 2 scene files (a.ply, b.ply) and none named point_cloud.ply"),
 }
 
 
@@ -246,7 +246,7 @@ def test_malformed_teachers_are_rejected_with_reasons(tmp_path):
     assert sorted(t.scene_id for t in found.teachers) == ["good_plain", "good_scenesplat"]
     reasons = {r.scene_id: r.reason for r in found.rejected}
     expected = {name: words for name, (_, words) in MALFORMED.items()}
-    expected.update({"empty": "layout: no teacher .ply", "ss_no_psnr_key": "val_step30000.json: psnr: missing",
+    expected.update({"empty": "layout: no teacher scene", "ss_no_psnr_key": "val_step30000.json: psnr: missing",
                      "inria_no_fx": "cameras.json: [1].fx: missing",
                      "inria_bad_results": "results.json: ours_30000.PSNR: missing"})
     assert set(reasons) == set(expected)
