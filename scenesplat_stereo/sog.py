@@ -56,7 +56,7 @@ SH_COEFFS = (0, 3, 8, 15)
 #: Version 1's centroid image widths, by bands.
 V1_CENTROID_WIDTHS = {192: 1, 512: 2, 960: 3}
 #: Largest SH palette ``save_sog`` builds (splat-transform goes to 65536; k-means here runs on the CPU or GPU).
-SH_PALETTE_MAX = 8192
+SH_PALETTE_MAX = 4096
 #: Opacity clamp of splat-transform's reader (its logit is clamped to logit(1e-6)).
 OPACITY_EPS = 1e-6
 WEBP_MAX_SIDE = 16383
@@ -283,40 +283,58 @@ def load_sog(path: str | os.PathLike) -> GaussianScene:
 
 
 # ----------------------------------------------------------------------------------------------- writing
-def _codebook(values: np.ndarray, k: int = 256, iterations: int = 12) -> tuple[np.ndarray, np.ndarray]:
-    """1-D k-means (Lloyd, quantile start) of ``values``: (codebook [k] ascending, uint8 labels like values)."""
-    flat = np.sort(values.reshape(-1).astype(np.float64))
-    centres = np.unique(np.quantile(flat, (np.arange(k) + 0.5) / k))
-    sums = np.concatenate([[0.0], np.cumsum(flat)])
+def _codebook(values: np.ndarray, k: int = 256, alpha: float = 0.2, bins: int = 1 << 14,
+              iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """A 1-D codebook of ``values``: (k ascending float32 entries, uint8 nearest-entry labels shaped like values).
+
+    Density-weighted k-means, as splat-transform's ``quantize1d`` (which takes alpha 0.5 and an exact dynamic
+    programme): the values are binned into a ``bins``-bin histogram over their range, each bin weighs
+    count^alpha (so sparse tails get entries that plain k-means would give the dense middle), and Lloyd's
+    iterations start from weighted quantiles. alpha 0.2 gave the smallest RMS and largest errors of 0.5, 0.3,
+    0.2, 0.1 on the guitar's log-scales and colours."""
+    flat = values.reshape(-1).astype(np.float64)
+    lo, hi = float(flat.min()), float(flat.max())
+    if hi - lo < 1e-20:
+        return np.full(k, lo, np.float32), np.zeros(values.shape, np.uint8)
+    counts, edges = np.histogram(flat, bins, (lo, hi))
+    x = 0.5 * (edges[1:] + edges[:-1])[counts > 0]
+    w = counts[counts > 0].astype(np.float64) ** alpha
+    cw, cwx = np.concatenate([[0.0], np.cumsum(w)]), np.concatenate([[0.0], np.cumsum(w * x)])
+    centres = np.unique(np.interp((np.arange(k) + 0.5) / k * cw[-1], cw[1:], x))
     for _ in range(iterations):
-        cut = np.searchsorted(flat, 0.5 * (centres[1:] + centres[:-1]))
-        start, end = np.concatenate([[0], cut]), np.concatenate([cut, [len(flat)]])
-        filled = end > start
-        centres = np.where(filled, (sums[end] - sums[start]) / np.maximum(end - start, 1), centres)
+        cut = np.searchsorted(x, 0.5 * (centres[1:] + centres[:-1]))
+        start, end = np.concatenate([[0], cut]), np.concatenate([cut, [len(x)]])
+        weight = cw[end] - cw[start]
+        centres = np.unique(np.where(weight > 0, (cwx[end] - cwx[start]) / np.where(weight > 0, weight, 1), centres))
     centres = np.concatenate([centres, np.full(k - len(centres), centres[-1])]).astype(np.float32)
     labels = np.searchsorted(0.5 * (centres[1:].astype(np.float64) + centres[:-1]), values)
     return centres, np.minimum(labels, k - 1).astype(np.uint8)
 
 
-def _kmeans(x: np.ndarray, k: int, iterations: int = 10) -> tuple[np.ndarray, np.ndarray]:
-    """k-means of rows x [N, D] (torch; CUDA when there): (centroids [k, D] float32, labels [N] int64)."""
+def _kmeans(x: np.ndarray, k: int, iterations: int = 10, fit_rows: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """k-means of rows x [N, D] (torch; CUDA when there): (centroids [k, D] float32, labels [N] int64 of every
+    row's nearest centroid). Lloyd's iterations run on a random ``fit_rows`` k of the rows (all when fewer),
+    starting from k of them."""
     import torch
 
     dev = "cuda" if torch.cuda.is_available() else "cpu"
     X = torch.from_numpy(np.ascontiguousarray(x, np.float32)).to(dev)
-    gen = torch.Generator().manual_seed(0)
-    C = X[torch.randperm(len(X), generator=gen)[:k].to(dev)].clone()
+    rows = torch.randperm(len(X), generator=torch.Generator().manual_seed(0)).to(dev)
+    fit = X[rows[:fit_rows * k]]
+    C = fit[:k].clone()
 
-    def assign() -> torch.Tensor:
+    def assign(points: torch.Tensor) -> torch.Tensor:
         c2 = (C * C).sum(1)
-        return torch.cat([(c2[None] - 2.0 * X[i:i + 8192] @ C.T).argmin(1) for i in range(0, len(X), 8192)])
+        step = max(1, (1 << 22) // k)  # rows a block: a [step, k] distance block of 16 MiB
+        return torch.cat([(c2[None] - 2.0 * points[i:i + step] @ C.T).argmin(1)
+                          for i in range(0, len(points), step)])
 
     for _ in range(iterations):
-        labels = assign()
-        count = torch.zeros(k, device=dev).index_add_(0, labels, torch.ones(len(X), device=dev))
-        total = torch.zeros_like(C).index_add_(0, labels, X)
+        labels = assign(fit)
+        count = torch.zeros(k, device=dev).index_add_(0, labels, torch.ones(len(fit), device=dev))
+        total = torch.zeros_like(C).index_add_(0, labels, fit)
         C = torch.where(count[:, None] > 0, total / count.clamp(min=1)[:, None], C)
-    return C.cpu().numpy(), assign().cpu().numpy()
+    return C.cpu().numpy(), assign(X).cpu().numpy()
 
 
 def _pack_quats(quats: np.ndarray) -> np.ndarray:
