@@ -13,18 +13,22 @@ import pytest
 from ply_helpers import EPS32, random_scene
 
 from scenesplat_stereo.gaussians import GaussianScene
+from scenesplat_stereo.scene_files import scene_info
 from scenesplat_stereo.spz import SpzError, encode_spz, load_spz, save_spz
 
 MAGIC = 0x5053474E
 
 
 def pack_file(path: Path, version: int, degree: int, fbits: int, fields: dict, gzip_it: bool = True) -> Path:
-    """A .spz from raw byte fields (positions int [N,3], alphas, colours [N,3], scales [N,3], rotation bytes
-    [N,3|4], sh bytes [N,(K-1)*3]); the header as the README states it."""
+    """A .spz from raw byte fields (positions int [N,3] (version 1: float16 [N, 3]), alphas, colours [N,3],
+    scales [N,3], rotation bytes [N,3|4], sh bytes [N,(K-1)*3]); the header as the README states it."""
     n = len(fields["alphas"])
     header = np.array([MAGIC, version, n], "<u4").tobytes() + bytes([degree, fbits, 0, 0])
-    pos = np.asarray(fields["positions"], dtype=np.int64) & 0xFFFFFF
-    pos_bytes = np.stack([(pos >> s) & 0xFF for s in (0, 8, 16)], -1).astype(np.uint8)  # [N,3,3] little-endian
+    if version == 1:
+        pos_bytes = np.asarray(fields["positions"], "<f2").view(np.uint8)
+    else:
+        pos = np.asarray(fields["positions"], dtype=np.int64) & 0xFFFFFF
+        pos_bytes = np.stack([(pos >> s) & 0xFF for s in (0, 8, 16)], -1).astype(np.uint8)  # [N,3,3] little-endian
     body = b"".join(np.ascontiguousarray(x, dtype=np.uint8).tobytes() for x in (
         pos_bytes, fields["alphas"], fields["colours"], fields["scales"], fields["rotations"], fields["sh"]))
     data = header + body
@@ -37,11 +41,11 @@ def reference_decode(version: int, degree: int, fbits: int, f: dict) -> dict:
     k = (degree + 1) ** 2
     out = {key: [] for key in ("means", "quats", "scales", "opacities", "sh")}
     for i in range(len(f["alphas"])):
-        out["means"].append([int(v) / 2**fbits for v in f["positions"][i]])
+        out["means"].append([float(v) if version == 1 else int(v) / 2**fbits for v in f["positions"][i]])
         out["scales"].append([math.exp(int(s) / 16 - 10) for s in f["scales"][i]])
         out["opacities"].append(int(f["alphas"][i]) / 255)
         r = [int(b) for b in f["rotations"][i]]
-        if version == 2:
+        if version < 3:
             xyz = [b / 127.5 - 1 for b in r]
             w = math.sqrt(max(0.0, 1 - sum(v * v for v in xyz)))
             q = [w, *xyz]
@@ -72,20 +76,23 @@ def random_fields(rng: np.random.Generator, n: int, version: int, degree: int) -
     k = (degree + 1) ** 2
     byte = lambda *shape: rng.integers(0, 256, shape).astype(np.uint8)  # noqa: E731
     rot = byte(n, 4 if version == 3 else 3)
-    if version == 2:  # keep |xyz| <= 1 mostly, as a writer would
+    if version < 3:  # keep |xyz| <= 1 mostly, as a writer would
         rot = (np.clip(rng.normal(0, 0.4, (n, 3)), -1, 1) * 127.5 + 127.5).astype(np.uint8)
-    return {"positions": rng.integers(-(1 << 23), 1 << 23, (n, 3)), "alphas": byte(n), "colours": byte(n, 3),
+    positions = rng.normal(0, 50, (n, 3)).astype(np.float16) if version == 1 else \
+        rng.integers(-(1 << 23), 1 << 23, (n, 3))
+    return {"positions": positions, "alphas": byte(n), "colours": byte(n, 3),
             "scales": byte(n, 3), "rotations": rot, "sh": byte(n, 3 * (k - 1))}
 
 
-@pytest.mark.parametrize("version,degree", [(3, 0), (3, 1), (3, 2), (3, 3), (2, 1)])
+@pytest.mark.parametrize("version,degree", [(3, 0), (3, 1), (3, 2), (3, 3), (2, 1), (1, 0), (1, 2)])
 def test_reader_matches_the_format_description(tmp_path: Path, version: int, degree: int) -> None:
     rng = np.random.default_rng(10 * version + degree)
     fields = random_fields(rng, 200, version, degree)
-    fields["positions"][:3] = [[-(1 << 23), 0, (1 << 23) - 1], [-1, 1, 0], [5, -5, 1 << 22]]  # sign extension
+    if version > 1:
+        fields["positions"][:3] = [[-(1 << 23), 0, (1 << 23) - 1], [-1, 1, 0], [5, -5, 1 << 22]]  # sign extension
     path = pack_file(tmp_path / "r.spz", version, degree, 10, fields)
     scene, ref = load_spz(path), reference_decode(version, degree, 10, fields)
-    assert scene.sh_degree == degree and len(scene) == 200
+    assert scene.sh_degree == degree and len(scene) == 200 and scene_info(path) == (200, degree)
     np.testing.assert_array_equal(scene.means, ref["means"].astype(np.float32))  # exact in float32
     np.testing.assert_allclose(scene.scales, ref["scales"], rtol=2 * EPS32)
     np.testing.assert_allclose(scene.opacities, ref["opacities"], atol=EPS32)
@@ -150,6 +157,7 @@ def test_empty_scene_round_trips(tmp_path: Path) -> None:
     ("version 7", "header version 7 is not supported"),
     ("degree 4", "header shDegree 4"),
     ("truncated body", "body truncated: header numPoints 10 needs"),
+    ("version 1 inf", "positions: 1 float16 positions are inf or NaN"),
 ])
 def test_bad_files(tmp_path: Path, case: str, message: str) -> None:
     fields = random_fields(np.random.default_rng(2), 10, 3, 1)
@@ -162,7 +170,10 @@ def test_bad_files(tmp_path: Path, case: str, message: str) -> None:
              "magic": lambda: gzip.compress(np.array([0x12345678], "<u4").tobytes() + raw[4:]),
              "version 7": lambda: gzip.compress(raw[:4] + np.array([7], "<u4").tobytes() + raw[8:]),
              "degree 4": lambda: gzip.compress(raw[:12] + bytes([4]) + raw[13:]),
-             "truncated body": lambda: gzip.compress(raw[:-5])}
+             "truncated body": lambda: gzip.compress(raw[:-5]),
+             "version 1 inf": lambda: pack_file(tmp_path / "v1.spz", 1, 0, 0, v1).read_bytes()}
+    v1 = random_fields(np.random.default_rng(2), 10, 1, 0)
+    v1["positions"][3, 1] = np.inf
     path.write_bytes(edits[case]())
     with pytest.raises(SpzError) as err:
         load_spz(path)
