@@ -22,7 +22,7 @@ def _add_render(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser(
         "render",
-        help="render a teacher .ply to PNG images along an orbit or a trajectory",
+        help="render a teacher (folder or scene file) to PNG images along an orbit or a trajectory",
         description=render_cmd.__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -118,7 +118,8 @@ class SogSource:
         try:
             if path.name.endswith(".json") or not zipfile.is_zipfile(path):
                 if path.suffix == ".sog":
-                    raise SogError(f"{path}: not a zip file (a .sog bundles meta.json and WebP images in a zip)")
+                    raise SogError(f"{path}: not a zip file, or a truncated one (a .sog bundles meta.json and WebP "
+                                   "images in a zip)")
                 raw, self.name = path.read_bytes(), str(path)
             else:
                 self._zip = zipfile.ZipFile(path)
