@@ -88,6 +88,7 @@ def _add_demo_teachers(sub: argparse._SubParsersAction) -> None:
 def _add_bench(sub: argparse._SubParsersAction) -> None:
     from scenesplat_stereo.bench import build as bench_build
     from scenesplat_stereo.bench import encode as bench_encode
+    from scenesplat_stereo.bench import formats as bench_formats
     from scenesplat_stereo.bench import render as bench_render
 
     p = sub.add_parser("bench", help="benchmarks: what accuracy costs in time (markdown tables)")
@@ -105,6 +106,11 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
                            description=bench_encode.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     bench_encode.add_arguments(e)
     e.set_defaults(func=bench_encode.run)
+    f = benches.add_parser("formats", help="scene file formats: real captures read, every writer's size, time and "
+                           "error", description=bench_formats.__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+    bench_formats.add_arguments(f)
+    f.set_defaults(func=bench_formats.run)
 
 
 # Each entry adds one sub-command. Kept as a list so that each room registers its own command here
