@@ -18,7 +18,7 @@ MAINS = {"scenesplat-stereo": "scenesplat_stereo.cli", "sgmodel": "sgmodel.cli",
          "irs-pose-recovery": "pipelines.irs_pose_recovery", "irs-targets": "pipelines.irs_targets"}
 
 COMMANDS = [
-    ("scenesplat-stereo render", "render a teacher (folder or .ply) to PNG images along its trajectory or an orbit"),
+    ("scenesplat-stereo render", "render a teacher (folder or scene file of any format) to PNG images along its trajectory or an orbit"),
     ("scenesplat-stereo build", "teacher scenes to SceneSplat-Stereo WebDataset shards (the paper's protocol)"),
     ("scenesplat-stereo import stereonvs", "the StereoNVS-Real benchmark (LLFF poses, left/right images) to test shards"),
     ("scenesplat-stereo inspect", "Table 6 counts, a contact sheet and integrity checks of a built dataset"),
@@ -26,6 +26,7 @@ COMMANDS = [
     ("scenesplat-stereo bench render", "rasteriser speed/accuracy knobs against gsplat and the float64 reference"),
     ("scenesplat-stereo bench build", "dataset build throughput, split into render/encode/write, projected to the paper's size"),
     ("scenesplat-stereo bench encode", "host JPEG/PNG/EXR encoding without a GPU: per-image cost, encoder threads against processes"),
+    ("scenesplat-stereo bench formats", "scene file formats: the real captures read, every writer's size, time and error"),
     ("sgmodel train", "train the model on shards (AdamW/OneCycle, validation, best checkpoint, resume, torchrun)"),
     ("sgmodel eval", "PSNR / SSIM / LPIPS of a checkpoint or a baseline on a split, with a report folder"),
     ("sgmodel predict", "a stereo pair or video (rectified, or raw with --rig) to 3DGS scenes, viewer files, views"),

@@ -9,6 +9,8 @@
    rotation (largest |component| difference of the unit quaternions, up to sign), log-scale, opacity, SH DC
    (f_dc) and the higher SH coefficients, each as the largest and the root mean square. The compressed
    ``.ply`` and SOG writers reorder the Gaussians along a Morton curve; they are compared in that order.
+   With node and splat-transform installed (``cd scripts/viewer && npm ci``), SH-0 scenes also get a row for
+   splat-transform 3.7.0's own SOG writer (``splat-transform -w SCENE.ply OUT.sog``; its SH palette needs a GPU).
 Prints markdown tables and the machine; ``--out`` also writes them to a file.
 """
 
@@ -17,7 +19,9 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import shutil
 import statistics
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -31,13 +35,16 @@ from scenesplat_stereo.scene_files import FORMATS, load_scene, save_scene, scene
 from scenesplat_stereo.text import whole_number
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+SPLAT_TRANSFORM = (Path(__file__).resolve().parents[2] / "scripts" / "viewer" / "node_modules" / "@playcanvas"
+                   / "splat-transform" / "bin" / "cli.mjs")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--captures", type=Path, default=SHARED / "captures", help="folder of capture folders "
-                   "(default %(default)s)")
+                   "(default ../shared/data/captures beside the checkout)")
     p.add_argument("--streamed", type=Path, default=Path(os.environ.get("STREAMED_SCENES", SHARED / "streamed")),
-                   help="folder of streamed SOG folders (default $STREAMED_SCENES or %(default)s; skipped when absent)")
+                   help="folder of streamed SOG folders (default $STREAMED_SCENES, else ../shared/data/streamed beside the "
+                   "checkout; skipped when absent)")
     p.add_argument("--scene", type=Path, action="append", default=None,
                    help="a scene to write in every format (repeatable; default the guitar .ply and skull.sog)")
     p.add_argument("--repeats", type=whole_number("--repeats"), default=3, help="reads timed per file (median)")
@@ -85,15 +92,21 @@ def writer_table(scenes: list[Path], repeats: int) -> str:
         scene = load_scene(path)
         name = f"{path.name} ({len(scene):,}, SH {scene.sh_degree})"
         sizes = {}
+        theirs = SPLAT_TRANSFORM.is_file() and shutil.which("node") and scene.sh_degree == 0
         with tempfile.TemporaryDirectory(prefix="bench-formats-") as tmp:
-            for fmt, spec in FORMATS.items():
-                out = Path(tmp) / f"scene{spec.suffix}"
+            for fmt, spec in [*FORMATS.items(), *([("sog (splat-transform)", FORMATS["sog"])] if theirs else [])]:
+                out = Path(tmp) / f"{fmt.split()[0]}-{len(sizes)}{spec.suffix}"
                 t0 = time.perf_counter()
-                save_scene(scene, out, fmt, durable=False)
+                if fmt in FORMATS:
+                    save_scene(scene, out, fmt, durable=False)
+                else:
+                    ply = save_scene(scene, Path(tmp) / "input.ply", "ply", durable=False)
+                    subprocess.run(["node", str(SPLAT_TRANSFORM), "-w", str(ply), str(out)], check=True,
+                                   capture_output=True)
                 write_s = time.perf_counter() - t0
                 read_s, back = _median_time(lambda: load_scene(out), repeats)
                 sizes[fmt] = out.stat().st_size
-                ref = scene.subset(morton_order(scene.means)) if fmt in ("compressed-ply", "sog") else scene
+                ref = scene.subset(morton_order(scene.means)) if fmt.startswith(("compressed-ply", "sog")) else scene
                 err = scene_errors(ref, back)
                 rows.append(f"| {name} | {fmt} | {sizes[fmt] / len(scene):.1f} | {sizes['ply'] / sizes[fmt]:.1f}x | "
                             f"{write_s:.2f} | {read_s:.2f} | "
