@@ -4,8 +4,12 @@ step; every malformed file. (tests/test_scene_files.py checks both against Niant
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import gzip
 import math
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -150,7 +154,7 @@ def test_empty_scene_round_trips(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("case,message", [
     ("not gzip", "not a .spz file"),
-    ("version 4", "version 4 (zstd streams) is not read here"),
+    ("version 4", "header numPoints 0, shDegree 0: need >= 1 point"),
     ("corrupt gzip", "corrupt gzip stream"),
     ("short header", "header truncated"),
     ("magic", "header magic is 0x12345678"),
@@ -183,3 +187,91 @@ def test_bad_files(tmp_path: Path, case: str, message: str) -> None:
 def test_missing_file_names_it(tmp_path: Path) -> None:
     with pytest.raises(SpzError, match="nope.spz: cannot open"):
         load_spz(tmp_path / "nope.spz")
+
+
+def zstd_compress(data: bytes) -> bytes:
+    """One zstd frame of ``data`` through the system's libzstd (the test's own binding)."""
+    lib = ctypes.CDLL(ctypes.util.find_library("zstd"))
+    lib.ZSTD_compressBound.restype, lib.ZSTD_compressBound.argtypes = ctypes.c_size_t, [ctypes.c_size_t]
+    lib.ZSTD_compress.restype = ctypes.c_size_t
+    lib.ZSTD_compress.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.c_char_p, ctypes.c_size_t, ctypes.c_int]
+    out = ctypes.create_string_buffer(lib.ZSTD_compressBound(len(data)))
+    n = lib.ZSTD_compress(out, len(out), data, len(data), 3)
+    return out.raw[:n]
+
+
+def pack_v4(path: Path, degree: int, fbits: int, fields: dict, extension: bytes = b"") -> Path:
+    """A version-4 .spz as load-spz.cc lays it out: 32-byte header, extension bytes, stream table, zstd frames."""
+    n = len(fields["alphas"])
+    pos = np.asarray(fields["positions"], dtype=np.int64) & 0xFFFFFF
+    blocks = [np.stack([(pos >> s) & 0xFF for s in (0, 8, 16)], -1).astype(np.uint8), fields["alphas"],
+              fields["colours"], fields["scales"], fields["rotations"], fields["sh"]]
+    raw = [np.ascontiguousarray(b, dtype=np.uint8).tobytes() for b in blocks]
+    raw = [b for b in raw if b]
+    frames = [zstd_compress(b) for b in raw]
+    toc = 32 + len(extension)
+    header = np.array([MAGIC, 4, n], "<u4").tobytes() + bytes([degree, fbits, 2 if extension else 0, len(raw)]) \
+        + np.array([toc], "<u4").tobytes() + bytes(12)
+    table = b"".join(np.array([len(f), len(b)], "<u8").tobytes() for f, b in zip(frames, raw))
+    path.write_bytes(header + extension + table + b"".join(frames))
+    return path
+
+
+needs_zstd = pytest.mark.skipif(ctypes.util.find_library("zstd") is None, reason="needs the system's libzstd")
+
+
+@needs_zstd
+@pytest.mark.parametrize("degree,extension", [(0, b""), (2, b"\x07extension bytes")])
+def test_version_4_matches_the_format_description(tmp_path: Path, degree: int, extension: bytes) -> None:
+    fields = random_fields(np.random.default_rng(40 + degree), 120, 3, degree)
+    path = pack_v4(tmp_path / "v4.spz", degree, 11, fields, extension)
+    scene, ref = load_spz(path), reference_decode(3, degree, 11, fields)
+    assert (len(scene), scene.sh_degree) == (120, degree) == scene_info(path)
+    np.testing.assert_array_equal(scene.means, ref["means"].astype(np.float32))
+    np.testing.assert_allclose(scene.scales, ref["scales"], rtol=2 * EPS32)
+    np.testing.assert_allclose(scene.sh, ref["sh"], atol=4 * EPS32 * np.abs(ref["sh"]).max())
+    np.testing.assert_allclose(scene.quats, ref["quats"], atol=4 * EPS32)
+
+
+@needs_zstd
+@pytest.mark.parametrize("case,message", [
+    ("truncated", "stream table: compressed sizes add up to"),
+    ("corrupt frame", "stream alphas: corrupt zstd data"),
+    ("stream count", "header numStreams 5 / tocByteOffset 32: expected 6 streams"),
+])
+def test_bad_version_4_files(tmp_path: Path, case: str, message: str) -> None:
+    path = pack_v4(tmp_path / "bad.spz", 1, 12, random_fields(np.random.default_rng(5), 30, 3, 1))
+    raw = bytearray(path.read_bytes())
+    table = np.frombuffer(bytes(raw[32:32 + 6 * 16]), "<u8").reshape(6, 2)
+    if case == "truncated":
+        raw = raw[:-3]
+    elif case == "corrupt frame":
+        start = 32 + 6 * 16 + int(table[0, 0])
+        raw[start:start + 4] = b"\0\0\0\0"  # the second frame's magic number
+    else:
+        raw[15] = 5
+    path.write_bytes(bytes(raw))
+    with pytest.raises(SpzError) as err:
+        load_spz(path)
+    assert str(path) in str(err.value) and message in str(err.value), str(err.value)
+
+
+SPLAT_TRANSFORM = (Path(__file__).resolve().parents[1] / "scripts" / "viewer" / "node_modules" / "@playcanvas"
+                   / "splat-transform" / "bin" / "cli.mjs")
+
+
+@needs_zstd
+@pytest.mark.skipif(not SPLAT_TRANSFORM.is_file() or shutil.which("node") is None,
+                    reason="needs node and `npm ci` in scripts/viewer (splat-transform 3.7.0)")
+def test_splat_transforms_version_4_reads_as_its_version_3(tmp_path: Path) -> None:
+    """splat-transform writes .spz through Niantic's library (WebAssembly); version 4 is its default."""
+    from scenesplat_stereo.gaussians import save_ply
+
+    save_ply(random_scene(np.random.default_rng(7), 300, 3), tmp_path / "s.ply")
+    for v in ("3", "4"):
+        subprocess.run(["node", str(SPLAT_TRANSFORM), "-w", "--spz-version", v, str(tmp_path / "s.ply"),
+                        str(tmp_path / f"v{v}.spz")], check=True, capture_output=True)
+    assert (tmp_path / "v4.spz").read_bytes()[:4] == b"NGSP"
+    a, b = load_spz(tmp_path / "v3.spz"), load_spz(tmp_path / "v4.spz")
+    for name in ("means", "quats", "scales", "opacities", "sh"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
