@@ -37,7 +37,8 @@ def sog_zip(tmp: Path, edit=None, drop: str | None = None, replace: dict | None 
     return buf.getvalue()
 
 
-def splat(rng=None, edit=None) -> bytes:
+def splat(edit=None) -> bytes:
+    """Four good .splat records, edited by ``edit(records)``."""
     rec = np.zeros(4, np.dtype([("m", "<f4", 3), ("s", "<f4", 3), ("c", "u1", 4), ("q", "u1", 4)]))
     rec["s"], rec["c"], rec["q"] = 0.1, 200, [255, 128, 128, 128]
     if edit:
@@ -79,7 +80,8 @@ SPLAT_CASES = [
     ("empty", lambda t: b"", "size 0 bytes is not a positive multiple"),
     ("nan_position", lambda t: splat(edit=lambda r: r["m"].__setitem__((2, 1), np.nan)),
      "means: 1 of 4 Gaussians decode to non-finite values (the first is Gaussian 2)"),
-    ("zero_scale", lambda t: splat(edit=lambda r: r["s"].__setitem__((1, 0), 0.0)), "scales: 1 Gaussians have a scale <= 0"),
+    ("zero_scale", lambda t: splat(edit=lambda r: r["s"].__setitem__((1, 0), 0.0)),
+     "scales: 1 Gaussians have a scale <= 0"),
     ("inf_scale", lambda t: splat(edit=lambda r: r["s"].__setitem__((3, 2), np.inf)), "log_scales: 1 of 4 Gaussians"),
 ]
 CASES = [(f"sog_{n}", "scene.sog", w, m) for n, w, m in SOG_CASES] + \

@@ -12,7 +12,7 @@ import pytest
 from test_sog import CAPTURES, DATA, assert_matches, check_against_sample
 
 from scenesplat_stereo.scene_files import load_scene, scene_info
-from scenesplat_stereo.splat import SplatError, load_splat
+from scenesplat_stereo.splat import load_splat
 
 
 def records(rng: np.random.Generator, n: int) -> bytes:

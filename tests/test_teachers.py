@@ -298,3 +298,28 @@ def test_real_guitar_teacher(shared_data):
         warnings.simplefilter("error")
         (t,) = discover_teachers(root, OrbitSpec(radius=6.0, n_frames=4, width=32, height=24)).teachers
     assert t.ply_path.name == "point_cloud.ply" and t.sh_degree == 0 and t.layout == "plain"
+
+
+def test_a_folder_holding_one_scene_file_of_any_format_is_a_plain_teacher(tmp_path):
+    """.compressed.ply, .spz, .sog, .splat, an unbundled SOG (meta.json + WebP) and a streamed SOG folder."""
+    from ply_helpers import random_scene
+    from sog_helpers import make_sog
+    from test_lod import make_streamed
+
+    from scenesplat_stereo.scene_files import FORMATS, save_scene
+
+    root = tmp_path / "teachers"
+    scene = random_scene(np.random.default_rng(0), 40, 1)
+    for name in ("compressed-ply", "spz", "sog"):
+        save_scene(scene, root / name / f"scene{FORMATS[name].suffix}", name)
+    (root / "splat").mkdir()
+    (root / "splat" / "scene.splat").write_bytes(np.zeros(3, np.dtype([("m", "<f4", 3), ("s", "<f4", 3),
+                                                                       ("c", "u1", 8)])).tobytes())
+    make_sog(root / "sog_folder", 20, 2)
+    make_streamed(root / "streamed")
+    found = discover_teachers(root, OrbitSpec(radius=2.0, n_frames=2))
+    assert not found.rejected, found.rejected
+    got = {t.scene_id: (t.layout, t.sh_degree, t.ply_path.name) for t in found.teachers}
+    assert got == {"compressed-ply": ("plain", 1, "scene.compressed.ply"), "spz": ("plain", 1, "scene.spz"),
+                   "sog": ("plain", 1, "scene.sog"), "splat": ("plain", 0, "scene.splat"),
+                   "sog_folder": ("plain", 2, "meta.json"), "streamed": ("plain", 1, "lod-meta.json")}

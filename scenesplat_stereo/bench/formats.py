@@ -61,12 +61,14 @@ def _median_time(fn, repeats: int) -> tuple[float, object]:
 
 
 def reader_table(captures: list[Path], repeats: int) -> str:
-    rows = ["| capture | format | Gaussians | SH | MB | bytes / Gaussian | read (s) |", "|---|---|---:|---:|---:|---:|---:|"]
+    rows = ["| capture | format | Gaussians | SH | MB | bytes / Gaussian | read (s) |",
+            "|---|---|---:|---:|---:|---:|---:|"]
     for path in captures:
         files = [path] if path.is_file() else [p for p in path.rglob("*") if p.is_file()]
         size = sum(p.stat().st_size for p in files)
         seconds, scene = _median_time(lambda: load_scene(path), repeats)
-        kind = {"lod": "streamed SOG, level 0", "sog": "SOG", "splat": ".splat"}.get(scene_kind(path), scene_kind(path))
+        kind = scene_kind(path)
+        kind = {"lod": "streamed SOG, level 0", "sog": "SOG", "splat": ".splat"}.get(kind, kind)
         rows.append(f"| {path.parent.name if path.is_file() else path.name} | {kind} | {len(scene):,} | "
                     f"{scene.sh_degree} | {size / 1e6:.2f} | {size / len(scene):.1f} | {seconds:.2f} |")
     return "\n".join(rows)
@@ -87,7 +89,8 @@ def scene_errors(ref: GaussianScene, back: GaussianScene) -> dict[str, tuple[flo
 def writer_table(scenes: list[Path], repeats: int) -> str:
     fields = ("position", "rotation", "log-scale", "opacity", "f_dc", "higher SH")
     rows = ["| scene | format | bytes / Gaussian | vs .ply | write (s) | read (s) | "
-            + " | ".join(f"{f} max / RMS" for f in fields) + " |", "|---|---|---:|---:|---:|---:|" + "---|" * len(fields)]
+            + " | ".join(f"{f} max / RMS" for f in fields) + " |",
+            "|---|---|---:|---:|---:|---:|" + "---|" * len(fields)]
     for path in scenes:
         scene = load_scene(path)
         name = f"{path.name} ({len(scene):,}, SH {scene.sh_degree})"
