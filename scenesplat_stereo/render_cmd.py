@@ -38,6 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    default="radius=6,frames=8,size=640x480",
                    help="orbit for a scene file or a teacher without trajectory: 'radius=R,frames=N,elevation=DEG,"
                         "size=WxH,fov=DEG,up=-y' (radius in world units; default %(default)s)")
+    p.add_argument("--lod", type=whole_number("--lod", 0), default=0,
+                   help="level of a streamed SOG scene (lod-meta.json) to render: 0, the finest, by default "
+                   "(other formats have one level)")
     p.add_argument("--max-frames", type=whole_number("--max-frames"), default=None, help="render only the first N frames")
     p.add_argument("--resolution", type=argtype(parse_size, "--resolution"), default=None, metavar="WxH",
                    help="render size in pixels (intrinsics rescaled)")
@@ -70,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out.exists() and not args.out.is_dir():
         raise ValueError(f"--out {args.out}: exists and is not a folder")
     teacher = _teacher_for(args.source, args.orbit)
-    scene = load_scene(teacher.ply_path)
+    scene = load_scene(teacher.ply_path, lod=args.lod)
     teacher = resolve_trajectory(teacher, scene.means)
     c2w, Ks, width, height = teacher.c2w, teacher.Ks, teacher.width, teacher.height
     if args.resolution:
