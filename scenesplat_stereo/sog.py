@@ -27,7 +27,7 @@ without alpha reads as A = 255).
   beyond the palette reads as zero SH, as in splat-transform.
 
 The writer (``save_sog``) writes version 2 as splat-transform does: Morton order, 16-bit positions, 256-entry
-codebooks for log-scales and colours (1-D k-means over all values), and for SH a k-means palette of
+codebooks for log-scales and colours (density-weighted 1-D k-means over all values), and for SH a k-means palette of
 min(64 Ki, 2^floor(log2(N / 1024)) Ki) centroids, capped at ``SH_PALETTE_MAX``, with a 256-entry codebook of
 their values. It rounds to nearest where splat-transform truncates. OpenImageIO writes lossless WebP exactly,
 except that libwebp drops the colour of texels whose alpha is 0: a Gaussian whose opacity byte is 0 (opacity
@@ -42,7 +42,6 @@ import math
 import os
 import tempfile
 import zipfile
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -362,8 +361,10 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
     order = morton_order(scene.means)
     s = scene.subset(order)
     files: dict[str, bytes] = {}
-    image: Callable[[str, np.ndarray], None] = lambda name, px: files.__setitem__(  # noqa: E731
-        name, write_webp(px, width, height))
+
+    def image(name: str, texels: np.ndarray) -> None:  # one texel a Gaussian, in Morton order
+        files[name] = write_webp(texels, width, height)
+
     t = np.sign(s.means.astype(np.float64)) * np.log1p(np.abs(s.means.astype(np.float64)))
     mins, maxs = t.min(0), t.max(0)
     q = np.rint(65535.0 * (t - mins) / np.where(maxs > mins, maxs - mins, 1.0)).astype(np.uint16)
