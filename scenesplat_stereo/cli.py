@@ -2,7 +2,7 @@
 its flags (``add_arguments``) and its work (``run``).
 
 Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``import multiview``, ``inspect``,
-``demo-teachers``, ``compose-teachers``, ``bench render``, ``bench build``, ``bench encode``, ``bench scenes``.
+``demo-teachers``, ``compose-teachers``, ``bench render``, ``bench build``, ``bench encode``, ``bench scenes``, ``bench formats``.
 Units and conventions are stated in each command's ``--help``. Exit status (``scenesplat_stereo.common.commandline``):
 0 done, 2 bad arguments or input (one line naming the flag or file), 130 interrupted, 1 internal error (traceback
 with ``--debug``); ``build`` exits 3 when a teacher failed, ``inspect`` 1 when a check failed.
@@ -16,7 +16,7 @@ import sys
 from scenesplat_stereo.common.commandline import Command, Parser, add_commands, run_command
 
 COMMANDS = (
-    Command("render", "render a teacher .ply to PNG images along an orbit or a trajectory",
+    Command("render", "render a teacher (folder or scene file) to PNG images along an orbit or a trajectory",
             "scenesplat_stereo.build.render_teacher"),
     Command("build", "render teacher scenes into SceneSplat-Stereo shards (stereo pairs + targets)",
             "scenesplat_stereo.build.run"),
@@ -40,7 +40,9 @@ COMMANDS = (
         Command("encode", "host JPEG/PNG encoding: per-image cost, threads against processes (no GPU)",
                 "scenesplat_stereo.bench.encode"),
         Command("scenes", "every scene writer's time and file size at N Gaussians, SH degree 0 and 2",
-                "scenesplat_stereo.bench.scenes"))),
+                "scenesplat_stereo.bench.scenes"),
+        Command("formats", "scene file formats: real captures read, every writer's size, time and error",
+                "scenesplat_stereo.bench.formats"))),
 )
 
 

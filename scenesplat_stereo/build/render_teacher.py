@@ -1,7 +1,9 @@
 """Render a teacher to PNG images: its own trajectory, or an orbit around its median.
 
 SOURCE is a teacher folder (any layout of SPEC section 3: its trajectory and intrinsics are used) or a
-single ``.ply`` file (rendered along ``--orbit``). Images are rendered antialiased with the teacher's own
+single scene file in any format ``scene_files.load_scene`` reads (``.ply``, ``.compressed.ply``, ``.spz``,
+``.sog``, a SOG's ``meta.json``, a streamed scene's ``lod-meta.json`` at its finest level, ``.splat``;
+rendered along ``--orbit``). Images are rendered antialiased with the teacher's own
 SH degree on a black background and written as 8-bit sRGB-agnostic PNGs ``OUT/frame_<k>.png`` (k in
 trajectory order), plus ``OUT/alpha_<k>.png`` with ``--alpha``. Cameras are OpenCV; orbit radius is in
 the scene's world units.
@@ -10,9 +12,7 @@ the scene's world units.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -24,18 +24,23 @@ from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.common.text import argtype, parse_size, whole_number
 from scenesplat_stereo.raster import check_device, rasterization, tile_size_for
 from scenesplat_stereo.scene.cameras import scale_intrinsics, viewmats_from_c2w
-from scenesplat_stereo.scene.gaussians import load_ply
-from scenesplat_stereo.scene.teachers import OrbitSpec, Teacher, discover_teachers, resolve_trajectory
+from scenesplat_stereo.scene.scene_files import load_scene
+from scenesplat_stereo.scene.teachers import (OrbitSpec, Teacher, discover_teachers, resolve_trajectory,
+                                              scene_file_teacher)
 from scenesplat_stereo.shards.encode import encode_png
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", type=Path, help="a teacher folder, or a .ply file (then --orbit is used)")
+    p.add_argument("source", type=Path, help="a teacher folder, or a scene file (.ply, .compressed.ply, .spz, .sog, "
+                   "meta.json, lod-meta.json, .splat; then --orbit is used)")
     p.add_argument("--out", type=Path, required=True, help="output folder for frame_<k>.png")
     p.add_argument("--orbit", type=argtype(OrbitSpec.parse, "--orbit"),
                    default="radius=6,frames=8,size=640x480",
-                   help="orbit for a .ply or a teacher without trajectory: 'radius=R,frames=N,elevation=DEG,"
+                   help="orbit for a scene file or a teacher without trajectory: 'radius=R,frames=N,elevation=DEG,"
                         "size=WxH,fov=DEG,up=-y' (radius in world units; default %(default)s)")
+    p.add_argument("--lod", type=whole_number("--lod", 0), default=0,
+                   help="level of a streamed SOG scene (lod-meta.json) to render: 0, the finest, by default "
+                   "(other formats have one level)")
     p.add_argument("--max-frames", type=whole_number("--max-frames"), default=None, help="render only the first N frames")
     p.add_argument("--resolution", type=argtype(parse_size, "--resolution"), default=None, metavar="WxH",
                    help="render size in pixels (intrinsics rescaled)")
@@ -51,16 +56,12 @@ def _teacher_for(source: Path, orbit: OrbitSpec) -> Teacher:
     """The teacher of SOURCE; ValueError naming SOURCE and the reason when it is none."""
     if not source.exists():
         raise ValueError(f"SOURCE {source}: no such file or folder")
-    if source.suffix == ".ply":
-        with tempfile.TemporaryDirectory() as tmp:  # a one-teacher root around the file
-            link = Path(tmp) / source.stem
-            link.mkdir()
-            os.symlink(source.resolve(), link / "point_cloud.ply")
-            found = discover_teachers(link, orbit)
-            for t in found.teachers:
-                t.ply_path = source.resolve()
-    else:
-        found = discover_teachers(source, orbit)
+    if source.is_file():
+        try:
+            return scene_file_teacher(source, orbit)
+        except ValueError as e:
+            raise ValueError(f"SOURCE {e}") from None
+    found = discover_teachers(source, orbit)
     if not found.teachers:
         reason = found.rejected[0].reason if found.rejected else "no teacher layout found"
         raise ValueError(f"SOURCE {source}: {reason}")
@@ -72,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out.exists() and not args.out.is_dir():
         raise ValueError(f"--out {args.out}: exists and is not a folder")
     teacher = _teacher_for(args.source, args.orbit)
-    scene = load_ply(teacher.ply_path)
+    scene = load_scene(teacher.ply_path, lod=args.lod)
     teacher = resolve_trajectory(teacher, scene.means)
     c2w, Ks, width, height = teacher.c2w, teacher.Ks, teacher.width, teacher.height
     if args.resolution:

@@ -35,7 +35,7 @@ from scenesplat_stereo.build.settings import SPLITS_OF_MODE, BuildSettings, add_
 from scenesplat_stereo.common.commandline import NotAvailable
 from scenesplat_stereo.common.files import read_json
 from scenesplat_stereo.common.text import format_table
-from scenesplat_stereo.scene.gaussians import load_ply
+from scenesplat_stereo.scene.scene_files import load_scene
 from scenesplat_stereo.scene.teachers import (Discovery, Rejection, Teacher, discover_teachers, resolve_trajectory,
                                               summary_table)
 from scenesplat_stereo.shards import webdataset as shards
@@ -118,7 +118,7 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
     sink = shards.PlannedShards(settings.out, job.split, job.chunks)
     encoder = jpeg = None
     try:
-        scene = load_ply(t.ply_path, strict=True)
+        scene = load_scene(t.ply_path, strict=True)
         teacher = resolve_trajectory(t, scene.means) if t.c2w is None else t
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the driver already reported the planning warnings

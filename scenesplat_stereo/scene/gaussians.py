@@ -246,3 +246,29 @@ def save_ply(scene: GaussianScene, path: str | os.PathLike, durable: bool = True
                      + [f"property float {p}" for p in names] + ["end_header\n"])
     atomic_write_bytes(path, [head.encode("ascii"), table], durable=durable)
     return path
+
+
+def decoded_scene(source: str | os.PathLike, error: type[ValueError], means: np.ndarray, quats: np.ndarray,
+                  log_scales: np.ndarray, opacities: np.ndarray, sh: np.ndarray, sh_degree: int) -> GaussianScene:
+    """The ``GaussianScene`` of arrays a quantised-format reader decoded (float64 or float32): means [N, 3],
+    quats [N, 4] wxyz (any non-zero norm; divided by it), log_scales [N, 3] natural logs, opacities [N] in
+    [0, 1], sh [N, K, 3]. A value that is not finite, a zero-norm quaternion or a scale that is 0 or inf in
+    float32 raises ``error`` naming ``source`` and the field: the formats that come here are written by tools
+    that never store such rows, so one is a broken file, not a row to repair (``load_ply`` repairs)."""
+    fields = {"means": means, "quats": quats, "log_scales": log_scales, "opacities": opacities, "sh": sh}
+    for name, a in fields.items():
+        bad = ~np.isfinite(a).reshape(len(a), -1).all(1)
+        if bad.any():
+            raise error(f"{source}: {name}: {int(bad.sum())} of {len(a)} Gaussians decode to non-finite values "
+                        f"(the first is Gaussian {int(np.argmax(bad))})")
+    norm = np.linalg.norm(quats.astype(np.float64), axis=1, keepdims=True)
+    if (norm == 0).any():
+        raise error(f"{source}: quats: {int((norm == 0).sum())} Gaussians have a zero-norm rotation")
+    with np.errstate(over="ignore", under="ignore"):
+        scales = np.exp(log_scales.astype(np.float64)).astype(np.float32)
+    bad = ((scales < np.finfo(np.float32).tiny) | ~np.isfinite(scales)).any(1)
+    if bad.any():
+        raise error(f"{source}: scales: {int(bad.sum())} Gaussians have a scale that is 0 or inf in float32 "
+                    f"(log-scale {float(log_scales[bad][0].min()):g}..{float(log_scales[bad][0].max()):g})")
+    return GaussianScene(means.astype(np.float32), (quats / norm).astype(np.float32), scales,
+                         np.clip(opacities, 0.0, 1.0).astype(np.float32), sh.astype(np.float32), sh_degree)

@@ -1,4 +1,4 @@
-"""Niantic's ``.spz`` (versions 2 and 3): reader and writer, pure numpy and the standard library's gzip.
+"""Niantic's ``.spz`` (versions 1 to 3): reader and writer, pure numpy and the standard library's gzip.
 
 Written from the format description of the public nianticlabs/spz repository (README "File Format",
 ``load-spz.cc``). A v2/v3 file is one gzip stream holding a 16-byte little-endian header
@@ -8,13 +8,15 @@ Written from the format description of the public nianticlabs/spz repository (RE
 
 followed by attribute blocks, each point after point:
 
-* positions: 3 x 24-bit signed fixed point, little-endian, value = integer / 2^fractionalBits;
+* positions: 3 x 24-bit signed fixed point, little-endian, value = integer / 2^fractionalBits (version 1:
+  3 x float16, which the reference still reads);
 * alphas: uint8 round(255 opacity);
 * colours: uint8 round(255 (0.15 f_dc + 0.5)) per channel (the SH DC coefficient, not SH_C0-scaled);
 * scales: uint8 round(16 (ln s + 10)) per axis;
 * rotations: v3 "smallest three": a little-endian uint32 whose bits 30-31 hold the index i of the largest
   |component| of the unit xyzw quaternion (made positive), then for each other component in xyzw order a
-  sign bit and 9 bits of round(511 |c| / sqrt(1/2)); v2: uint8 round(127.5 c + 127.5) for x, y, z with w >= 0;
+  sign bit and 9 bits of round(511 |c| / sqrt(1/2)); v1, v2: uint8 round(127.5 c + 127.5) for x, y, z with
+  w = sqrt(max(0, 1 - x^2 - y^2 - z^2)) >= 0;
 * SH (degree > 0): for each coefficient 1..K-1, the three colours (colour fastest), int8-like uint8
   round(128 f) + 128, quantised to buckets of 8 (degree 1, 5 bits) or 16 (degree 2 and 3, 4 bits) as the
   reference writer does; read back as (q - 128) / 128.
@@ -25,16 +27,25 @@ metres in position (12 fractional bits, or fewer when the scene is too large for
 (range [-10, 5.94]), 1/(2 0.15 255) in f_dc (|f_dc| <= 3.33), 1/510 in opacity, and in SH (range [-1, 1))
 half a step of 1/128 plus half a bucket: 4.5/128 (degree 1) or 8.5/128 (degrees 2 and 3).
 
+Version 4 (the reference's newest, splat-transform's default) drops gzip: a 32-byte header (magic, version,
+numPoints, shDegree, fractionalBits, flags, uint8 numStreams, uint32 tocByteOffset, 12 reserved bytes), optional
+extensions up to tocByteOffset (flag 0x2; skipped, as the reference does without its extension support), a
+table of numStreams (uint64 compressed size, uint64 uncompressed size), then one zstd frame per non-empty
+block in the order above (positions, alphas, colours, scales, rotations, SH), the blocks as in version 3.
+zstd is read through the system's libzstd (``ctypes``); without it version 4 is refused naming the converter.
+
 Coordinates are stored as they are, without an axis change: that is what Niantic's own ``ply_to_spz``
 (``CoordinateSystem::UNSPECIFIED``) and PlayCanvas' splat-transform write and read, so a scene keeps the
 frame of its ``.ply`` (the README's default RUB applies to callers that declare a coordinate system).
-Version 4 (per-attribute zstd streams) is recognised and refused with a message naming the converter:
-Python 3.11's standard library has no zstd. This writer writes version 3, which every client reads.
+This writer writes version 3, which every client reads.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import ctypes
+import ctypes.util
+import functools
 import gzip
 import math
 import os
@@ -52,7 +63,7 @@ from scenesplat_stereo.scene.gaussians import GaussianScene
 #: "NGSP" read as a little-endian uint32.
 MAGIC = 0x5053474E
 #: The version this module writes, and the versions it reads.
-WRITE_VERSION, READ_VERSIONS = 3, (2, 3)
+WRITE_VERSION, READ_VERSIONS = 3, (1, 2, 3, 4)
 #: Fractional bits of the fixed-point positions (the reference writer's 12: 1/4096 m steps).
 FRACTIONAL_BITS = 12
 #: Colours store f_dc scaled by this around 0.5 (the format's colorScale).
@@ -63,6 +74,9 @@ SH1_BITS, SH_REST_BITS = 5, 4
 GZIP_LEVEL = 6
 _HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("num_points", "<u4"), ("sh_degree", "u1"),
                     ("fractional_bits", "u1"), ("flags", "u1"), ("reserved", "u1")])
+_NGSP_HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("num_points", "<u4"), ("sh_degree", "u1"),
+                         ("fractional_bits", "u1"), ("flags", "u1"), ("num_streams", "u1"), ("toc", "<u4"),
+                         ("reserved", "u1", 12)])
 _SQRT1_2 = math.sqrt(0.5)
 
 
@@ -211,10 +225,10 @@ def save_spz(scene: GaussianScene, path: str | os.PathLike, durable: bool = True
 
 
 def _unpack_rotations(raw: np.ndarray, version: int) -> np.ndarray:
-    """uint8 [N, 4] (v3) or [N, 3] (v2) -> unit wxyz float64 [N, 4]."""
+    """uint8 [N, 4] (v3) or [N, 3] (v1, v2) -> unit wxyz float64 [N, 4]."""
     n = len(raw)
     xyzw = np.empty((n, 4), dtype=np.float64)
-    if version == 2:
+    if version < 3:
         xyzw[:, :3] = raw.astype(np.float64) / 127.5 - 1.0
         xyzw[:, 3] = np.sqrt(np.maximum(0.0, 1.0 - (xyzw[:, :3] ** 2).sum(1)))
     else:
@@ -233,17 +247,38 @@ def _unpack_rotations(raw: np.ndarray, version: int) -> np.ndarray:
     return xyzw[:, [3, 0, 1, 2]]
 
 
+def spz_header(path: str | os.PathLike) -> tuple[int, int]:
+    """(numPoints, shDegree) of a ``.spz`` from its header (the first 16 bytes of the gzip stream, or of the
+    version-4 file, which start alike)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            data = f.read(_HEADER.itemsize)
+        if data[:4] != b"NGSP":
+            with gzip.open(path) as f:
+                data = f.read(_HEADER.itemsize)
+    except OSError as e:  # also gzip.BadGzipFile: no .spz at all
+        raise SpzError(f"{path}: not a .spz header ({e.strerror or e})") from None
+    except (EOFError, zlib.error) as e:
+        raise SpzError(f"{path}: corrupt gzip stream ({e})") from None
+    if len(data) < _HEADER.itemsize:
+        raise SpzError(f"{path}: header truncated ({len(data)} of {_HEADER.itemsize} bytes)")
+    h = np.frombuffer(data, _HEADER, 1)[0]
+    if int(h["magic"]) != MAGIC or int(h["version"]) not in READ_VERSIONS or int(h["sh_degree"]) > 3:
+        raise SpzError(f"{path}: header magic {int(h['magic']):#x}, version {int(h['version'])}, shDegree "
+                       f"{int(h['sh_degree'])}: not a .spz this reads (versions {READ_VERSIONS}, SH 0..3)")
+    return int(h["num_points"]), int(h["sh_degree"])
+
+
 def load_spz(path: str | os.PathLike) -> GaussianScene:
-    """Read a version 2 or 3 ``.spz`` into a ``GaussianScene``; ``SpzError`` naming the file and field."""
+    """Read a version 1 to 4 ``.spz`` into a ``GaussianScene``; ``SpzError`` naming the file and field."""
     path = Path(path)
     try:
         raw = path.read_bytes()
     except OSError as e:
         raise SpzError(f"{path}: cannot open ({e.strerror or e})") from None
     if raw[:4] == b"NGSP":
-        version = int(np.frombuffer(raw, "<u4", 1, 4)[0]) if len(raw) >= 8 else None
-        raise SpzError(f"{path}: .spz version {version} (zstd streams) is not read here (versions "
-                       f"{', '.join(map(str, READ_VERSIONS))}); `splat-transform {path.name} out.ply` converts it")
+        return _decode(path, *_ngsp_blocks(raw, path))
     if raw[:2] != b"\x1f\x8b":
         raise SpzError(f"{path}: not a .spz file (neither gzip nor 'NGSP' magic at the start)")
     try:
@@ -260,9 +295,7 @@ def load_spz(path: str | os.PathLike) -> GaussianScene:
         raise SpzError(f"{path}: header version {version} is not supported (reads {READ_VERSIONS})")
     if degree > 3:
         raise SpzError(f"{path}: header shDegree {degree}: SH degree 0..3 supported")
-    k = (degree + 1) ** 2
-    sizes = {"positions": 9, "alphas": 1, "colours": 3, "scales": 3, "rotations": 4 if version >= 3 else 3,
-             "sh": 3 * (k - 1)}
+    sizes = _block_sizes(version, degree)
     need = _HEADER.itemsize + n * sum(sizes.values())
     if len(data) < need:
         raise SpzError(f"{path}: body truncated: header numPoints {n} needs {need} bytes, the stream has "
@@ -271,13 +304,83 @@ def load_spz(path: str | os.PathLike) -> GaussianScene:
     for name, size in sizes.items():
         blocks[name] = np.frombuffer(data, np.uint8, n * size, offset).reshape(n, size)
         offset += n * size
-    p = blocks["positions"].reshape(n, 3, 3).astype(np.int32)
-    fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
-    fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+    return _decode(path, version, n, degree, int(h["fractional_bits"]), blocks)
+
+
+def _block_sizes(version: int, degree: int) -> dict[str, int]:
+    """Bytes a point of each block, in file order."""
+    return {"positions": 9 if version > 1 else 6, "alphas": 1, "colours": 3, "scales": 3,
+            "rotations": 4 if version >= 3 else 3, "sh": 3 * ((degree + 1) ** 2 - 1)}
+
+
+@functools.cache
+def _libzstd() -> ctypes.CDLL | None:
+    name = ctypes.util.find_library("zstd")
+    if name is None:
+        return None
+    lib = ctypes.CDLL(name)
+    lib.ZSTD_decompress.restype = ctypes.c_size_t
+    lib.ZSTD_decompress.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_void_p, ctypes.c_size_t]
+    lib.ZSTD_isError.restype, lib.ZSTD_isError.argtypes = ctypes.c_uint, [ctypes.c_size_t]
+    lib.ZSTD_getErrorName.restype, lib.ZSTD_getErrorName.argtypes = ctypes.c_char_p, [ctypes.c_size_t]
+    return lib
+
+
+def _ngsp_blocks(raw: bytes, path: Path) -> tuple[int, int, int, int, dict[str, np.ndarray]]:
+    """(version, numPoints, shDegree, fractionalBits, blocks) of a version-4 file (module docstring)."""
+    if len(raw) < _NGSP_HEADER.itemsize:
+        raise SpzError(f"{path}: header truncated ({len(raw)} of {_NGSP_HEADER.itemsize} bytes)")
+    h = np.frombuffer(raw, _NGSP_HEADER, 1)[0]
+    version, n, degree, streams, toc = (int(h[k]) for k in ("version", "num_points", "sh_degree", "num_streams",
+                                                              "toc"))
+    if version != 4:
+        raise SpzError(f"{path}: header version {version} is not supported with 'NGSP' magic (version 4)")
+    if degree > 3 or n == 0:
+        raise SpzError(f"{path}: header numPoints {n}, shDegree {degree}: need >= 1 point and SH degree 0..3")
+    sizes = {k: v for k, v in _block_sizes(version, degree).items() if v}
+    end = toc + 16 * streams
+    if streams != len(sizes) or toc < _NGSP_HEADER.itemsize or end > len(raw):
+        raise SpzError(f"{path}: header numStreams {streams} / tocByteOffset {toc}: expected {len(sizes)} "
+                       f"streams and a table inside the file's {len(raw)} bytes")
+    table = np.frombuffer(raw, "<u8", 2 * streams, toc).reshape(streams, 2)
+    if int(table[:, 0].sum()) != len(raw) - end:
+        raise SpzError(f"{path}: stream table: compressed sizes add up to {int(table[:, 0].sum())} bytes, the "
+                       f"file has {len(raw) - end} after the table (truncated?)")
+    lib = _libzstd()
+    if lib is None:
+        raise SpzError(f"{path}: .spz version 4 (zstd streams) needs the zstd library (libzstd), not found here; "
+                       f"install it or convert: `splat-transform {path.name} --spz-version 3 out.spz`")
+    blocks, offset = {}, end
+    for (name, size), (packed, unpacked) in zip(sizes.items(), table.tolist()):
+        if unpacked != n * size:
+            raise SpzError(f"{path}: stream {name}: {unpacked} bytes uncompressed, numPoints {n} needs {n * size}")
+        out = np.empty(n * size, np.uint8)
+        got = lib.ZSTD_decompress(out.ctypes.data, out.size, raw[offset:offset + packed], packed)
+        if lib.ZSTD_isError(got) or got != out.size:
+            why = lib.ZSTD_getErrorName(got).decode() if lib.ZSTD_isError(got) else f"{got} bytes"
+            raise SpzError(f"{path}: stream {name}: corrupt zstd data ({why})")
+        blocks[name], offset = out.reshape(n, size), offset + packed
+    blocks.setdefault("sh", np.zeros((n, 0), np.uint8))
+    return version, n, degree, int(h["fractional_bits"]), blocks
+
+
+def _decode(path: Path, version: int, n: int, degree: int, fbits: int, blocks: dict[str, np.ndarray]) -> GaussianScene:
+    """The scene of the raw blocks [N, bytes] (module docstring)."""
+    k = (degree + 1) ** 2
+    if version == 1:
+        means = np.ascontiguousarray(blocks["positions"]).view("<f2").astype(np.float32)
+        if not np.isfinite(means).all():
+            raise SpzError(f"{path}: positions: {int((~np.isfinite(means)).any(1).sum())} float16 positions "
+                           "are inf or NaN")
+    else:
+        p = blocks["positions"].reshape(n, 3, 3).astype(np.int32)
+        fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
+        fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+        means = (fixed / 2.0 ** fbits).astype(np.float32)
     sh = np.empty((n, k, 3), np.float32)
     sh[:, 0] = (blocks["colours"].astype(np.float64) / 255.0 - 0.5) / COLOR_SCALE
     sh[:, 1:] = ((blocks["sh"].astype(np.float64) - 128.0) / 128.0).reshape(n, k - 1, 3)
-    scene = GaussianScene((fixed / 2.0 ** int(h["fractional_bits"])).astype(np.float32),
+    scene = GaussianScene(means,
                           _unpack_rotations(blocks["rotations"], version).astype(np.float32),
                           np.exp(blocks["scales"].astype(np.float64) / 16.0 - 10.0).astype(np.float32),
                           (blocks["alphas"][:, 0] / 255.0).astype(np.float32), sh, degree)

@@ -9,7 +9,9 @@ reader each (nerfstudio dataparser style):
 - ``inria`` (INRIA trainer output): ``point_cloud/iteration_<N>/point_cloud.ply`` (highest N),
   trajectory ``cameras.json``, PSNR from ``results.json`` ``{"ours_<N>": {"PSNR": ...}}`` (the
   checkpoint's N, else the highest present, with a warning) when the file exists.
-- ``plain``: ``point_cloud.ply`` (or the folder's single ``.ply``), optional ``transforms.json``.
+- ``plain``: ``point_cloud.ply``, else the folder's single scene file in any format ``scene_files.load_scene``
+  reads (``.ply``, ``.compressed.ply``, ``.spz``, ``.sog``, ``.splat``, a SOG's ``meta.json`` + WebP images, a
+  streamed scene's ``lod-meta.json`` + unit folders, read at its finest level), optional ``transforms.json``.
 
 Any layout may carry ``scene.json`` ``{"psnr": float, "camera_convention": "opencv"|"opengl",
 "subset": str, "baseline": metres, "rho": metres}`` (its PSNR counts when the layout has none; ``baseline`` and
@@ -30,7 +32,9 @@ Subset: ``scene.json`` ``subset``, else the parent folder's name when it is styl
 ``ScanNetGS`` / ``ScanNetPPGS-V2`` / ``ReplicaGS`` (``SUBSET_FOLDER_PATTERN``), else ``"default"``.
 
 Every malformed file is a ``Rejection`` naming the file and the field; one bad teacher never stops the
-others. Only ``.ply`` headers are read here: a ``.ply`` whose data holds NaNs is reported by the build.
+others. Only headers are read here (``scene_files.scene_info``: the ``.ply`` header, a SOG's JSON, ...): a
+scene whose data holds NaNs is reported by the build. ``Teacher.ply_path`` is the scene file, whatever its
+format.
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ import numpy as np
 from scenesplat_stereo.common.text import format_table, key_safe_name, parse_size
 from scenesplat_stereo.scene.cameras import (intrinsics_matrix, opengl_to_opencv, orbit_poses, orthonormalize,
                                              rigid_error, scale_intrinsics)
-from scenesplat_stereo.scene.gaussians import PlyError, read_ply_header
+from scenesplat_stereo.scene.scene_files import SCENE_JSON, SCENE_SUFFIXES, scene_info
 
 Layout = Literal["scenesplat", "inria", "plain"]
 
@@ -262,13 +266,23 @@ def _read_inria(folder: Path) -> _Found | None:
     return _Found("inria", it_dir / "point_cloud.ply", psnr, trajectory)
 
 
+def _scene_files(folder: Path) -> list[Path]:
+    """The scene files of a folder: a streamed scene's ``lod-meta.json`` alone when there is one (its units'
+    ``meta.json`` sit in sub-folders), else every ``.ply``/``.spz``/``.sog``/``.splat`` and ``meta.json``."""
+    if (folder / SCENE_JSON[0]).is_file():
+        return [folder / SCENE_JSON[0]]
+    return sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")
+                  and (p.suffix in SCENE_SUFFIXES or p.name == SCENE_JSON[1]))
+
+
 def _read_plain(folder: Path) -> _Found | None:
-    plys = sorted(folder.glob("*.ply"))
+    plys = _scene_files(folder)
     if not plys:
         return None
     ply = folder / "point_cloud.ply" if (folder / "point_cloud.ply").is_file() else plys[0] if len(plys) == 1 else None
     if ply is None:
-        raise TeacherError(folder, "*.ply", f"{len(plys)} .ply files and none named point_cloud.ply")
+        raise TeacherError(folder, "scene file", f"{len(plys)} scene files ({', '.join(p.name for p in plys[:4])}"
+                           f"{', ...' if len(plys) > 4 else ''}) and none named point_cloud.ply")
     trajectory = folder / "transforms.json" if (folder / "transforms.json").is_file() else None
     return _Found("plain", ply, None, trajectory)
 
@@ -412,25 +426,24 @@ def _read_teacher(folder: Path, scene_id: str, orbit: OrbitSpec | None) -> Teach
     meta = _scene_json(folder)
     found = next((f for reader in _LAYOUT_READERS if (f := reader(folder)) is not None), None)
     if found is None:
-        raise TeacherError(folder, "layout", "no teacher .ply (expected ckpts/point_cloud_<step>.ply, "
-                           "point_cloud/iteration_<N>/point_cloud.ply or point_cloud.ply)")
+        raise TeacherError(folder, "layout", "no teacher scene (expected ckpts/point_cloud_<step>.ply, "
+                           "point_cloud/iteration_<N>/point_cloud.ply, point_cloud.ply or one scene file)")
     try:
-        header = read_ply_header(found.ply_path)
-    except PlyError as e:
+        num_gaussians, sh_degree = scene_info(found.ply_path)
+    except ValueError as e:
         raise TeacherError(found.ply_path, "header", str(e).removeprefix(f"{found.ply_path}: ")) from None
-    if header.num_gaussians == 0:
+    if num_gaussians == 0:
         raise TeacherError(found.ply_path, "element vertex", "zero Gaussians")
     psnr = found.psnr if found.psnr is not None else (float(meta["psnr"]) if meta.get("psnr") is not None else None)
     subset = meta.get("subset") or _subset_from_folder(folder)
     common = dict(scene_id=scene_id, subset=subset, layout=found.layout, ply_path=found.ply_path,
-                  psnr=psnr, sh_degree=header.sh_degree, **{k: float(meta[k]) for k in ("baseline", "rho") if meta.get(k) is not None})
+                  psnr=psnr, sh_degree=sh_degree,
+                  **{k: float(meta[k]) for k in ("baseline", "rho") if meta.get(k) is not None})
     if found.trajectory_path is None:
         if orbit is None:
             raise TeacherError(folder, "trajectory", "no transforms.json / transforms_train.json / "
                                "cameras.json; give an orbit (--orbit) to render it")
-        return Teacher(**common, c2w=None, Ks=np.repeat(orbit.intrinsics()[None], orbit.n_frames, axis=0),
-                       width=orbit.width, height=orbit.height, camera_convention="opencv", trajectory="orbit",
-                       frame_names=[f"orbit_{i:06d}" for i in range(orbit.n_frames)], orbit=orbit)
+        return _orbit_teacher(common, orbit)
     path = found.trajectory_path
     reader = _read_inria_cameras if path.name == "cameras.json" else _read_transforms
     frames, convention = reader(path, meta.get("camera_convention"))
@@ -439,8 +452,27 @@ def _read_teacher(folder: Path, scene_id: str, orbit: OrbitSpec | None) -> Teach
                    frame_names=names, trajectory=path.name)
 
 
+def _orbit_teacher(common: dict, orbit: OrbitSpec) -> Teacher:
+    return Teacher(**common, c2w=None, Ks=np.repeat(orbit.intrinsics()[None], orbit.n_frames, axis=0),
+                   width=orbit.width, height=orbit.height, camera_convention="opencv", trajectory="orbit",
+                   frame_names=[f"orbit_{i:06d}" for i in range(orbit.n_frames)], orbit=orbit)
+
+
+def scene_file_teacher(path: Path, orbit: OrbitSpec) -> Teacher:
+    """A teacher of one scene file (any format of ``scene_files.load_scene``; a ``meta.json`` or
+    ``lod-meta.json`` stands for its folder), rendered along ``orbit``; named after the file (its folder for
+    the JSON files). ``ValueError`` naming the file when it is not a readable scene."""
+    path = Path(path)
+    num_gaussians, sh_degree = scene_info(path)
+    if num_gaussians == 0:
+        raise ValueError(f"{path}: zero Gaussians")
+    name = path.resolve().parent.name if path.name in SCENE_JSON else path.name.split(".")[0]
+    return _orbit_teacher(dict(scene_id=key_safe_name(name or "scene"), subset=DEFAULT_SUBSET, layout="plain",
+                               ply_path=path.resolve(), psnr=None, sh_degree=sh_degree), orbit)
+
+
 def _looks_like_teacher(folder: Path) -> bool:
-    return any((folder / m).exists() for m in _MARKERS) or any(folder.glob("*.ply"))
+    return any((folder / m).exists() for m in _MARKERS) or bool(_scene_files(folder))
 
 
 def _teacher_folders(root: Path) -> list[Path]:

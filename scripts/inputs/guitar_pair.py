@@ -17,7 +17,7 @@ import torch
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.scene.cameras import orbit_poses, right_camera
-from scenesplat_stereo.scene.gaussians import load_ply
+from scenesplat_stereo.scene.scene_files import load_scene
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 
 W, H, FX = 320, 256, 280.0  # pixels
@@ -27,7 +27,7 @@ BASELINE = 0.3  # guitar units: about 20 px of disparity at 4 units
 def render_pair(ply: Path, out: Path) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
     """Write the pair and its calibration; returns K, and the left view's expected depth and alpha
     ([H, W] each) for checks."""
-    scene = load_ply(ply)
+    scene = load_scene(ply)
     c2w = orbit_poses(scene.median(), 4.0, 1, elevation_deg=20.0)[0]
     K = np.array([[FX, 0, W / 2], [0, FX, H / 2], [0, 0, 1]])
     views = torch.tensor(np.stack([np.linalg.inv(c2w), np.linalg.inv(right_camera(c2w, BASELINE))]),

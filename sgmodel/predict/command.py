@@ -2,7 +2,7 @@
 camera's frame (OpenCV axes: x right, y down, z forward; metres).
 
 A pair (``--left L --right R``) writes ``OUT/scene.<format>`` (``--format ply`` (default, INRIA),
-``compressed-ply`` or ``spz``; SH degree as the content has it: 0 for naive-GS), ``OUT/settings.json``
+``compressed-ply``, ``spz`` or ``sog``; SH degree as the content has it: 0 for naive-GS), ``OUT/settings.json``
 (SuperSplat viewer camera at the left camera) and ``OUT/cameras.json`` (the same camera, INRIA layout),
 ``OUT/depth.png`` (turbo colour map of the z-depth, red near, blue far, black without a stereo depth),
 ``OUT/views/*.png`` (novel views around the left camera) and ``OUT/orbit.gif``. ``--method forward-splat``

@@ -7,7 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
-from test_multiview import BASELINE, FOCAL, SIZE, write_line_set
+from tests.scenesplat_stereo.captured.test_multiview import BASELINE, FOCAL, SIZE, write_line_set
 
 from scenesplat_stereo.cli import main as cli_main
 from scenesplat_stereo.shards.encode import encode_png

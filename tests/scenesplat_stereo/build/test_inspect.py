@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_build import settings, write_teachers
+from tests.scenesplat_stereo.build.test_build import settings, write_teachers
 
 from scenesplat_stereo.build.inspection import THUMB_WIDTH, inspect_dataset, table
 from scenesplat_stereo.build.run import build

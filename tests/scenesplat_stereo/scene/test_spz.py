@@ -4,27 +4,36 @@ step; every malformed file. (tests/scenesplat_stereo/scene/test_scene_files.py c
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import gzip
 import math
+import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from scenesplat_stereo.scene.gaussians import GaussianScene
+from scenesplat_stereo.scene.scene_files import scene_info
 from scenesplat_stereo.scene.spz import SpzError, encode_spz, load_spz, save_spz
+from tests.support.paths import SPLAT_TRANSFORM
 from tests.support.ply_helpers import EPS32, random_scene
 
 MAGIC = 0x5053474E
 
 
 def pack_file(path: Path, version: int, degree: int, fbits: int, fields: dict, gzip_it: bool = True) -> Path:
-    """A .spz from raw byte fields (positions int [N,3], alphas, colours [N,3], scales [N,3], rotation bytes
-    [N,3|4], sh bytes [N,(K-1)*3]); the header as the README states it."""
+    """A .spz from raw byte fields (positions int [N,3] (version 1: float16 [N, 3]), alphas, colours [N,3],
+    scales [N,3], rotation bytes [N,3|4], sh bytes [N,(K-1)*3]); the header as the README states it."""
     n = len(fields["alphas"])
     header = np.array([MAGIC, version, n], "<u4").tobytes() + bytes([degree, fbits, 0, 0])
-    pos = np.asarray(fields["positions"], dtype=np.int64) & 0xFFFFFF
-    pos_bytes = np.stack([(pos >> s) & 0xFF for s in (0, 8, 16)], -1).astype(np.uint8)  # [N,3,3] little-endian
+    if version == 1:
+        pos_bytes = np.asarray(fields["positions"], "<f2").view(np.uint8)
+    else:
+        pos = np.asarray(fields["positions"], dtype=np.int64) & 0xFFFFFF
+        pos_bytes = np.stack([(pos >> s) & 0xFF for s in (0, 8, 16)], -1).astype(np.uint8)  # [N,3,3] little-endian
     body = b"".join(np.ascontiguousarray(x, dtype=np.uint8).tobytes() for x in (
         pos_bytes, fields["alphas"], fields["colours"], fields["scales"], fields["rotations"], fields["sh"]))
     data = header + body
@@ -37,11 +46,11 @@ def reference_decode(version: int, degree: int, fbits: int, f: dict) -> dict:
     k = (degree + 1) ** 2
     out = {key: [] for key in ("means", "quats", "scales", "opacities", "sh")}
     for i in range(len(f["alphas"])):
-        out["means"].append([int(v) / 2**fbits for v in f["positions"][i]])
+        out["means"].append([float(v) if version == 1 else int(v) / 2**fbits for v in f["positions"][i]])
         out["scales"].append([math.exp(int(s) / 16 - 10) for s in f["scales"][i]])
         out["opacities"].append(int(f["alphas"][i]) / 255)
         r = [int(b) for b in f["rotations"][i]]
-        if version == 2:
+        if version < 3:
             xyz = [b / 127.5 - 1 for b in r]
             w = math.sqrt(max(0.0, 1 - sum(v * v for v in xyz)))
             q = [w, *xyz]
@@ -72,20 +81,23 @@ def random_fields(rng: np.random.Generator, n: int, version: int, degree: int) -
     k = (degree + 1) ** 2
     byte = lambda *shape: rng.integers(0, 256, shape).astype(np.uint8)  # noqa: E731
     rot = byte(n, 4 if version == 3 else 3)
-    if version == 2:  # keep |xyz| <= 1 mostly, as a writer would
+    if version < 3:  # keep |xyz| <= 1 mostly, as a writer would
         rot = (np.clip(rng.normal(0, 0.4, (n, 3)), -1, 1) * 127.5 + 127.5).astype(np.uint8)
-    return {"positions": rng.integers(-(1 << 23), 1 << 23, (n, 3)), "alphas": byte(n), "colours": byte(n, 3),
+    positions = rng.normal(0, 50, (n, 3)).astype(np.float16) if version == 1 else \
+        rng.integers(-(1 << 23), 1 << 23, (n, 3))
+    return {"positions": positions, "alphas": byte(n), "colours": byte(n, 3),
             "scales": byte(n, 3), "rotations": rot, "sh": byte(n, 3 * (k - 1))}
 
 
-@pytest.mark.parametrize("version,degree", [(3, 0), (3, 1), (3, 2), (3, 3), (2, 1)])
+@pytest.mark.parametrize("version,degree", [(3, 0), (3, 1), (3, 2), (3, 3), (2, 1), (1, 0), (1, 2)])
 def test_reader_matches_the_format_description(tmp_path: Path, version: int, degree: int) -> None:
     rng = np.random.default_rng(10 * version + degree)
     fields = random_fields(rng, 200, version, degree)
-    fields["positions"][:3] = [[-(1 << 23), 0, (1 << 23) - 1], [-1, 1, 0], [5, -5, 1 << 22]]  # sign extension
+    if version > 1:
+        fields["positions"][:3] = [[-(1 << 23), 0, (1 << 23) - 1], [-1, 1, 0], [5, -5, 1 << 22]]  # sign extension
     path = pack_file(tmp_path / "r.spz", version, degree, 10, fields)
     scene, ref = load_spz(path), reference_decode(version, degree, 10, fields)
-    assert scene.sh_degree == degree and len(scene) == 200
+    assert scene.sh_degree == degree and len(scene) == 200 and scene_info(path) == (200, degree)
     np.testing.assert_array_equal(scene.means, ref["means"].astype(np.float32))  # exact in float32
     np.testing.assert_allclose(scene.scales, ref["scales"], rtol=2 * EPS32)
     np.testing.assert_allclose(scene.opacities, ref["opacities"], atol=EPS32)
@@ -143,13 +155,14 @@ def test_empty_scene_round_trips(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("case,message", [
     ("not gzip", "not a .spz file"),
-    ("version 4", "version 4 (zstd streams) is not read here"),
+    ("version 4", "header numPoints 0, shDegree 0: need >= 1 point"),
     ("corrupt gzip", "corrupt gzip stream"),
     ("short header", "header truncated"),
     ("magic", "header magic is 0x12345678"),
     ("version 7", "header version 7 is not supported"),
     ("degree 4", "header shDegree 4"),
     ("truncated body", "body truncated: header numPoints 10 needs"),
+    ("version 1 inf", "positions: 1 float16 positions are inf or NaN"),
 ])
 def test_bad_files(tmp_path: Path, case: str, message: str) -> None:
     fields = random_fields(np.random.default_rng(2), 10, 3, 1)
@@ -162,7 +175,10 @@ def test_bad_files(tmp_path: Path, case: str, message: str) -> None:
              "magic": lambda: gzip.compress(np.array([0x12345678], "<u4").tobytes() + raw[4:]),
              "version 7": lambda: gzip.compress(raw[:4] + np.array([7], "<u4").tobytes() + raw[8:]),
              "degree 4": lambda: gzip.compress(raw[:12] + bytes([4]) + raw[13:]),
-             "truncated body": lambda: gzip.compress(raw[:-5])}
+             "truncated body": lambda: gzip.compress(raw[:-5]),
+             "version 1 inf": lambda: pack_file(tmp_path / "v1.spz", 1, 0, 0, v1).read_bytes()}
+    v1 = random_fields(np.random.default_rng(2), 10, 1, 0)
+    v1["positions"][3, 1] = np.inf
     path.write_bytes(edits[case]())
     with pytest.raises(SpzError) as err:
         load_spz(path)
@@ -258,3 +274,88 @@ def test_writer_bytes_equal_the_format_description_point_by_point(tmp_path: Path
         assert save_spz(scene, tmp_path / "t.spz").read_bytes() == gzip.compress(expected, 6, mtime=0)
     finally:
         row_tasks.ROWS_PER_TASK = original
+
+def zstd_compress(data: bytes) -> bytes:
+    """One zstd frame of ``data`` through the system's libzstd (the test's own binding)."""
+    lib = ctypes.CDLL(ctypes.util.find_library("zstd"))
+    lib.ZSTD_compressBound.restype, lib.ZSTD_compressBound.argtypes = ctypes.c_size_t, [ctypes.c_size_t]
+    lib.ZSTD_compress.restype = ctypes.c_size_t
+    lib.ZSTD_compress.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.c_char_p, ctypes.c_size_t, ctypes.c_int]
+    out = ctypes.create_string_buffer(lib.ZSTD_compressBound(len(data)))
+    n = lib.ZSTD_compress(out, len(out), data, len(data), 3)
+    return out.raw[:n]
+
+
+def pack_v4(path: Path, degree: int, fbits: int, fields: dict, extension: bytes = b"") -> Path:
+    """A version-4 .spz as load-spz.cc lays it out: 32-byte header, extension bytes, stream table, zstd frames."""
+    n = len(fields["alphas"])
+    pos = np.asarray(fields["positions"], dtype=np.int64) & 0xFFFFFF
+    blocks = [np.stack([(pos >> s) & 0xFF for s in (0, 8, 16)], -1).astype(np.uint8), fields["alphas"],
+              fields["colours"], fields["scales"], fields["rotations"], fields["sh"]]
+    raw = [np.ascontiguousarray(b, dtype=np.uint8).tobytes() for b in blocks]
+    raw = [b for b in raw if b]
+    frames = [zstd_compress(b) for b in raw]
+    toc = 32 + len(extension)
+    header = np.array([MAGIC, 4, n], "<u4").tobytes() + bytes([degree, fbits, 2 if extension else 0, len(raw)]) \
+        + np.array([toc], "<u4").tobytes() + bytes(12)
+    table = b"".join(np.array([len(f), len(b)], "<u8").tobytes() for f, b in zip(frames, raw))
+    path.write_bytes(header + extension + table + b"".join(frames))
+    return path
+
+
+needs_zstd = pytest.mark.skipif(ctypes.util.find_library("zstd") is None, reason="needs the system's libzstd")
+
+
+@needs_zstd
+@pytest.mark.parametrize("degree,extension", [(0, b""), (2, b"\x07extension bytes")])
+def test_version_4_matches_the_format_description(tmp_path: Path, degree: int, extension: bytes) -> None:
+    fields = random_fields(np.random.default_rng(40 + degree), 120, 3, degree)
+    path = pack_v4(tmp_path / "v4.spz", degree, 11, fields, extension)
+    scene, ref = load_spz(path), reference_decode(3, degree, 11, fields)
+    assert (len(scene), scene.sh_degree) == (120, degree) == scene_info(path)
+    np.testing.assert_array_equal(scene.means, ref["means"].astype(np.float32))
+    np.testing.assert_allclose(scene.scales, ref["scales"], rtol=2 * EPS32)
+    np.testing.assert_allclose(scene.sh, ref["sh"], atol=4 * EPS32 * np.abs(ref["sh"]).max())
+    np.testing.assert_allclose(scene.quats, ref["quats"], atol=4 * EPS32)
+
+
+@needs_zstd
+@pytest.mark.parametrize("case,message", [
+    ("truncated", "stream table: compressed sizes add up to"),
+    ("corrupt frame", "stream alphas: corrupt zstd data"),
+    ("stream count", "header numStreams 5 / tocByteOffset 32: expected 6 streams"),
+])
+def test_bad_version_4_files(tmp_path: Path, case: str, message: str) -> None:
+    path = pack_v4(tmp_path / "bad.spz", 1, 12, random_fields(np.random.default_rng(5), 30, 3, 1))
+    raw = bytearray(path.read_bytes())
+    table = np.frombuffer(bytes(raw[32:32 + 6 * 16]), "<u8").reshape(6, 2)
+    if case == "truncated":
+        raw = raw[:-3]
+    elif case == "corrupt frame":
+        start = 32 + 6 * 16 + int(table[0, 0])
+        raw[start:start + 4] = b"\0\0\0\0"  # the second frame's magic number
+    else:
+        raw[15] = 5
+    path.write_bytes(bytes(raw))
+    with pytest.raises(SpzError) as err:
+        load_spz(path)
+    assert str(path) in str(err.value) and message in str(err.value), str(err.value)
+
+
+
+
+@needs_zstd
+@pytest.mark.skipif(not SPLAT_TRANSFORM.is_file() or shutil.which("node") is None,
+                    reason="needs node and `npm ci` in scripts/checks/viewer (splat-transform 3.7.0)")
+def test_splat_transforms_version_4_reads_as_its_version_3(tmp_path: Path) -> None:
+    """splat-transform writes .spz through Niantic's library (WebAssembly); version 4 is its default."""
+    from scenesplat_stereo.scene.gaussians import save_ply
+
+    save_ply(random_scene(np.random.default_rng(7), 300, 3), tmp_path / "s.ply")
+    for v in ("3", "4"):
+        subprocess.run(["node", str(SPLAT_TRANSFORM), "-w", "--spz-version", v, str(tmp_path / "s.ply"),
+                        str(tmp_path / f"v{v}.spz")], check=True, capture_output=True)
+    assert (tmp_path / "v4.spz").read_bytes()[:4] == b"NGSP"
+    a, b = load_spz(tmp_path / "v3.spz"), load_spz(tmp_path / "v4.spz")
+    for name in ("means", "quats", "scales", "opacities", "sh"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))

@@ -226,7 +226,7 @@ MALFORMED = {
                      "scene.json: baseline: expected a positive number"),
     "bad_rho": (lambda f: write_json(f / "scene.json", {"rho": "far"}), "scene.json: rho: expected a finite"),
     "two_plys": (lambda f: ((f / "point_cloud.ply").rename(f / "a.ply"), write_ply(f / "b.ply")),
-                 "*.ply: 2 .ply files and none named point_cloud.ply"),
+                 "scene file: 2 scene files (a.ply, b.ply) and none named point_cloud.ply"),
 }
 
 
@@ -250,7 +250,7 @@ def test_malformed_teachers_are_rejected_with_reasons(tmp_path):
     assert sorted(t.scene_id for t in found.teachers) == ["good_plain", "good_scenesplat"]
     reasons = {r.scene_id: r.reason for r in found.rejected}
     expected = {name: words for name, (_, words) in MALFORMED.items()}
-    expected.update({"empty": "layout: no teacher .ply", "ss_no_psnr_key": "val_step30000.json: psnr: missing",
+    expected.update({"empty": "layout: no teacher scene", "ss_no_psnr_key": "val_step30000.json: psnr: missing",
                      "inria_no_fx": "cameras.json: [1].fx: missing",
                      "inria_bad_results": "results.json: ours_30000.PSNR: missing"})
     assert set(reasons) == set(expected)
@@ -302,3 +302,28 @@ def test_real_guitar_teacher(shared_data):
         warnings.simplefilter("error")
         (t,) = discover_teachers(root, OrbitSpec(radius=6.0, n_frames=4, width=32, height=24)).teachers
     assert t.ply_path.name == "point_cloud.ply" and t.sh_degree == 0 and t.layout == "plain"
+
+
+def test_a_folder_holding_one_scene_file_of_any_format_is_a_plain_teacher(tmp_path):
+    """.compressed.ply, .spz, .sog, .splat, an unbundled SOG (meta.json + WebP) and a streamed SOG folder."""
+    from tests.scenesplat_stereo.scene.test_lod import make_streamed
+
+    from scenesplat_stereo.scene.scene_files import FORMATS, save_scene
+    from tests.support.ply_helpers import random_scene
+    from tests.support.sog_helpers import make_sog
+
+    root = tmp_path / "teachers"
+    scene = random_scene(np.random.default_rng(0), 40, 1)
+    for name in ("compressed-ply", "spz", "sog"):
+        save_scene(scene, root / name / f"scene{FORMATS[name].suffix}", name)
+    (root / "splat").mkdir()
+    (root / "splat" / "scene.splat").write_bytes(np.zeros(3, np.dtype([("m", "<f4", 3), ("s", "<f4", 3),
+                                                                       ("c", "u1", 8)])).tobytes())
+    make_sog(root / "sog_folder", 20, 2)
+    make_streamed(root / "streamed")
+    found = discover_teachers(root, OrbitSpec(radius=2.0, n_frames=2))
+    assert not found.rejected, found.rejected
+    got = {t.scene_id: (t.layout, t.sh_degree, t.ply_path.name) for t in found.teachers}
+    assert got == {"compressed-ply": ("plain", 1, "scene.compressed.ply"), "spz": ("plain", 1, "scene.spz"),
+                   "sog": ("plain", 1, "scene.sog"), "splat": ("plain", 0, "scene.splat"),
+                   "sog_folder": ("plain", 2, "meta.json"), "streamed": ("plain", 1, "lod-meta.json")}

@@ -215,7 +215,7 @@ def test_bench_predict_video_on_the_cpu(tmp_path):
         assert re.search(rf"\| {re.escape(row)} \| 2 \| [\d.]+ \| [\d.]+ \| [\d.]+ \|", text), row
 
 
-@pytest.mark.parametrize("fmt,suffix", [("spz", ".spz"), ("compressed-ply", ".compressed.ply")])
+@pytest.mark.parametrize("fmt,suffix", [("spz", ".spz"), ("compressed-ply", ".compressed.ply"), ("sog", ".sog")])
 def test_predict_writes_the_chosen_format_and_viewer_files(small_pair, capsys, monkeypatch, fmt, suffix):
     d = torch.full((1, 1, 32, 48), 2.0)
     d[..., :4, :] = 0.0  # four rows without a match

@@ -1,0 +1,119 @@
+"""scenesplat_stereo.scene.sog: the reader against a float64 decode written from the format description
+(tests/support/sog_helpers.py) for versions 1 and 2, bundled and not, SH degrees 0-3; against PlayCanvas
+splat-transform 3.7.0's decode of the real captures (tests/data/captures, made by scripts/inputs/capture_samples.py);
+the writer's round trip and splat-transform reading our files."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scenesplat_stereo.scene.compressed_ply import morton_order
+from scenesplat_stereo.scene.gaussians import GaussianScene, load_ply
+from scenesplat_stereo.scene.scene_files import load_scene, scene_info
+from scenesplat_stereo.scene.sog import load_sog, save_sog
+from tests.support.paths import CAPTURES, SPLAT_TRANSFORM, TEST_DATA
+from tests.support.ply_helpers import random_scene
+from tests.support.sog_helpers import make_sog, reference_decode
+
+DATA = TEST_DATA / "captures"
+
+
+def assert_matches(scene: GaussianScene, means, quats, log_scales, opacities, sh, atol: float = 1e-5) -> None:
+    """``scene`` equals the float64 arrays within float32 rounding (quats compared after normalising, up to sign)."""
+    unit = quats / np.linalg.norm(quats, axis=1, keepdims=True)
+    close = lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=atol)  # noqa: E731
+    close(scene.means, means)
+    assert np.minimum(np.abs(scene.quats - unit).max(1), np.abs(scene.quats + unit).max(1)).max() < atol
+    close(np.log(scene.scales.astype(np.float64)), log_scales)
+    close(scene.opacities, opacities)
+    close(scene.sh, sh)
+
+
+@pytest.mark.parametrize("version,degree,bundle", [(2, 0, True), (2, 1, False), (2, 2, True), (2, 3, True),
+                                                   (1, 0, False), (1, 2, False), (1, 3, True)])
+def test_reader_matches_the_format_description(tmp_path: Path, version: int, degree: int, bundle: bool) -> None:
+    sog = make_sog(tmp_path / "scene", 37, degree, version, bundle)
+    scene = load_scene(sog["path"])  # by its first bytes (zip) or as a folder holding meta.json
+    assert (len(scene), scene.sh_degree) == (37, degree) == scene_info(sog["path"])
+    assert_matches(scene, *reference_decode(sog))
+    if not bundle:
+        assert_matches(load_scene(sog["path"] / "meta.json"), *reference_decode(sog))
+
+
+def _capture_samples() -> list[Path]:
+    return sorted(p for p in DATA.glob("*.npz") if "-lod" not in p.name)
+
+
+def check_against_sample(scene: GaussianScene, sample_path: Path) -> None:
+    """``scene`` holds splat-transform's decode (float32 as it wrote them) at the sample's rows."""
+    s = np.load(sample_path)
+    assert len(scene) == int(s["count"])
+    rows = s["rows"]
+    sh = np.concatenate([s["f_dc"][:, None], s["f_rest"].reshape(len(rows), 3, -1).transpose(0, 2, 1)], 1)
+    opacity = 1 / (1 + np.exp(-s["opacity"].astype(np.float64)))
+    assert_matches(scene.subset(rows), s["xyz"], s["rot"].astype(np.float64), s["scale"], opacity, sh, atol=2e-6)
+
+
+@pytest.mark.real_data
+@pytest.mark.parametrize("sample", [p for p in _capture_samples() if p.stem not in ("plant", "tarot-box")],
+                         ids=lambda p: p.stem)
+def test_real_captures_match_splat_transform(sample: Path) -> None:
+    files = list((CAPTURES / sample.stem).glob("*.sog"))
+    if not files:
+        pytest.skip(f"shared data not available: {CAPTURES / sample.stem} is absent (it lives beside the repository)")
+    check_against_sample(load_scene(files[0]), sample)
+
+
+def test_writer_round_trip(tmp_path: Path) -> None:
+    """Read back within the format's steps: positions half a 16-bit step of sign(x) ln(|x| + 1) (times
+    e^|t|), quaternion components half of 2 / 255 / sqrt(2) (then normalised), opacity half of 1/255, and every
+    log-scale and colour on its codebook's nearest entry (colour: of Gaussians whose opacity byte is not 0); SH
+    from the palette, closer than zero SH."""
+    rng = np.random.default_rng(3)
+    scene = random_scene(rng, 3000, 2)
+    path = save_sog(scene, tmp_path / "s.sog")
+    back, ref = load_sog(path), scene.subset(morton_order(scene.means))
+    assert (len(back), back.sh_degree) == (3000, 2)
+    m = ref.means.astype(np.float64)
+    t = np.sign(m) * np.log1p(np.abs(m))
+    assert (np.abs(back.means - m) <= np.exp(np.abs(t)) * (t.max(0) - t.min(0)) / 65535 / 2 * 1.001 + 1e-6).all()
+    q = ref.quats / np.linalg.norm(ref.quats, axis=1, keepdims=True)
+    assert np.minimum(np.abs(back.quats - q).max(1), np.abs(back.quats + q).max(1)).max() < 2 / 255
+    assert np.abs(back.opacities - np.clip(ref.opacities, 1e-6, 1 - 1e-6)).max() <= 0.5 / 255 + 1e-6
+    meta = json.loads(zipfile.ZipFile(path).read("meta.json"))
+    seen = np.rint(ref.opacities * 255.0) > 0  # libwebp drops the colour of a texel whose alpha is 0
+    assert not seen.all()
+    for book, got, want in ((meta["scales"]["codebook"], np.log(back.scales), np.log(ref.scales.astype(np.float64))),
+                            (meta["sh0"]["codebook"], back.sh[seen, 0], ref.sh[seen, 0])):
+        nearest = np.abs(np.asarray(book)[None, None] - want[..., None]).min(-1)
+        assert (np.abs(got - want) <= nearest + 1e-5).all()
+    assert meta["shN"]["count"] == 2048 and meta["shN"]["bands"] == 2  # splat-transform's size for 3000
+    assert np.sqrt(((back.sh[:, 1:] - ref.sh[:, 1:]) ** 2).mean()) < np.sqrt((ref.sh[:, 1:] ** 2).mean())
+
+
+def test_writer_sh0_and_one_gaussian(tmp_path: Path) -> None:
+    scene = random_scene(np.random.default_rng(1), 1, 0)
+    back = load_sog(save_sog(scene, tmp_path / "one.sog"))
+    np.testing.assert_allclose(back.means, scene.means, atol=1e-6)
+    assert back.sh_degree == 0 and "shN" not in json.loads(zipfile.ZipFile(tmp_path / "one.sog").read("meta.json"))
+
+
+@pytest.mark.skipif(not SPLAT_TRANSFORM.is_file() or shutil.which("node") is None,
+                    reason="needs node and `npm ci` in scripts/checks/viewer (splat-transform 3.7.0)")
+@pytest.mark.parametrize("degree", [0, 3])
+def test_splat_transform_reads_our_sog(tmp_path: Path, degree: int) -> None:
+    scene = random_scene(np.random.default_rng(degree), 500, degree)
+    ours = load_sog(save_sog(scene, tmp_path / "s.sog"))
+    subprocess.run(["node", str(SPLAT_TRANSFORM), "-w", str(tmp_path / "s.sog"), str(tmp_path / "s.ply")],
+                   check=True, capture_output=True)
+    theirs = load_ply(tmp_path / "s.ply")
+    assert theirs.sh_degree == degree
+    assert_matches(theirs, ours.means, ours.quats.astype(np.float64), np.log(ours.scales.astype(np.float64)),
+                   ours.opacities, ours.sh, atol=2e-6)
