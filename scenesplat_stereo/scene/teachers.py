@@ -19,7 +19,7 @@ Any layout may carry ``scene.json`` ``{"psnr": float, "camera_convention": "open
 folders (e.g. ``ScanNetGS/``), searched up to ``MAX_GROUP_DEPTH`` deep; hidden folders are skipped. A
 root that holds a teacher itself is the only one.
 
-Trajectories come out as OpenCV c2w in world units (metres for the paper's tiers):
+Trajectories come out as OpenCV c2w in world units (metres for the paper's tiers; read by ``trajectories``):
 ``transforms*.json`` (nerfstudio: ``frames[i].transform_matrix`` c2w; ``fl_x fl_y cx cy w h`` or
 ``camera_angle_x`` at the top level or per frame; cx, cy default to the image centre) is OpenGL unless
 the file or ``scene.json`` says ``"camera_convention": "opencv"``; ``cameras.json`` (INRIA:
@@ -40,11 +40,9 @@ format.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import re
 import warnings
-from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, NamedTuple
@@ -52,16 +50,16 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from scenesplat_stereo.common.text import format_table, key_safe_name, parse_size
-from scenesplat_stereo.scene.cameras import (intrinsics_matrix, opengl_to_opencv, orbit_poses, orthonormalize,
-                                             rigid_error, scale_intrinsics)
+from scenesplat_stereo.scene.cameras import intrinsics_matrix, orbit_poses
 from scenesplat_stereo.scene.scene_files import SCENE_JSON, SCENE_SUFFIXES, scene_info
+from scenesplat_stereo.scene.trajectories import (TeacherError, finite_number, read_inria_cameras, read_json,
+                                                  read_transforms, stack_frames)
 
 Layout = Literal["scenesplat", "inria", "plain"]
 
 SUBSET_FOLDER_PATTERN = re.compile(r"^[A-Za-z0-9]+GS(-V\d+)?$")  # ScanNetGS, ScanNetPPGS-V2, ReplicaGS
 DEFAULT_SUBSET = "default"
 MAX_GROUP_DEPTH = 3  # teachers root / subset / ... / scene
-RIGID_TOLERANCE = 1e-3  # max |R^T R - I| accepted in a pose read from text; larger is not a rotation
 _MARKERS = ("ckpts", "point_cloud", "scene.json", "cameras.json", "transforms.json", "transforms_train.json")
 
 
@@ -176,35 +174,11 @@ class Discovery:
     rejected: list[Rejection] = field(default_factory=list)
 
 
-class TeacherError(ValueError):
-    """A malformed teacher file: ``path`` and ``field`` say where."""
-
-    def __init__(self, path: Path, field_name: str, problem: str):
-        super().__init__(f"{path.name}: {field_name}: {problem}")
-        self.path = path
-
-
 class _Found(NamedTuple):  # what a layout reader finds, before the shared trajectory parsing
     layout: Layout
     ply_path: Path
     psnr: float | None
     trajectory_path: Path | None
-
-
-# ---------------------------------------------------------------------------------------- JSON helpers
-def _read_json(path: Path) -> object:
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise TeacherError(path, "file", f"unreadable JSON ({e})") from None
-
-
-def _number(value: object, path: Path, field_name: str, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise TeacherError(path, field_name, f"expected a finite number, got {value!r}")
-    if positive and value <= 0:
-        raise TeacherError(path, field_name, f"expected a positive number, got {value!r}")
-    return float(value)
 
 
 def _highest(paths: list[Path], pattern: str) -> tuple[int, Path] | None:
@@ -222,10 +196,10 @@ def _psnr_for_step(candidates: dict[int, Path], step: int, key_of, label: str) -
     if chosen != step:
         warnings.warn(f"{path}: no PSNR for the checkpoint's step {step}; using step {chosen}'s "
                       f"({label.format(step=chosen)})", stacklevel=2)
-    value = key_of(_read_json(path), chosen)
+    value = key_of(read_json(path), chosen)
     if value is None:
         raise TeacherError(path, label.format(step=chosen), "missing")
-    return _number(value, path, label.format(step=chosen))
+    return finite_number(value, path, label.format(step=chosen))
 
 
 # ------------------------------------------------------------------------------------- layout readers
@@ -253,7 +227,7 @@ def _read_inria(folder: Path) -> _Found | None:
     results = folder / "results.json"
     psnr = None
     if results.is_file():
-        data = _read_json(results)
+        data = read_json(results)
         keys = {int(m.group(1)): results for k in (data if isinstance(data, dict) else {})
                 if (m := re.fullmatch(r"ours_(\d+)", k))}
         if not keys:
@@ -290,124 +264,19 @@ def _read_plain(folder: Path) -> _Found | None:
 _LAYOUT_READERS = (_read_scenesplat, _read_inria, _read_plain)
 
 
-# ---------------------------------------------------------------------------------- trajectory readers
-Frame = tuple[np.ndarray, np.ndarray, tuple[int, int], str]  # c2w OpenCV, K, (w, h), name
-
-
-def _pose(value: object, path: Path, field_name: str) -> np.ndarray:
-    try:
-        m = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise TeacherError(path, field_name, "not a numeric matrix") from None
-    if m.shape == (3, 4):
-        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
-    if m.shape != (4, 4):
-        raise TeacherError(path, field_name, f"expected a 4x4 (or 3x4) matrix, got shape {m.shape}")
-    if not np.isfinite(m).all():
-        raise TeacherError(path, field_name, "non-finite value")
-    if np.linalg.det(m[:3, :3]) <= 0:
-        raise TeacherError(path, field_name, "rotation has det <= 0 (a reflection or degenerate)")
-    err = float(rigid_error(m))
-    if err > RIGID_TOLERANCE:
-        raise TeacherError(path, field_name, f"not a rigid transform (orthonormality error {err:.3g})")
-    return orthonormalize(m)
-
-
-def _transforms_frame(path: Path, data: dict, i: int, frame: object, conv: str) -> Frame:
-    where = f"frames[{i}]"
-    if not isinstance(frame, dict) or "transform_matrix" not in frame:
-        raise TeacherError(path, f"{where}.transform_matrix", "missing")
-    get = lambda k: frame.get(k, data.get(k))  # noqa: E731  (per-frame value, else top level)
-    if get("w") is None or get("h") is None:
-        raise TeacherError(path, f"{where}.w/h", "missing image size")
-    w, h = (_number(get(k), path, f"{where}.{k}", positive=True) for k in ("w", "h"))
-    if get("fl_x") is not None:
-        fx = _number(get("fl_x"), path, f"{where}.fl_x", positive=True)
-        fy = _number(get("fl_y") if get("fl_y") is not None else fx, path, f"{where}.fl_y", positive=True)
-    elif get("camera_angle_x") is not None:
-        fx = fy = 0.5 * w / math.tan(0.5 * _number(get("camera_angle_x"), path, f"{where}.camera_angle_x", True))
-    else:
-        raise TeacherError(path, f"{where}.fl_x", "missing intrinsics (fl_x or camera_angle_x)")
-    cx = _number(get("cx"), path, f"{where}.cx") if get("cx") is not None else 0.5 * w
-    cy = _number(get("cy"), path, f"{where}.cy") if get("cy") is not None else 0.5 * h
-    pose = _pose(frame["transform_matrix"], path, f"{where}.transform_matrix")
-    return (opengl_to_opencv(pose) if conv == "opengl" else pose, intrinsics_matrix(fx, fy, cx, cy),
-            (round(w), round(h)), str(frame.get("file_path", f"frame_{i:06d}")))
-
-
-def _read_transforms(path: Path, convention: str | None) -> tuple[list[Frame], str]:
-    data = _read_json(path)
-    if not isinstance(data, dict):
-        raise TeacherError(path, "file", "expected a JSON object")
-    file_conv = data.get("camera_convention")
-    if file_conv not in (None, "opencv", "opengl"):
-        raise TeacherError(path, "camera_convention", f"expected 'opencv' or 'opengl', got {file_conv!r}")
-    if None not in (file_conv, convention) and convention != file_conv:
-        raise TeacherError(path, "camera_convention", f"{file_conv!r} but scene.json says {convention!r}")
-    conv = file_conv or convention or "opengl"
-    frames = data.get("frames")
-    if not isinstance(frames, list) or not frames:
-        raise TeacherError(path, "frames", "missing or zero frames")
-    return [_transforms_frame(path, data, i, f, conv) for i, f in enumerate(frames)], conv
-
-
-def _inria_frame(path: Path, i: int, cam: object) -> Frame:
-    where = f"[{i}]"
-    if not isinstance(cam, dict):
-        raise TeacherError(path, where, "expected an object")
-    for key in ("position", "rotation", "fx", "fy", "width", "height"):
-        if key not in cam:
-            raise TeacherError(path, f"{where}.{key}", "missing")
-    w, h, fx, fy = (_number(cam[k], path, f"{where}.{k}", positive=True) for k in ("width", "height", "fx", "fy"))
-    try:
-        rotation, position = np.array(cam["rotation"], dtype=float), np.array(cam["position"], dtype=float)
-    except (TypeError, ValueError):
-        raise TeacherError(path, f"{where}.rotation/position", "not a 3x3 matrix and a 3-vector") from None
-    if rotation.shape != (3, 3):
-        raise TeacherError(path, f"{where}.rotation", f"expected a 3x3 matrix, got shape {rotation.shape}")
-    if position.shape != (3,):
-        raise TeacherError(path, f"{where}.position", f"expected 3 numbers, got shape {position.shape}")
-    pose = np.eye(4)
-    pose[:3, :3], pose[:3, 3] = rotation, position
-    return (_pose(pose, path, f"{where}.rotation/position"), intrinsics_matrix(fx, fy, 0.5 * w, 0.5 * h),
-            (round(w), round(h)), str(cam.get("img_name", f"frame_{i:06d}")))
-
-
-def _read_inria_cameras(path: Path, convention: str | None) -> tuple[list[Frame], str]:
-    if convention == "opengl":
-        raise TeacherError(path, "camera_convention", "cameras.json is OpenCV but scene.json says 'opengl'")
-    data = _read_json(path)
-    if not isinstance(data, list) or not data:
-        raise TeacherError(path, "file", "expected a non-empty list of cameras (zero frames)")
-    return [_inria_frame(path, i, cam) for i, cam in enumerate(data)], "opencv"
-
-
-def _stack(frames: list[Frame], path: Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int], list[str]]:
-    """(c2w [F,4,4], Ks [F,3,3], (W, H), names) at the most common frame size; the K of frames of another
-    size are rescaled to it (a counted repair, with a warning)."""
-    sizes = [f[2] for f in frames]
-    size = Counter(sizes).most_common(1)[0][0]
-    Ks = np.stack([scale_intrinsics(f[1], f[2], size) for f in frames])
-    odd = sum(s != size for s in sizes)
-    if odd:
-        warnings.warn(f"{path}: {odd} of {len(frames)} frames are not {size[0]}x{size[1]}; "
-                      "their intrinsics were rescaled to that size", stacklevel=3)
-    return np.stack([f[0] for f in frames]), Ks, size, [f[3] for f in frames]
-
-
 # ------------------------------------------------------------------------------------------ discovery
 def _scene_json(folder: Path) -> dict:
     path = folder / "scene.json"
     if not path.is_file():
         return {}
-    data = _read_json(path)
+    data = read_json(path)
     if not isinstance(data, dict):
         raise TeacherError(path, "file", "expected a JSON object")
     if data.get("psnr") is not None:
-        _number(data["psnr"], path, "psnr")
+        finite_number(data["psnr"], path, "psnr")
     for key in ("baseline", "rho"):
         if data.get(key) is not None:
-            _number(data[key], path, key, positive=True)
+            finite_number(data[key], path, key, positive=True)
     conv = data.get("camera_convention")
     if conv not in (None, "opencv", "opengl"):
         raise TeacherError(path, "camera_convention", f"expected 'opencv' or 'opengl', got {conv!r}")
@@ -445,9 +314,9 @@ def _read_teacher(folder: Path, scene_id: str, orbit: OrbitSpec | None) -> Teach
                                "cameras.json; give an orbit (--orbit) to render it")
         return _orbit_teacher(common, orbit)
     path = found.trajectory_path
-    reader = _read_inria_cameras if path.name == "cameras.json" else _read_transforms
+    reader = read_inria_cameras if path.name == "cameras.json" else read_transforms
     frames, convention = reader(path, meta.get("camera_convention"))
-    c2w, Ks, (width, height), names = _stack(frames, path)
+    c2w, Ks, (width, height), names = stack_frames(frames, path)
     return Teacher(**common, c2w=c2w, Ks=Ks, width=width, height=height, camera_convention=convention,
                    frame_names=names, trajectory=path.name)
 

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from scenesplat_stereo.scene.teachers import _read_inria_cameras
+from scenesplat_stereo.scene.trajectories import read_inria_cameras
 from sgmodel.predict.viewers import horizontal_fov, supersplat_settings, write_viewer_files
 
 
@@ -71,7 +71,7 @@ def test_viewer_files_read_back(tmp_path):
     c2w = yaw(-0.2, [0.1, 0.2, -0.3])
     paths = write_viewer_files(tmp_path, K, 320, 256, 1.7, c2w)
     assert [p.name for p in paths] == ["settings.json", "cameras.json"]
-    frames, convention = _read_inria_cameras(tmp_path / "cameras.json", None)
+    frames, convention = read_inria_cameras(tmp_path / "cameras.json", None)
     (pose, K_read, size, name), = frames
     assert convention == "opencv" and size == (320, 256) and name == "left"
     np.testing.assert_allclose(pose, c2w, atol=1e-12)
