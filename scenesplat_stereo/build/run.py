@@ -33,7 +33,7 @@ from scenesplat_stereo.build.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_P
 from scenesplat_stereo.build.render_pairs import start_render, stream_samples
 from scenesplat_stereo.build.settings import SPLITS_OF_MODE, BuildSettings, add_arguments, settings_from_args
 from scenesplat_stereo.common.commandline import NotAvailable
-from scenesplat_stereo.common.files import read_json
+from scenesplat_stereo.common.files import check_apart, check_replaceable, read_json
 from scenesplat_stereo.common.text import format_table
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.scene.teachers import (Discovery, Rejection, Teacher, discover_teachers, resolve_trajectory,
@@ -46,6 +46,7 @@ from scenesplat_stereo.shards.nvjpeg import NvJpegEncoder
 __all__ = ["BuildSettings", "BuildReport", "add_arguments", "build", "run", "settings_from_args", "summary"]
 
 BUILD_JSON = "build.json"
+OWNER = "scenesplat-stereo build"  # a folder holding BUILD_JSON is a build's (it resumes); any other must be empty
 EXIT_TEACHER_FAILED = 3  # exit status when some teachers failed at build time (the rest is complete)
 
 
@@ -301,6 +302,8 @@ def build(settings: BuildSettings) -> BuildReport:
     # Everything is checked (settings at construction, OUT, earlier settings, teachers, plans) before the
     # first write: a refused command leaves OUT as it was, so the corrected command is not refused.
     _check_out(settings.out)
+    check_replaceable(settings.out, "--out", OWNER, marker=BUILD_JSON)
+    check_apart(settings.out, "--out", {"--teachers": settings.teachers}, replaced=True)
     recorded = _check_fingerprint(settings)
     report, jobs, layout = plan_build(settings)
     Path(settings.out).mkdir(parents=True, exist_ok=True)

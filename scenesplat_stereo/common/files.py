@@ -228,14 +228,16 @@ def _contents(folder: Path) -> list[Path]:
                                                       p.relative_to(folder).parts))
 
 
-def write_manifest(folder: str | os.PathLike, owner: str) -> Path:
+def write_manifest(folder: str | os.PathLike, owner: str, open_: bool = False) -> Path:
     """Record in ``folder/OWNER_FILE`` that ``owner`` (e.g. "sgmodel predict") wrote every file now under
     ``folder``, each with its ``file_record``: what ``check_replaceable`` later reads to decide whether the
     folder may be replaced. Call it when the command has written the folder (also when it stops early: what
-    it wrote is then known to be its own)."""
+    it wrote is then known to be its own). ``open_``: ``owner`` is writing the folder now; if it is killed
+    before it closes the manifest, what it added is taken as its own by its rerun (which resumes)."""
     folder = Path(folder)
     files = {str(p.relative_to(folder)): file_record(p) for p in _contents(folder) if p.is_file()}
-    return atomic_write_json(folder / OWNER_FILE, {"owner": owner, "files": files}, indent=None, sort_keys=True)
+    doc = {"owner": owner, "files": files} | ({"open": True} if open_ else {})
+    return atomic_write_json(folder / OWNER_FILE, doc, indent=None, sort_keys=True)
 
 
 def _manifest(folder: Path) -> dict | None:
@@ -271,6 +273,8 @@ def foreign_file(folder: str | os.PathLike, owner: str) -> str | None:
     if "files" not in manifest:
         return (f"holds the output of an earlier version of `{owner}`, which kept no list of its files (e.g. "
                 f"{first!r}); delete it yourself if you no longer need it")
+    if manifest.get("open"):  # a run of owner's that was killed: what it left is its own, and its rerun resumes
+        return None
     for p in found:
         name = str(p.relative_to(folder))
         if name not in manifest["files"] or p.is_symlink():
@@ -296,25 +300,27 @@ def check_replaceable(folder: str | os.PathLike, flag: str, owner: str, marker: 
         return folder
     why = foreign_file(folder, owner)
     if why is not None:
-        what = "(re)writes" if marker else "replaces the whole folder"
-        raise ValueError(f"{flag} {folder}: {why}, and `{owner}` {what}; choose a new or empty {flag}")
+        raise ValueError(f"{flag} {folder}: {why}, and `{owner}` replaces only what it wrote; choose a new or empty "
+                         f"{flag}")
     return folder
 
 
 class OwnedFolder:
     """``with OwnedFolder(folder, owner):`` for a command that writes files into ``folder`` in place (an
-    importer's shards, rendered frames): when the block ends, however it ends, ``write_manifest`` records
-    every file there as ``owner``'s, so a rerun may replace them. Check with ``check_replaceable`` first."""
+    importer's shards, rendered frames): on entry the manifest is marked open (the folder is being written);
+    when the block ends, however it ends, ``write_manifest`` records every file there as ``owner``'s, so a
+    rerun may replace them. Check with ``check_replaceable`` first."""
 
     def __init__(self, folder: str | os.PathLike, owner: str) -> None:
         self.folder, self.owner = Path(folder), owner
 
     def __enter__(self) -> Path:
         self.folder.mkdir(parents=True, exist_ok=True)
+        write_manifest(self.folder, self.owner, open_=True)
         return self.folder
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        if self.folder.is_dir() and _contents(self.folder):
+        if self.folder.is_dir():
             write_manifest(self.folder, self.owner)
 
 

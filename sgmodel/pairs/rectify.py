@@ -27,7 +27,8 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
+from scenesplat_stereo.common.files import (StagedFolder, atomic_write_bytes, atomic_write_json, check_apart,
+                                            check_replaceable)
 from scenesplat_stereo.scene.cameras import rotation_angle_deg
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from sgmodel.pairs import rig as rig_mod
@@ -213,6 +214,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def rectify_command(args: argparse.Namespace, log=print) -> None:
     """Do the work of ``sgmodel rectify`` (raises a CalibError / ValueError naming the flag on bad input)."""
     check_replaceable(args.out, "--out", RECTIFY_OWNER)
+    check_apart(args.out, "--out", {"--left": args.left, "--right": args.right, "--rig": args.rig}, replaced=True)
     rig = rig_mod.read_rig(args.rig, args.rig_units)
     left, right = read_image(args.left, "--left"), read_image(args.right, "--right")
     for flag, image in (("--left", left), ("--right", right)):

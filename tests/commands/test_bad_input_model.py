@@ -182,7 +182,7 @@ def test_train_out_holds_other_files(demo_dataset, tmp_path, capsys):
     (tmp_path / "photos" / "a.jpg").write_bytes(b"jpeg")
     before = snapshots(tmp_path / "photos")
     rc, err = refusal(main, ["train", "--data", demo_dataset, "--out", tmp_path / "photos", *TINY], capsys)
-    assert rc == 2 and "exists and is not a training run (no config.json)" in err
+    assert rc == 2 and "holds files not written by `sgmodel train` (e.g. 'a.jpg')" in err
     assert snapshots(tmp_path / "photos") == before
 
 
