@@ -293,9 +293,9 @@ def check_replaceable(folder: str | os.PathLike, flag: str, owner: str, marker: 
     folder = Path(folder)
     if folder.is_symlink():
         folder = folder.resolve()
-    check_writable(folder.parent if folder.parent != folder else folder, flag, create=False)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"{flag} {folder}: exists and is not a folder")
+    check_writable(folder, flag, create=False)  # a folder, or creatable (names the file standing in the way)
+    if folder.exists() and folder.parent != folder:
+        check_writable(folder.parent, flag, create=False)  # replacing it renames it
     if marker is not None and (folder / marker).is_file():
         return folder
     why = foreign_file(folder, owner)

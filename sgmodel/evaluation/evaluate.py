@@ -175,8 +175,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def check_report_folder(out: Path, inputs: dict[str, Path | None]) -> None:
     """REPORT may be replaced by a new report: absent, empty or an earlier report, writable, apart from the
     ``inputs`` ({flag: path}: the data, the checkpoint); ValueError naming --out. Reads only."""
-    check_replaceable(out, "--out", OWNER)
     check_apart(out, "--out", inputs, replaced=True)
+    check_replaceable(out, "--out", OWNER)
 
 
 def methods_of(args: argparse.Namespace) -> list[str]:

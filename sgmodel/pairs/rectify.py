@@ -213,8 +213,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def rectify_command(args: argparse.Namespace, log=print) -> None:
     """Do the work of ``sgmodel rectify`` (raises a CalibError / ValueError naming the flag on bad input)."""
-    check_replaceable(args.out, "--out", RECTIFY_OWNER)
     check_apart(args.out, "--out", {"--left": args.left, "--right": args.right, "--rig": args.rig}, replaced=True)
+    check_replaceable(args.out, "--out", RECTIFY_OWNER)
     rig = rig_mod.read_rig(args.rig, args.rig_units)
     left, right = read_image(args.left, "--left"), read_image(args.right, "--right")
     for flag, image in (("--left", left), ("--right", right)):

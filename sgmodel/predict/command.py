@@ -195,11 +195,11 @@ def _check_args(args: argparse.Namespace) -> None:
     out = Path(args.out)
     if not out.resolve().parent.is_dir():
         raise PredictError(f"--out {args.out}: parent folder {out.resolve().parent} does not exist")
-    check_replaceable(out, "--out", OWNER)
     inputs = ("--left", "--right", "--video", "--left-video", "--right-video", "--calib", "--rig")
     paths = {f: getattr(args, f[2:].replace("-", "_")) for f in inputs}
     paths["--checkpoint"] = None if args.method else checkpoint_path(args.checkpoint)
     check_apart(out, "--out", paths, replaced=True)
+    check_replaceable(out, "--out", OWNER)
 
 
 def check_depth(z: torch.Tensor, calib: Calibration) -> None:

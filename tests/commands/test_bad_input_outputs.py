@@ -354,3 +354,13 @@ def test_large_files_are_remembered_by_size_and_time(tmp_path, monkeypatch):
     os.utime(out / "scene.ply", ns=(1, 1))
     with pytest.raises(ValueError, match="changed since `tool do` wrote it"):
         check_replaceable(out, "--out", "tool do")
+
+
+# ------------------------------------------------------------------------------ 7. the first run as a newcomer
+def test_warp_says_nothing_about_a_missing_cuda_driver():
+    """Every command imports the rasteriser; on a CPU machine Warp's native notice must not greet the user."""
+    run = subprocess.run([sys.executable, "-c", "import scenesplat_stereo.raster._warp as w; import warp as wp; "
+                          "print(wp.get_device('cpu'))"], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])})
+    assert run.returncode == 0 and run.stdout.strip() == "cpu", run.stderr
+    assert "Could not find or load the NVIDIA CUDA driver" not in run.stderr, run.stderr

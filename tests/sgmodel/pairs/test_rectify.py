@@ -227,10 +227,16 @@ def test_rectify_command_writes_the_pair_and_a_k_txt_that_reads_back(raw_rig, tm
     err = capsys.readouterr().err
     assert err.startswith("sgmodel rectify: error: --right") and len(err.strip().splitlines()) == 1
     assert not bad.exists()
-    # OUT is replaced as a whole on a second run; a folder another command wrote is refused and left as it was.
-    (out / "K.txt").write_text("stale")
+    # OUT is replaced as a whole on a second run, unless a file in it changed since (the user's edit is kept); a
+    # folder another command wrote is refused and left as it was.
     rerun = ["rectify", "--left", str(r.folder / "left.png"), "--right", str(r.folder / "right.png"),
              "--rig", str(r.folder / "intrinsics.yml"), str(r.folder / "extrinsics.yml")]
+    written = (out / "K.txt").read_bytes()
+    (out / "K.txt").write_text("edited")
+    assert main(rerun + ["--out", str(out)]) == 2
+    assert "holds 'K.txt', changed since `sgmodel rectify` wrote it" in capsys.readouterr().err
+    assert (out / "K.txt").read_text() == "edited"
+    (out / "K.txt").write_bytes(written)  # put back as the command wrote it: OUT is all its own again
     assert main(rerun + ["--out", str(out)]) == 0
     assert read_calib(out / "K.txt").baseline == rect.baseline
     capsys.readouterr()
