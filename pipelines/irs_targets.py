@@ -302,6 +302,7 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
     from tqdm import tqdm
 
     from scenesplat_stereo.build.protocol import split_scenes
+    from scenesplat_stereo.common.commandline import quiet_worker_interrupts
     from scenesplat_stereo.common.files import OwnedFolder, atomic_write_json, check_apart, check_replaceable
     from scenesplat_stereo.shards.encode_pool import SampleEncoder
     from scenesplat_stereo.shards.webdataset import (ShardWriter, collect_stats, finished_shards, remove_shard,
@@ -328,7 +329,8 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
     jobs = [(n, splits[n], Path(poses_dir) / n / "poses.json", rules, focal_baseline) for n in names]
     bar = dict(desc="select targets", unit="variant", disable=not progress)
     if workers > 1:
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=quiet_worker_interrupts) as pool:
             selections = list(tqdm(pool.map(_select, jobs), total=len(jobs), **bar))
     else:
         selections = [_select(j) for j in tqdm(jobs, **bar)]

@@ -45,6 +45,7 @@ build's folder, or a file of the user's added to an import, is refused), apart f
 from __future__ import annotations
 
 import argparse
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,7 +56,7 @@ from scenesplat_stereo.captured.colmap import image_size
 from scenesplat_stereo.captured.llff import read_poses_bounds
 from scenesplat_stereo.common.files import OwnedFolder, atomic_write_json, check_apart, check_replaceable
 from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
-from scenesplat_stereo.scene.cameras import right_camera, rotation_angle_deg
+from scenesplat_stereo.scene.cameras import baseline_doubt, right_camera, rotation_angle_deg
 from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
 from scenesplat_stereo.shards.encode import SampleImages, decode_image, encode_jpeg, encode_sample
 from scenesplat_stereo.shards.sample import SampleMeta, sample_key
@@ -64,6 +65,7 @@ from scenesplat_stereo.shards.webdataset import (ShardWriter, collect_stats, rem
 
 SUBSET = "StereoNVS"
 SPLIT = "test"
+log = logging.getLogger(__name__)
 OWNER = "scenesplat-stereo import stereonvs"  # recorded in OUT's manifest: a later import may replace OUT
 REPORT_NAME = "stereonvs.json"
 POSES_NAME = "poses_bounds.npy"
@@ -294,6 +296,10 @@ def import_stereonvs(root: Path, out: Path, baseline: float, scenes: list[str] |
             raise StereoNvsError(f"{flag} {value}: must be a finite number > 0")
     if samples_per_shard < 1:
         raise StereoNvsError(f"--samples-per-shard {samples_per_shard}: must be >= 1")
+    hint = "--baseline is in metres (StereoNVS-Real's rig: 0.12)"
+    doubt = baseline_doubt(baseline, f"--baseline {baseline:g}", hint, hint)
+    if doubt:
+        log.warning(doubt)
     check_apart(out, "--out", {"ROOT": root}, replaced=True)
     out = check_replaceable(out, "--out", OWNER)  # new, empty, or an earlier import with no file of anyone else
     parsed = [read_scene(f) for f in find_scenes(root, scenes)]

@@ -21,7 +21,8 @@ one exit status and at most one line on stderr, ``<command>: error: <what>``:
   too, its message names what it could not read), ``NotAvailable`` (a package or library that is not installed), every ``OSError`` (named with
   its file and what to do: a read-only folder, a full disk, a file where a folder is expected), and the
   error classes a command adds (``user_errors``, e.g. running out of GPU memory).
-* 130 (``EXIT_INTERRUPTED``): Ctrl-C (SIGINT); ``Interrupted`` carries what was kept (a rerun resumes).
+* 130 (``EXIT_INTERRUPTED``): Ctrl-C (SIGINT); ``Interrupted`` carries what was kept (a rerun resumes). Worker
+  processes of pools end silently (``quiet_worker_interrupts``, their initializer).
 * 1 (``EXIT_INTERNAL``): anything else is a bug, a ``ValueError`` no one raised on purpose included (unpacking,
   ``int()`` or ``list.index`` failing in our own code: ``our_bug``): one line naming the exception; the traceback only with
   ``--debug`` or ``STEREOGAUSSIANS_DEBUG=1`` (either also prints it for the errors above).
@@ -38,6 +39,7 @@ import importlib
 import linecache
 import logging
 import os
+import signal
 import sys
 import tarfile
 import traceback
@@ -115,6 +117,13 @@ def add_commands(parser: argparse.ArgumentParser, commands: tuple[Command, ...],
                            description=module.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(p)
         p.set_defaults(func=module.run)
+
+
+def quiet_worker_interrupts(*_) -> None:
+    """The initializer of every worker process of a pool (``ProcessPoolExecutor(initializer=...)``): Ctrl-C reaches
+    the whole process group; the command (the parent) ends with its one line (exit 130), and a worker ends at
+    once, silently, instead of printing a ``KeyboardInterrupt`` traceback of its own."""
+    signal.signal(signal.SIGINT, lambda *_: os._exit(EXIT_INTERRUPTED))
 
 
 def debugging(args: argparse.Namespace | None = None) -> bool:

@@ -29,6 +29,24 @@ from sgmodel.cli import main as sgmodel
 from tests.support.bad_input import refusal, snapshots, tiny_teacher
 
 
+class caplog_warnings:
+    """``with caplog_warnings() as lines:`` the messages of the warnings logged meanwhile (any logger)."""
+
+    def __enter__(self) -> list[str]:
+        import logging
+
+        self.lines: list[str] = []
+        self.handler = logging.Handler(logging.WARNING)
+        self.handler.emit = lambda record: self.lines.append(record.getMessage())
+        logging.getLogger().addHandler(self.handler)
+        return self.lines
+
+    def __exit__(self, *exc) -> None:
+        import logging
+
+        logging.getLogger().removeHandler(self.handler)
+
+
 def refused(main, argv: list, capsys, message: str, *folders: Path) -> None:
     """``main(argv)`` exits 2 with one line holding ``message`` and leaves every file under ``folders`` as it was."""
     before = snapshots(*folders)
@@ -281,6 +299,75 @@ def test_predict_refuses_a_scene_format_for_a_video_without_scenes(pair, capsys)
             "--format spz: a video writes scene files only with --frames", pair)
 
 
+# ------------------------------------------------------------------------------ 3. one plausibility check
+@pytest.mark.parametrize("baseline,word", [("120", "long"), ("0.0005", "short")])
+def test_predict_baseline_flag_in_another_unit_is_named(pair, capsys, baseline, word):
+    """--baseline in millimetres (120) or a typo (0.0005): one warning naming the flag and its unit (a warning, not a
+    refusal: a 3 m rig exists)."""
+    from sgmodel.pairs.calib import calib_from_flags
+
+    with caplog_warnings() as lines:
+        calib_from_flags("50,50,24,16", baseline)
+    assert lines == [f"--baseline: a baseline of {float(baseline):.4g} m is {word} for a stereo rig "
+                     f"({'up to 2 m is usual' if word == 'long' else '3 mm or more is usual'}): --baseline is in "
+                     f"metres (120 mm is --baseline 0.12)"]
+
+
+def test_calib_files_check_their_baseline_in_their_unit(tmp_path):
+    from sgmodel.pairs.calib import read_calib
+
+    (tmp_path / "K.txt").write_text("50 0 24 0 50 16 0 0 1\n120\n")  # millimetres in FoundationStereo's metres
+    (tmp_path / "calib.txt").write_text("cam0=[50 0 24; 0 50 16; 0 0 1]\nbaseline=0.193\n")  # metres, not mm
+    with caplog_warnings() as lines:
+        assert read_calib(tmp_path / "K.txt").baseline == 120.0
+        assert read_calib(tmp_path / "calib.txt").baseline == pytest.approx(0.000193)
+    assert "line 2 (baseline): a baseline of 120 m is long" in lines[0] and "line 2 is in metres" in lines[0]
+    assert "baseline=0.193" not in lines[1] and "is short" in lines[1] and "baseline= is in millimetres" in lines[1]
+
+
+def test_import_stereonvs_baseline_in_millimetres_is_named(stereonvs_scenes, tmp_path, capsys):
+    root = stereonvs_scenes[0].folder.parent
+    rc, err = refusal(toolkit, ["import", "stereonvs", root, "--out", tmp_path / "o", "--baseline", "120",
+                                "--scenes", "nope"], capsys)
+    assert rc == 2 and "warning: --baseline 120: a baseline of 120 m is long" in err
+    assert "--baseline is in metres" in err and not (tmp_path / "o").exists()
+
+
+def test_a_pair_of_ros_camera_info_files_is_named_as_such(pair, capsys):
+    for side in ("left", "right"):
+        (pair / f"{side}.yaml").write_text(
+            "image_width: 48\nimage_height: 32\ncamera_name: " + side + "\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+            "  data: [50, 0, 24, 0, 50, 16, 0, 0, 1]\ndistortion_model: plumb_bob\ndistortion_coefficients:\n"
+            "  rows: 1\n  cols: 5\n  data: [0, 0, 0, 0, 0]\nprojection_matrix:\n  rows: 3\n  cols: 4\n"
+            "  data: [50, 0, 24, 0, 0, 50, 16, 0, 0, 0, 1, 0]\n")
+    refused(sgmodel, ["rectify", "--left", pair / "l.png", "--right", pair / "r.png", "--rig", pair / "left.yaml",
+                      pair / "right.yaml", "--out", pair / "rect"], capsys,
+            "right.yaml are ROS camera_info files (one camera each, from camera_calibration): they hold no stereo "
+            "extrinsics", pair)
+
+
+def fake_matches(dy: float, dx: float, n: int = 60):
+    """Matched points (left, right) with vertical disparity ``dy`` varying across the image and disparity ``dx``."""
+    rng = np.random.default_rng(1)
+    p1 = rng.uniform(0, 100, (n, 2))
+    p2 = p1 + np.stack([-dx * np.ones(n), dy * (p1[:, 0] / 50 - 1)], axis=1)
+    return p1, p2
+
+
+@pytest.mark.parametrize("rectified_here,dy,expected", [
+    (True, 8.0, "the calibration that rectified them does not fit these images"),
+    (False, 8.0, "the pair is not rectified is the likelier cause than swapped images"),
+    (False, 0.0, "the left and right images are probably swapped"),
+])
+def test_negative_disparity_with_vertical_disparity_is_not_called_swapped(monkeypatch, rectified_here, dy, expected):
+    from sgmodel.pairs import stereo_check
+
+    monkeypatch.setattr(stereo_check, "matches", lambda *a, **k: fake_matches(dy, -5.0))
+    check = stereo_check.measure(None, None, rectified_here=rectified_here)
+    assert expected in check.warnings[-1], check.warnings
+    assert ("swapped (--left" in check.warnings[-1]) == (dy == 0.0)
+
+
 # ------------------------------------------------------------------------------ 4. our bug is not bad input
 def in_our_package(tmp_path: Path, source: str):
     """A function whose code lives in a module of ours (``sgmodel.fake``, source in a real file for linecache)."""
@@ -364,3 +451,36 @@ def test_warp_says_nothing_about_a_missing_cuda_driver():
                          env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])})
     assert run.returncode == 0 and run.stdout.strip() == "cpu", run.stderr
     assert "Could not find or load the NVIDIA CUDA driver" not in run.stderr, run.stderr
+
+
+# ------------------------------------------------------------------------------ 6. Ctrl-C
+CTRL_C_IN_A_POOL = """
+import os, signal, sys, time
+from concurrent.futures import ProcessPoolExecutor
+import multiprocessing
+from scenesplat_stereo.common.commandline import Parser, quiet_worker_interrupts, run_command
+
+def work(_):
+    return 1
+
+def command(args):
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=quiet_worker_interrupts) as pool:
+        [pool.submit(work, i).result() for i in range(2)]  # the workers now wait for work (where Ctrl-C hurts)
+        time.sleep(1)
+        os.killpg(0, signal.SIGINT)  # what Ctrl-C in a terminal does: the whole process group
+        time.sleep(20)
+
+if __name__ == "__main__":
+    os.setpgrp()
+    p = Parser(prog="tool")
+    p.set_defaults(func=command)
+    sys.exit(run_command(p, []))
+"""
+
+
+def test_ctrl_c_ends_a_command_with_pool_workers_in_one_line(tmp_path):
+    (tmp_path / "ctrl_c.py").write_text(CTRL_C_IN_A_POOL)
+    run = subprocess.run([sys.executable, str(tmp_path / "ctrl_c.py")], capture_output=True, text=True, timeout=60,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])})
+    assert run.returncode == 130 and run.stderr.strip() == "tool: interrupted", run.stderr
