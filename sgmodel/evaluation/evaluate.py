@@ -150,6 +150,8 @@ def benchmark_flag(text: str) -> tuple[str, Path]:
     """``--data [NAME=]PATH``: a benchmark's name (default: its folder's name) and folder (a path that holds
     '=' needs a NAME)."""
     name, _, path = text.partition("=") if "=" in text else ("", "", text)
+    if not path:  # Path("") is the current folder: never evaluate that by accident
+        raise argparse.ArgumentTypeError(f"--data {text!r}: no PATH (give [NAME=]PATH)")
     path = Path(path)
     return (name or path.resolve().name), path
 

@@ -358,7 +358,7 @@ def fake_matches(dy: float, dx: float, n: int = 60):
     (True, 8.0, "the calibration that rectified them does not fit these images"),
     (False, 8.0, "the pair is not rectified is the likelier cause than swapped images"),
     (False, 0.0, "the left and right images are probably swapped"),
-])
+], ids=["rectified here", "not rectified", "swapped"])
 def test_negative_disparity_with_vertical_disparity_is_not_called_swapped(monkeypatch, rectified_here, dy, expected):
     from sgmodel.pairs import stereo_check
 
@@ -366,6 +366,13 @@ def test_negative_disparity_with_vertical_disparity_is_not_called_swapped(monkey
     check = stereo_check.measure(None, None, rectified_here=rectified_here)
     assert expected in check.warnings[-1], check.warnings
     assert ("swapped (--left" in check.warnings[-1]) == (dy == 0.0)
+
+
+# ------------------------------------------------------------------------------ 4. degenerate input
+@pytest.mark.parametrize("data", ["bench=", ""])
+def test_eval_data_without_a_path_is_not_the_current_folder(tmp_path, capsys, data):
+    refused(sgmodel, ["eval", "--data", data, "--out", tmp_path / "report", "--method", "naive-gs"], capsys,
+            f"--data {data!r}: no PATH (give [NAME=]PATH)", tmp_path)
 
 
 # ------------------------------------------------------------------------------ 4. our bug is not bad input
@@ -382,7 +389,7 @@ def in_our_package(tmp_path: Path, source: str):
     ("def f():\n    a, b = [1, 2, 3]\n", 1, "internal error: ValueError: too many values to unpack"),
     ("def f():\n    return int('x1')\n", 1, "internal error: ValueError: invalid literal for int()"),
     ("def f():\n    raise ValueError(\n        '--n 3: must be < 2')\n", 2, "error: --n 3: must be < 2"),
-])
+], ids=["implicit unpacking", "implicit int()", "raise statement"])
 def test_a_value_error_of_our_own_bug_is_internal_and_a_refusal_is_bad_input(tmp_path, capsys, source, code,
                                                                             message):
     from scenesplat_stereo.common.commandline import Parser, run_command
