@@ -14,18 +14,18 @@ A command line is a table (``Command``): each entry names a sub-command and the 
 one exit status and at most one line on stderr, ``<command>: error: <what>``:
 
 * 0: done.
-* 2 (``EXIT_USAGE``): bad arguments or input, which the user fixes: argparse's refusals, every
-  ``ValueError`` a command raises on purpose (each module raises its own subclass, or a ``ValueError`` in a
-  ``raise`` statement, naming the flag, or the file and the field: JSON that does not parse, a truncated shard
-  member, a checkpoint of another version, a CUDA device that is not there; a library's ``ValueError`` counts
-  too, its message names what it could not read), ``NotAvailable`` (a package or library that is not installed), every ``OSError`` (named with
-  its file and what to do: a read-only folder, a full disk, a file where a folder is expected), and the
-  error classes a command adds (``user_errors``, e.g. running out of GPU memory).
+* 2 (``EXIT_USAGE``): bad arguments or input, which the user fixes: argparse's refusals, every ``ValueError`` a
+  command raises on purpose (each module raises its own subclass, or a ``ValueError`` in a ``raise`` statement,
+  naming the flag, or the file and the field: JSON that does not parse, a truncated shard member, a checkpoint of
+  another version, a CUDA device that is not there; a library's ``ValueError`` counts too, its message names what
+  it could not read), ``NotAvailable`` (a package or library that is not installed), every ``OSError`` (named with
+  its file and what to do: a read-only folder, a full disk, a file where a folder is expected), and the error
+  classes a command adds (``user_errors``, e.g. running out of GPU memory).
 * 130 (``EXIT_INTERRUPTED``): Ctrl-C (SIGINT); ``Interrupted`` carries what was kept (a rerun resumes). Worker
   processes of pools end silently (``quiet_worker_interrupts``, their initializer).
 * 1 (``EXIT_INTERNAL``): anything else is a bug, a ``ValueError`` no one raised on purpose included (unpacking,
-  ``int()`` or ``list.index`` failing in our own code: ``our_bug``): one line naming the exception; the traceback only with
-  ``--debug`` or ``STEREOGAUSSIANS_DEBUG=1`` (either also prints it for the errors above).
+  ``int()`` or ``list.index`` failing in our own code: ``our_bug``): one line naming the exception; the traceback
+  only with ``--debug`` or ``STEREOGAUSSIANS_DEBUG=1`` (either also prints it for the errors above).
 
 Warnings go through ``logging`` (``log = logging.getLogger(__name__)``; ``log.warning(...)``): while a
 command runs they print as ``<command>: warning: <what>`` on stderr.

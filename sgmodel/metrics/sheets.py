@@ -1,12 +1,13 @@
 """Contact sheets: what the model learned, as pictures a person can look at.
 
-Validation (``validation_sheet``): one row per sample, the left input and its stereo depth (colour-mapped),
-then for each of its first ``SHEET_TARGETS`` targets: the target, the render of the run's first validation
-(step 0 of a new run), the render now, and the error now (|render - target| averaged over channels, times
-``ERROR_GAIN``, inferno: black = right); each caption gives the PSNR then and now, so the picture shows what
-the numbers say. Tiles smaller than ``MIN_TILE`` pixels on their short side (cpu-small trains at 64x64) are
-enlarged by whole pixels (nearest neighbour: nothing is smoothed away). Labels are drawn with OpenCV; the PNG is encoded by ``scenesplat_stereo.shards.encode`` (the one owner
-of image files). Used by validation during training and by ``sgmodel eval`` (worst and best targets).
+Validation (``validation_sheet``): one row per sample, the left input and its stereo depth (colour-mapped), then for
+each of its first ``SHEET_TARGETS`` targets: the target, the render of the run's first validation (step 0 of a new
+run), the render now, and the error now (|render - target| averaged over channels, times ``ERROR_GAIN``, inferno:
+black = right); each caption gives the PSNR then and now, so the picture shows what the numbers say. Tiles smaller
+than ``MIN_TILE`` pixels on their short side (cpu-small trains at 64x64) are enlarged by whole pixels (nearest
+neighbour: nothing is smoothed away). Labels are drawn with OpenCV; the PNG is encoded by
+``scenesplat_stereo.shards.encode`` (the one owner of image files). Used by validation during training and by
+``sgmodel eval`` (worst and best targets).
 """
 
 from __future__ import annotations

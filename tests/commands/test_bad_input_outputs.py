@@ -117,6 +117,15 @@ def test_eval_keeps_a_file_the_user_added_to_an_earlier_report(demo_dataset, tmp
             "holds files not written by `sgmodel eval` (e.g. 'notes.txt')", tmp_path, demo_dataset)
 
 
+def test_eval_table_keeps_a_file_the_user_added(demo_dataset, tmp_path, capsys):
+    out = tmp_path / "tables"
+    out.mkdir()
+    (out / "notes.md").write_text("the user's notes")
+    refused(sgmodel, ["eval", "--data", f"a={demo_dataset}", "--data", f"b={demo_dataset}", "--out", out, "--method",
+                      "naive-gs", "--encoder", "sgbm", "--device", "cpu", "--no-progress"], capsys,
+            "holds files not written by `sgmodel eval` (e.g. 'notes.md')", tmp_path, demo_dataset)
+
+
 def test_rectify_keeps_a_file_the_user_added(pair, capsys):
     out = earlier_output(pair / "rect", "sgmodel rectify", ("left.png", "right.png"))
     refused(sgmodel, ["rectify", "--left", pair / "l.png", "--right", pair / "r.png", "--rig", pair / "K.txt",
