@@ -342,6 +342,13 @@ def test_import_stereonvs_baseline_in_millimetres_is_named(stereonvs_scenes, tmp
     assert "--baseline is in metres" in err and not (tmp_path / "o").exists()
 
 
+def test_build_baseline_in_millimetres_is_named(tmp_path, capsys):
+    rc, err = refusal(toolkit, ["build", "--teachers", tmp_path / "none", "--out", tmp_path / "o", "--baseline",
+                                "100", "--device", "cpu"], capsys)
+    assert rc == 2 and "warning: --baseline 100: a baseline of 100 m is long for a stereo rig" in err, err
+    assert "--baseline is in the teachers' world units" in err and not (tmp_path / "o").exists()
+
+
 def test_a_pair_of_ros_camera_info_files_is_named_as_such(pair, capsys):
     for side in ("left", "right"):
         (pair / f"{side}.yaml").write_text(
