@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from scenesplat_stereo.captured.colmap import PinholeCamera, Recovery, RecoveryOptions, image_size, recover_poses
+from scenesplat_stereo.common.commandline import quiet_worker_interrupts
 from scenesplat_stereo.common.files import atomic_write_json
 from scenesplat_stereo.common.text import format_table, key_safe_name
 from scenesplat_stereo.scene.cameras import right_camera
@@ -326,7 +327,7 @@ def run_dataset(root: Path, cfg: VariantConfig, workers: int = 1, progress: bool
             bar.update()
     else:
         ctx = multiprocessing.get_context("spawn")  # COLMAP runs threads; never fork a process that has them
-        with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=quiet_worker_interrupts) as pool:
             futures = {pool.submit(_run_one, (root, f, cfg)): f for f in todo}
             for fut in as_completed(futures):
                 try:

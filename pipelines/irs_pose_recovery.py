@@ -34,15 +34,18 @@ import tempfile
 from pathlib import Path
 
 from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION_ERROR, MAX_SCALE_IQR_FRACTION,
-                           MIN_REGISTERED_FRAMES, Filters, VariantConfig, run_dataset, summary_table)
+                           MIN_REGISTERED_FRAMES, Filters, VariantConfig, find_variants, run_dataset,
+                           summary_table)
 from scenesplat_stereo.captured.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera, RecoveryOptions,
                                                image_size, recover_poses, recovery_json)
 from scenesplat_stereo.common.commandline import Parser, run_command
-from scenesplat_stereo.common.files import atomic_write_json, check_writable
+from scenesplat_stereo.common.files import (OwnedFolder, atomic_write_json, check_apart, check_replaceable,
+                                            check_writable)
 from scenesplat_stereo.common.text import argtype, parse_size, positive_number, whole_number
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 PROG = "irs-pose-recovery"  # the installed command (pyproject.toml [project.scripts])
+OWNER = PROG  # recorded in OUT's manifest: a later run may resume or replace what it wrote there
 
 
 def _colmap_arguments(p: argparse.ArgumentParser) -> None:
@@ -118,6 +121,9 @@ def run_recover(args: argparse.Namespace) -> int:
         raise ValueError(f"--images {args.images}: no images ({', '.join(IMAGE_SUFFIXES)})")
     camera = PinholeCamera.parse(args.intrinsics, *image_size(images[0]))
     check_writable(Path(args.out).parent, "--out", create=False)
+    check_apart(args.out, "--out", {"--images": args.images, "--work-dir": args.work_dir})
+    if args.work_dir is not None:
+        check_apart(args.work_dir, "--work-dir", {"--images": args.images})
     with tempfile.TemporaryDirectory(prefix="colmap-") as tmp:
         recovery = recover_poses(images, camera, args.work_dir or Path(tmp), _options(args))
     atomic_write_json(args.out, recovery_json(recovery, [p.name for p in images]))
@@ -130,11 +136,16 @@ def run_dataset_cli(args: argparse.Namespace) -> int:
     camera = IRS_CAMERA
     if args.image_size is not None:
         camera = IRS_CAMERA.scaled(*args.image_size)
-    cfg = VariantConfig(out=args.out, camera=camera, focal_baseline=args.focal_baseline,
+    if not find_variants(args.root):  # nothing to do is not a success: the user expected poses
+        raise ValueError(f"DATASET_ROOT {args.root}: no IRS variant (no folder holding l_<n>.png images); give the "
+                         f"folder of the IRS download")
+    out = check_replaceable(args.out, "--out", OWNER)
+    check_apart(out, "--out", {"ROOT": args.root}, replaced=True)
+    cfg = VariantConfig(out=out, camera=camera, focal_baseline=args.focal_baseline,
                         filters=Filters(args.min_registered, args.max_reprojection_error, args.max_scale_iqr),
                         options=_options(args), keep_colmap=args.keep_colmap)
-    check_writable(args.out, "--out")
-    reports = run_dataset(args.root, cfg, workers=args.workers, progress=not args.no_progress)
+    with OwnedFolder(out, OWNER):  # what it holds is recorded as this command's, however it ends (a rerun resumes)
+        reports = run_dataset(args.root, cfg, workers=args.workers, progress=not args.no_progress)
     print(summary_table(reports))
     return 0
 

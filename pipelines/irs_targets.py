@@ -56,6 +56,7 @@ TARGET_COVERAGE_GOAL = 0.8  # targets ranked by |coverage - 0.8|
 MAX_TARGETS = 8
 TRAIN_MIN_TARGETS = 4  # training pairs have at least four targets
 VAL_VARIANTS = 8  # validation scene variants (55 training + 8 validation)
+OWNER = "irs-targets"  # recorded in OUT's manifest: a later run may replace what it wrote there
 IRS_SUBSET = "IRS"
 # Not from the paper: the reference depth map is sampled every DEPTH_STRIDE pixels (pixel centres) to
 # estimate the coverage fraction (1 = every pixel).
@@ -301,7 +302,8 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
     from tqdm import tqdm
 
     from scenesplat_stereo.build.protocol import split_scenes
-    from scenesplat_stereo.common.files import atomic_write_json, check_writable
+    from scenesplat_stereo.common.commandline import quiet_worker_interrupts
+    from scenesplat_stereo.common.files import OwnedFolder, atomic_write_json, check_apart, check_replaceable
     from scenesplat_stereo.shards.encode_pool import SampleEncoder
     from scenesplat_stereo.shards.webdataset import (ShardWriter, collect_stats, finished_shards, remove_shard,
                                                      write_index, write_stats)
@@ -321,36 +323,39 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
                              f"whitespace or '__'); rename the folder (e.g. {key_safe_name(n)!r})")
     for n in names:
         read_poses(Path(poses_dir) / n / "poses.json")  # every input checked before anything is removed
-    check_writable(out, "--out")
+    out = check_replaceable(out, "--out", OWNER)
+    check_apart(out, "--out", {"POSES_DIR": poses_dir}, replaced=True)
     splits = split_scenes({IRS_SUBSET: names}, {IRS_SUBSET: val_variants})
     jobs = [(n, splits[n], Path(poses_dir) / n / "poses.json", rules, focal_baseline) for n in names]
     bar = dict(desc="select targets", unit="variant", disable=not progress)
     if workers > 1:
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=quiet_worker_interrupts) as pool:
             selections = list(tqdm(pool.map(_select, jobs), total=len(jobs), **bar))
     else:
         selections = [_select(j) for j in tqdm(jobs, **bar)]
-    rows = []
-    for split in ("train", "val"):
-        chosen = [(s, r) for s in selections if s.split == split
-                  for r in split_samples(s.references, split, min_targets)]
-        for number in finished_shards(out, split):
-            remove_shard(out, split, number)
-        with ShardWriter(out, split, samples_per_shard) as writer, \
-                SampleEncoder(writer.add, workers=max(1, workers)) as encoder:
-            for sel, ref in tqdm(chosen, desc=f"{split} shards", unit="pair", disable=not progress):
-                encoder.submit(sample_images(sel, ref))
-        write_index(out, split)
-        for s in (s for s in selections if s.split == split):
-            stored = [r for sel, r in chosen if sel is s]
-            cov = [t.coverage for r in stored for t in r.targets]
-            rows.append({"variant": s.name, "split": split, "registered": len(s.poses["frames"]),
-                         "references": len(s.references), "pairs": len(stored),
-                         "targets": sum(len(r.targets) for r in stored),
-                         "mean_coverage": float(np.mean(cov)) if cov else None})
-    write_stats(out, collect_stats(out))
-    atomic_write_json(Path(out) / "irs_selection.json", {"rules": asdict(rules),
-                                                         "min_targets": min_targets, "variants": rows})
+    with OwnedFolder(out, OWNER):  # every file it holds is recorded as this command's, however it ends
+        rows = []
+        for split in ("train", "val"):
+            chosen = [(s, r) for s in selections if s.split == split
+                      for r in split_samples(s.references, split, min_targets)]
+            for number in finished_shards(out, split):
+                remove_shard(out, split, number)
+            with ShardWriter(out, split, samples_per_shard) as writer, \
+                    SampleEncoder(writer.add, workers=max(1, workers)) as encoder:
+                for sel, ref in tqdm(chosen, desc=f"{split} shards", unit="pair", disable=not progress):
+                    encoder.submit(sample_images(sel, ref))
+            write_index(out, split)
+            for s in (s for s in selections if s.split == split):
+                stored = [r for sel, r in chosen if sel is s]
+                cov = [t.coverage for r in stored for t in r.targets]
+                rows.append({"variant": s.name, "split": split, "registered": len(s.poses["frames"]),
+                             "references": len(s.references), "pairs": len(stored),
+                             "targets": sum(len(r.targets) for r in stored),
+                             "mean_coverage": float(np.mean(cov)) if cov else None})
+        write_stats(out, collect_stats(out))
+        atomic_write_json(Path(out) / "irs_selection.json", {"rules": asdict(rules),
+                                                             "min_targets": min_targets, "variants": rows})
     return rows
 
 

@@ -17,9 +17,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -27,15 +24,17 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo.build.protocol import TIERS
-from scenesplat_stereo.common.files import atomic_write_json
+from scenesplat_stereo.common.files import StagedFolder, atomic_write_json, check_replaceable
 from scenesplat_stereo.common.text import argtype, parse_size, whole_number
 from scenesplat_stereo.scene.cameras import OPENGL_TO_OPENCV, intrinsics_matrix, look_at
 from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
 from scenesplat_stereo.scene.ply import SH_C0
 
 ROOM_SIZE = (4.0, 5.0, 2.6)  # metres: x width, y depth, z height
+MIN_GAUSSIANS = 2000  # per room: fewer leave holes in its walls
 DEFAULT_NUM_GAUSSIANS = 36_000  # per room: a 256x192 build of 4 rooms stays a few minutes on 2 CPU cores
 DEMO_SUBSET = "demo"
+OWNER = "scenesplat-stereo demo-teachers"  # recorded in each room's manifest: a later run may replace the room
 _SURFACE_SHARE, _FURNITURE_SHARE = 0.68, 0.26  # of the Gaussians; thin structures get the rest
 _THICKNESS = 0.004  # m, the thin axis of a surface Gaussian
 _SH_TINT = (0.10, 0.05, 0.025)  # amplitude of the view-dependent tint per SH band 1..3
@@ -212,8 +211,8 @@ def make_room(seed: int, sh_degree: int = 0, num_gaussians: int = DEFAULT_NUM_GA
     """
     if not 0 <= sh_degree <= 3:
         raise ValueError(f"make_room: sh_degree must be in 0..3, got {sh_degree}")
-    if num_gaussians < 2000:
-        raise ValueError(f"make_room: num_gaussians must be >= 2000 to cover the room, got {num_gaussians}")
+    if num_gaussians < MIN_GAUSSIANS:
+        raise ValueError(f"make_room: num_gaussians must be >= {MIN_GAUSSIANS} to cover the room, got {num_gaussians}")
     rng = np.random.default_rng(seed)
     w, d, h = size
     b = _Builder(rng)
@@ -324,10 +323,12 @@ def write_demo_teachers(out: Path, n_scenes: int = 4, seed: int = 0, num_gaussia
     holds ``n_frames`` poses of ``room_trajectory`` at ``width`` x ``height`` pixels (horizontal field of
     view ``fov_x_deg``, principal point at the centre), in OpenGL axes for even i and OpenCV for odd i;
     ``scene.json`` states the convention (for i % 4 == 3 the transforms file states it too). Each scene
-    is written in a hidden temporary folder and moved into place, replacing an older one.
+    is written in a hidden temporary folder and moved into place, replacing an older one (only one this command
+    wrote: ``common.files.check_replaceable``, for every room before the first is written).
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    for i in range(n_scenes):  # every folder it replaces holds only an earlier run's files, checked before writing
+        check_replaceable(out / f"demo_room_{i:02d}", "OUT", OWNER)
     fx = 0.5 * width / math.tan(math.radians(0.5 * fov_x_deg))
     K = intrinsics_matrix(fx, fx, 0.5 * width, 0.5 * height)
     folders = []
@@ -348,19 +349,12 @@ def write_demo_teachers(out: Path, n_scenes: int = 4, seed: int = 0, num_gaussia
         if i % 4 == 3:
             transforms["camera_convention"] = convention
         final = out / f"demo_room_{i:02d}"
-        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=out))
-        try:
+        with StagedFolder(final, OWNER) as tmp:  # replaces an earlier demo room as a whole, or nothing
             save_ply(room, tmp / "point_cloud.ply")
             atomic_write_json(tmp / "transforms.json", transforms, indent=2)
             atomic_write_json(tmp / "scene.json", {"psnr": psnr, "subset": DEMO_SUBSET, "camera_convention": convention,
-                                                         "generator": f"scenesplat_stereo.build.demo seed={seed} scene={i}"}, indent=2)
-            os.chmod(tmp, 0o755)
-            if final.exists():
-                shutil.rmtree(final)
-            os.replace(tmp, final)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
+                                                   "generator": f"scenesplat_stereo.build.demo seed={seed} scene={i}"},
+                              indent=2)
         folders.append(final)
     return folders
 
@@ -369,8 +363,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", type=Path, help="output folder; one sub-folder per scene")
     p.add_argument("--scenes", type=whole_number("--scenes"), default=4, help="number of scenes (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
-    p.add_argument("--gaussians", type=whole_number("--gaussians"), default=DEFAULT_NUM_GAUSSIANS,
-                   help=f"Gaussians per room (default {DEFAULT_NUM_GAUSSIANS})")
+    p.add_argument("--gaussians", type=whole_number("--gaussians", MIN_GAUSSIANS),
+                   default=DEFAULT_NUM_GAUSSIANS, help=f"Gaussians per room (default {DEFAULT_NUM_GAUSSIANS}, at least "
+                   f"{MIN_GAUSSIANS})")
     p.add_argument("--frames", type=whole_number("--frames"), default=12, help="trajectory frames per scene (default 12)")
     p.add_argument("--size", type=argtype(parse_size, "--size"), default="256x192", metavar="WxH",
                    help="native image size in pixels (default 256x192)")

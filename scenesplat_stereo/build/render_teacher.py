@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, check_apart, check_replaceable
 from scenesplat_stereo.common.text import argtype, parse_size, whole_number
 from scenesplat_stereo.raster import check_device, rasterization, tile_size_for
 from scenesplat_stereo.scene.cameras import scale_intrinsics, viewmats_from_c2w
@@ -29,11 +29,14 @@ from scenesplat_stereo.scene.teachers import (OrbitSpec, Teacher, discover_teach
                                               scene_file_teacher)
 from scenesplat_stereo.shards.encode import encode_png
 
+OWNER = "scenesplat-stereo render"  # recorded in OUT's manifest: a later render may replace OUT as a whole
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("source", type=Path, help="a teacher folder, or a scene file (.ply, .compressed.ply, .spz, .sog, "
                    "meta.json, lod-meta.json, .splat; then --orbit is used)")
-    p.add_argument("--out", type=Path, required=True, help="output folder for frame_<k>.png")
+    p.add_argument("--out", type=Path, required=True, help="output folder for frame_<k>.png (replaced as a whole: new, empty or an "
+                   "earlier render's)")
     p.add_argument("--orbit", type=argtype(OrbitSpec.parse, "--orbit"),
                    default="radius=6,frames=8,size=640x480",
                    help="orbit for a scene file or a teacher without trajectory: 'radius=R,frames=N,elevation=DEG,"
@@ -70,8 +73,8 @@ def _teacher_for(source: Path, orbit: OrbitSpec) -> Teacher:
 
 def run(args: argparse.Namespace) -> int:
     """CLI entry: an unusable input raises a ValueError naming the flag or file before anything is written."""
-    if args.out.exists() and not args.out.is_dir():
-        raise ValueError(f"--out {args.out}: exists and is not a folder")
+    check_replaceable(args.out, "--out", OWNER)  # new, empty, or an earlier render's files only
+    check_apart(args.out, "--out", {"SOURCE": args.source}, replaced=True)
     teacher = _teacher_for(args.source, args.orbit)
     scene = load_scene(teacher.ply_path, lod=args.lod)
     teacher = resolve_trajectory(teacher, scene.means)
@@ -84,9 +87,8 @@ def run(args: argparse.Namespace) -> int:
     g = scene.to_torch(args.device)
     viewmats = torch.tensor(viewmats_from_c2w(c2w), dtype=torch.float32, device=args.device)
     Ks_t = torch.tensor(Ks, dtype=torch.float32, device=args.device)
-    args.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    with torch.no_grad(), tqdm(total=len(c2w), unit="frame", desc=teacher.scene_id) as bar:
+    with StagedFolder(args.out, OWNER) as tmp, torch.no_grad(), tqdm(total=len(c2w), unit="frame", desc=teacher.scene_id) as bar:
         for i in range(0, len(c2w), args.batch):
             img, alpha, _ = rasterization(
                 g["means"], g["quats"], g["scales"], g["opacities"], g["colors"], viewmats[i:i + args.batch],
@@ -94,9 +96,9 @@ def run(args: argparse.Namespace) -> int:
                 rasterize_mode=args.rasterize_mode, tile_size=tile_size_for(args.device),
             )
             for k in range(img.shape[0]):
-                atomic_write_bytes(args.out / f"frame_{i + k:04d}.png", encode_png(img[k].cpu().numpy()))
+                atomic_write_bytes(tmp / f"frame_{i + k:04d}.png", encode_png(img[k].cpu().numpy()))
                 if args.alpha:
-                    atomic_write_bytes(args.out / f"alpha_{i + k:04d}.png",
+                    atomic_write_bytes(tmp / f"alpha_{i + k:04d}.png",
                                        encode_png(alpha[k].cpu().numpy()))
             bar.update(img.shape[0])
     dt = time.perf_counter() - t0

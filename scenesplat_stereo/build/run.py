@@ -18,6 +18,7 @@ summary and skipped; the others go on, and the teacher's unfinished shard is rem
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 import warnings
@@ -33,8 +34,9 @@ from scenesplat_stereo.build.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_P
 from scenesplat_stereo.build.render_pairs import start_render, stream_samples
 from scenesplat_stereo.build.settings import SPLITS_OF_MODE, BuildSettings, add_arguments, settings_from_args
 from scenesplat_stereo.common.commandline import NotAvailable
-from scenesplat_stereo.common.files import read_json
+from scenesplat_stereo.common.files import check_apart, check_replaceable, read_json
 from scenesplat_stereo.common.text import format_table
+from scenesplat_stereo.scene.cameras import baseline_doubt
 from scenesplat_stereo.scene.scene_files import load_scene
 from scenesplat_stereo.scene.teachers import (Discovery, Rejection, Teacher, discover_teachers, resolve_trajectory,
                                               summary_table)
@@ -46,6 +48,8 @@ from scenesplat_stereo.shards.nvjpeg import NvJpegEncoder
 __all__ = ["BuildSettings", "BuildReport", "add_arguments", "build", "run", "settings_from_args", "summary"]
 
 BUILD_JSON = "build.json"
+log = logging.getLogger(__name__)
+OWNER = "scenesplat-stereo build"  # a folder holding BUILD_JSON is a build's (it resumes); any other must be empty
 EXIT_TEACHER_FAILED = 3  # exit status when some teachers failed at build time (the rest is complete)
 
 
@@ -301,6 +305,8 @@ def build(settings: BuildSettings) -> BuildReport:
     # Everything is checked (settings at construction, OUT, earlier settings, teachers, plans) before the
     # first write: a refused command leaves OUT as it was, so the corrected command is not refused.
     _check_out(settings.out)
+    check_replaceable(settings.out, "--out", OWNER, marker=BUILD_JSON)
+    check_apart(settings.out, "--out", {"--teachers": settings.teachers}, replaced=True)
     recorded = _check_fingerprint(settings)
     report, jobs, layout = plan_build(settings)
     Path(settings.out).mkdir(parents=True, exist_ok=True)
@@ -376,6 +382,12 @@ def summary(report: BuildReport) -> str:
 def run(args) -> int:
     """CLI entry: build, print the summary; exit 0, or ``EXIT_TEACHER_FAILED`` if some teacher failed. A refused
     input raises (nothing is written then); ``commandline.run_command`` makes it one line and exit 2."""
-    report = build(settings_from_args(args))
+    settings = settings_from_args(args)
+    if settings.baseline is not None:
+        hint = "--baseline is in the teachers' world units, metres for metric scenes (10 cm is --baseline 0.1)"
+        doubt = baseline_doubt(settings.baseline, f"--baseline {settings.baseline:g}", hint, hint)
+        if doubt:
+            log.warning(doubt)
+    report = build(settings)
     print(summary(report))
     return EXIT_TEACHER_FAILED if report.failed else 0

@@ -37,7 +37,8 @@ size, a single channel, its known values in 0 < d < W pixels).
 Images. A 3-channel JPEG is stored byte for byte, anything else (PNG, PPM) decoded and stored as JPEG quality
 92 (``stereonvs.image_as_jpeg``). Output: ``OUT/test/shard-*.tar``, ``index.json``, ``OUT/stats.json``,
 ``OUT/benchmark.json`` and ``OUT/multiview.json`` (per set: size, K, baseline, positions, groups, valid
-fractions). OUT must be new, empty or an earlier import of this kind (``shards.check_import_out``).
+fractions). OUT must be new, empty or an earlier import holding only this command's files
+(``common.files.check_replaceable``).
 """
 
 from __future__ import annotations
@@ -52,17 +53,17 @@ import numpy as np
 
 from scenesplat_stereo.captured.colmap import image_size
 from scenesplat_stereo.captured.stereonvs import image_as_jpeg
-from scenesplat_stereo.common.files import atomic_write_json, check_writable
+from scenesplat_stereo.common.files import OwnedFolder, atomic_write_json, check_apart, check_replaceable
 from scenesplat_stereo.common.text import argtype, format_table, key_safe_name, parse_number, positive_number
 from scenesplat_stereo.scene.cameras import LONG_BASELINE, intrinsics_matrix, translation
 from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
 from scenesplat_stereo.shards.encode import SampleImages, decode_image, encode_sample
 from scenesplat_stereo.shards.sample import SampleMeta, sample_key
-from scenesplat_stereo.shards.webdataset import (ShardWriter, check_import_out, collect_stats, remove_unplanned,
-                                                 write_index, write_stats)
+from scenesplat_stereo.shards.webdataset import ShardWriter, collect_stats, remove_unplanned, write_index, write_stats
 
 SUBSET = "multiview"
 SPLIT = "test"
+OWNER = "scenesplat-stereo import multiview"  # recorded in OUT's manifest: a later import may replace OUT
 REPORT_NAME = "multiview.json"
 DEFAULT_PAIR = (2, 6)  # the Middlebury 2001 sets' ground-truth pair
 DEFAULT_DISPARITY_SCALE = 8.0  # Middlebury 2001: disp<L>.png holds 8 x the disparity in pixels
@@ -300,23 +301,24 @@ def import_multiview(root: Path, out: Path, focal: float, baseline: float, pair:
     clash = sorted({p.line.name for p in plans if sum(q.line.name == p.line.name for q in plans) > 1})
     if clash:
         raise MultiviewError(f"ROOT {root}: set folders {clash} give the same sample-key name; rename one")
-    check_import_out(Path(out), SPLIT, REPORT_NAME)
-    check_writable(out, "--out")
-    remove_unplanned(out, SPLIT, set())  # the test shards of an earlier import
+    check_apart(out, "--out", {"ROOT": root}, replaced=True)
+    out = check_replaceable(out, "--out", OWNER)  # new, empty, or an earlier import with no file of anyone else
     rows, reencoded = [], 0
-    with ShardWriter(out, SPLIT, len(plans)) as writer:
-        for plan in plans:
-            members, again = sample_members(plan.line, plan.meta, pair[1], plan.masks)
-            writer.add(plan.meta.key, members)
-            reencoded += again
-            rows.append(_set_row(plan))
-    write_index(out, SPLIT)
-    write_stats(out, collect_stats(out))
-    write_benchmark(out, Benchmark(masked=False, source="captured", protocol=PROTOCOL))
-    report = {"root": str(Path(root).resolve()), "focal_px": focal, "baseline_m": baseline, "pair": list(pair),
-              "view_positions": positions, "disparity_scale": disparity_scale, "reencoded_images": reencoded,
-              "sets": rows}
-    atomic_write_json(Path(out) / REPORT_NAME, report)
+    with OwnedFolder(out, OWNER):  # every file it holds is recorded as this import's, however it ends
+        remove_unplanned(out, SPLIT, set())  # the test shards of an earlier import
+        with ShardWriter(out, SPLIT, len(plans)) as writer:
+            for plan in plans:
+                members, again = sample_members(plan.line, plan.meta, pair[1], plan.masks)
+                writer.add(plan.meta.key, members)
+                reencoded += again
+                rows.append(_set_row(plan))
+        write_index(out, SPLIT)
+        write_stats(out, collect_stats(out))
+        write_benchmark(out, Benchmark(masked=False, source="captured", protocol=PROTOCOL))
+        report = {"root": str(Path(root).resolve()), "focal_px": focal, "baseline_m": baseline, "pair": list(pair),
+                  "view_positions": positions, "disparity_scale": disparity_scale, "reencoded_images": reencoded,
+                  "sets": rows}
+        atomic_write_json(Path(out) / REPORT_NAME, report)
     return report
 
 

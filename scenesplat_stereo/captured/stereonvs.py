@@ -38,12 +38,14 @@ of a photograph is real, so the benchmark is measured over the full image (``OUT
 Output: ``OUT/test/shard-*.tar`` and ``index.json``, ``OUT/stats.json``, ``OUT/benchmark.json`` and
 ``OUT/stereonvs.json`` (per scene: sizes, K, scale, the pairs' spread, rectification angles, counts).
 Everything is read and checked (every image decoded) before the old test shards of OUT are removed; OUT
-must be new, empty or an earlier import (a build's folder is refused).
+must be new, empty or an earlier import holding only files it wrote (``common.files.check_replaceable``: a
+build's folder, or a file of the user's added to an import, is refused), apart from ROOT.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,17 +54,18 @@ from tqdm import tqdm
 
 from scenesplat_stereo.captured.colmap import image_size
 from scenesplat_stereo.captured.llff import read_poses_bounds
-from scenesplat_stereo.common.files import atomic_write_json, check_writable
+from scenesplat_stereo.common.files import OwnedFolder, atomic_write_json, check_apart, check_replaceable
 from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
-from scenesplat_stereo.scene.cameras import right_camera, rotation_angle_deg
+from scenesplat_stereo.scene.cameras import baseline_doubt, right_camera, rotation_angle_deg
 from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark
 from scenesplat_stereo.shards.encode import SampleImages, decode_image, encode_jpeg, encode_sample
 from scenesplat_stereo.shards.sample import SampleMeta, sample_key
-from scenesplat_stereo.shards.webdataset import (ShardWriter, check_import_out, collect_stats, remove_unplanned,
-                                                 write_index, write_stats)
+from scenesplat_stereo.shards.webdataset import ShardWriter, collect_stats, remove_unplanned, write_index, write_stats
 
 SUBSET = "StereoNVS"
 SPLIT = "test"
+log = logging.getLogger(__name__)
+OWNER = "scenesplat-stereo import stereonvs"  # recorded in OUT's manifest: a later import may replace OUT
 REPORT_NAME = "stereonvs.json"
 POSES_NAME = "poses_bounds.npy"
 SCALE_TOLERANCE = 0.05  # relative spread of the pairs' scales around their median (not from the paper)
@@ -292,6 +295,12 @@ def import_stereonvs(root: Path, out: Path, baseline: float, scenes: list[str] |
             raise StereoNvsError(f"{flag} {value}: must be a finite number > 0")
     if samples_per_shard < 1:
         raise StereoNvsError(f"--samples-per-shard {samples_per_shard}: must be >= 1")
+    hint = "--baseline is in metres (StereoNVS-Real's rig: 0.12)"
+    doubt = baseline_doubt(baseline, f"--baseline {baseline:g}", hint, hint)
+    if doubt:
+        log.warning(doubt)
+    check_apart(out, "--out", {"ROOT": root}, replaced=True)
+    out = check_replaceable(out, "--out", OWNER)  # new, empty, or an earlier import with no file of anyone else
     parsed = [read_scene(f) for f in find_scenes(root, scenes)]
     clash = sorted({s.name for s in parsed if sum(t.name == s.name for t in parsed) > 1})
     if clash:
@@ -303,27 +312,25 @@ def import_stereonvs(root: Path, out: Path, baseline: float, scenes: list[str] |
     images = [(s, p) for s, _, _ in plans for p in s.left + s.right]
     for scene, path in tqdm(images, desc="check images", unit="image", disable=not progress):
         image_as_jpeg(path, (scene.width, scene.height))  # every image decodes, before OUT is touched
-    check_import_out(Path(out), SPLIT, REPORT_NAME)
-    check_writable(out, "--out")
-    remove_unplanned(out, SPLIT, set())  # the test shards of an earlier import
-    rows, reencoded = [], 0
-    total = sum(len(samples) for _, _, samples in plans)
-    with ShardWriter(out, SPLIT, samples_per_shard) as writer, \
-            tqdm(total=total, desc="test shards", unit="pair", disable=not progress) as bar:
-        for scene, calibration, samples in plans:
-            for meta in samples:
-                members, again = sample_members(scene, meta)
-                writer.add(meta.key, members)
-                reencoded += again
-                bar.update()
-            rows.append(_scene_row(scene, calibration, samples))
-    write_index(out, SPLIT)
-    write_stats(out, collect_stats(out))
-    write_benchmark(out, Benchmark(masked=False, source="captured", protocol=PROTOCOL))
     report = {"root": str(Path(root).resolve()), "baseline": baseline, "scale_tolerance": scale_tolerance,
-              "rectification_tolerance_deg": rectification_tolerance, "reencoded_images": reencoded,
-              "paper": {"scenes": PAPER_SCENES, "targets": PAPER_TARGETS}, "scenes": rows}
-    atomic_write_json(Path(out) / REPORT_NAME, report)
+              "rectification_tolerance_deg": rectification_tolerance, "reencoded_images": 0,
+              "paper": {"scenes": PAPER_SCENES, "targets": PAPER_TARGETS}, "scenes": []}
+    total = sum(len(samples) for _, _, samples in plans)
+    with OwnedFolder(out, OWNER):  # every file it holds is recorded as this import's, however it ends
+        remove_unplanned(out, SPLIT, set())  # the test shards of an earlier import
+        with ShardWriter(out, SPLIT, samples_per_shard) as writer, \
+                tqdm(total=total, desc="test shards", unit="pair", disable=not progress) as bar:
+            for scene, calibration, samples in plans:
+                for meta in samples:
+                    members, again = sample_members(scene, meta)
+                    writer.add(meta.key, members)
+                    report["reencoded_images"] += again
+                    bar.update()
+                report["scenes"].append(_scene_row(scene, calibration, samples))
+        write_index(out, SPLIT)
+        write_stats(out, collect_stats(out))
+        write_benchmark(out, Benchmark(masked=False, source="captured", protocol=PROTOCOL))
+        atomic_write_json(Path(out) / REPORT_NAME, report)
     return report
 
 

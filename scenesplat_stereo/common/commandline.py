@@ -14,15 +14,18 @@ A command line is a table (``Command``): each entry names a sub-command and the 
 one exit status and at most one line on stderr, ``<command>: error: <what>``:
 
 * 0: done.
-* 2 (``EXIT_USAGE``): bad arguments or input, which the user fixes: argparse's refusals, every
-  ``ValueError`` (each module raises its own subclass naming the flag, or the file and the field: JSON that
-  does not parse, a truncated shard member, a checkpoint of another version, a CUDA device that is not
-  there), ``NotAvailable`` (a package or library that is not installed), every ``OSError`` (named with
-  its file and what to do: a read-only folder, a full disk, a file where a folder is expected), and the
-  error classes a command adds (``user_errors``, e.g. running out of GPU memory).
-* 130 (``EXIT_INTERRUPTED``): Ctrl-C (SIGINT); ``Interrupted`` carries what was kept (a rerun resumes).
-* 1 (``EXIT_INTERNAL``): anything else is a bug: one line naming the exception; the traceback only with
-  ``--debug`` or ``STEREOGAUSSIANS_DEBUG=1`` (either also prints it for the errors above).
+* 2 (``EXIT_USAGE``): bad arguments or input, which the user fixes: argparse's refusals, every ``ValueError`` a
+  command raises on purpose (each module raises its own subclass, or a ``ValueError`` in a ``raise`` statement,
+  naming the flag, or the file and the field: JSON that does not parse, a truncated shard member, a checkpoint of
+  another version, a CUDA device that is not there; a library's ``ValueError`` counts too, its message names what
+  it could not read), ``NotAvailable`` (a package or library that is not installed), every ``OSError`` (named with
+  its file and what to do: a read-only folder, a full disk, a file where a folder is expected), and the error
+  classes a command adds (``user_errors``, e.g. running out of GPU memory).
+* 130 (``EXIT_INTERRUPTED``): Ctrl-C (SIGINT); ``Interrupted`` carries what was kept (a rerun resumes). Worker
+  processes of pools end silently (``quiet_worker_interrupts``, their initializer).
+* 1 (``EXIT_INTERNAL``): anything else is a bug, a ``ValueError`` no one raised on purpose included (unpacking,
+  ``int()`` or ``list.index`` failing in our own code: ``our_bug``): one line naming the exception; the traceback
+  only with ``--debug`` or ``STEREOGAUSSIANS_DEBUG=1`` (either also prints it for the errors above).
 
 Warnings go through ``logging`` (``log = logging.getLogger(__name__)``; ``log.warning(...)``): while a
 command runs they print as ``<command>: warning: <what>`` on stderr.
@@ -33,8 +36,10 @@ from __future__ import annotations
 import argparse
 import errno
 import importlib
+import linecache
 import logging
 import os
+import signal
 import sys
 import tarfile
 import traceback
@@ -42,6 +47,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 EXIT_OK, EXIT_INTERNAL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+OUR_PACKAGES = ("scenesplat_stereo", "sgmodel", "pipelines")  # whose explicit ValueErrors are refusals of input
 DEBUG_ENV = "STEREOGAUSSIANS_DEBUG"  # set to anything but "" or "0" for tracebacks
 _COMMAND = "command_name"  # namespace attribute: the prog of the deepest (sub-)parser, e.g. "sgmodel train"
 
@@ -113,6 +119,13 @@ def add_commands(parser: argparse.ArgumentParser, commands: tuple[Command, ...],
         p.set_defaults(func=module.run)
 
 
+def quiet_worker_interrupts(*_) -> None:
+    """The initializer of every worker process of a pool (``ProcessPoolExecutor(initializer=...)``): Ctrl-C reaches
+    the whole process group; the command (the parent) ends with its one line (exit 130), and a worker ends at
+    once, silently, instead of printing a ``KeyboardInterrupt`` traceback of its own."""
+    signal.signal(signal.SIGINT, lambda *_: os._exit(EXIT_INTERRUPTED))
+
+
 def debugging(args: argparse.Namespace | None = None) -> bool:
     """``--debug`` was given, or ``STEREOGAUSSIANS_DEBUG`` is set to something other than "" or "0"."""
     return bool(getattr(args, "debug", False)) or os.environ.get(DEBUG_ENV, "") not in ("", "0")
@@ -139,6 +152,20 @@ def os_error_message(e: OSError) -> str:
     return f"{text} ({advice})" if advice and advice.lower() != what.lower() else text
 
 
+def our_bug(e: BaseException) -> bool:
+    """Whether a ``ValueError`` is our own bug rather than a refusal of bad input: raised implicitly (not by a
+    ``raise`` statement) in a module of ours (unpacking, ``int()`` of our own text, ``list.index``), and not
+    of an error class of ours. Refusals are raised on purpose: a subclass of ours, or ``raise ValueError(...)``."""
+    if type(e).__module__.split(".")[0] in OUR_PACKAGES or e.__traceback__ is None:
+        return False
+    tb = e.__traceback__
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    if str(tb.tb_frame.f_globals.get("__name__", "")).split(".")[0] not in OUR_PACKAGES:
+        return False  # a library's ValueError: it names what it could not read
+    return not linecache.getline(tb.tb_frame.f_code.co_filename, tb.tb_lineno).lstrip().startswith("raise")
+
+
 def classify(e: BaseException, user_errors: Mapping[type, str] | None = None) -> tuple[int, str]:
     """(exit status, one-line message) for an exception that ended a command (see the module docstring)."""
     for cls, advice in (user_errors or {}).items():
@@ -148,7 +175,7 @@ def classify(e: BaseException, user_errors: Mapping[type, str] | None = None) ->
         return EXIT_INTERRUPTED, "interrupted" + (f": {one_line(str(e))}" if str(e) else "")
     if isinstance(e, OSError):
         return EXIT_USAGE, os_error_message(e)
-    if isinstance(e, (ValueError, NotAvailable)):
+    if isinstance(e, (ValueError, NotAvailable)) and not our_bug(e):
         return EXIT_USAGE, one_line(str(e)) or type(e).__name__
     if isinstance(e, tarfile.TarError):
         return EXIT_USAGE, f"corrupt tar archive: {one_line(str(e))}"

@@ -11,9 +11,12 @@
 * ``append_line`` appends one whole line to a log (JSON lines) or none: a failed write is cut back off.
   ``read_json_lines`` reads such a log back, dropping a torn last line (a crash mid-write).
 * ``read_json``: JSON that does not parse is a ``FileFormatError`` naming the file, line and column.
-* ``StagedFolder``: a report or prediction folder is built beside its target and swapped in whole, so an
-  earlier one never leaves stale files beside the new ones; it replaces only a folder this project wrote
-  (``OWNER_FILE``) or an empty one. Staging folders of dead processes are swept on the next run.
+* Ownership, the one owner of "may this command replace what is there" (``check_replaceable``): every
+  output folder gets a manifest (``OWNER_FILE``: the command, and every file it wrote with its size and
+  sha256), and a command replaces a folder only when every file in it is one it wrote, unchanged; otherwise
+  it refuses, naming a file that is not. ``StagedFolder``: a report or prediction folder is built beside its
+  target and swapped in whole, so an earlier one never leaves stale files beside the new ones; staging
+  folders of dead processes are swept on the next run. ``OwnedFolder``: a folder written in place.
 * ``FolderLock``: one process at a time writes a folder (``fcntl.flock`` on ``<folder>/.lock``, which
   holds the pid); the kernel drops the lock when its process dies, so a stale lock file is taken over.
 * ``check_writable`` / ``check_apart``: an output folder can be written (creating nothing) and is apart from
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import hashlib
 import json
 import logging
 import os
@@ -36,7 +40,8 @@ from pathlib import Path
 from typing import Any
 
 TMP_PREFIX = ".tmp-"  # temp files and folders of unfinished writes start with this (a rerun may remove them)
-OWNER_FILE = ".written-by"  # in a StagedFolder's result: the command that wrote it, e.g. "sgmodel predict"
+OWNER_FILE = ".written-by"  # the manifest of an output folder: the command that wrote it and every file it wrote
+HASH_LIMIT = 64 << 20  # files up to this size are remembered by their sha256, larger ones by their mtime
 LOCK_FILE = ".lock"  # FolderLock's file: the pid of the process that holds the lock
 log = logging.getLogger(__name__)
 
@@ -202,47 +207,146 @@ def check_apart(out: str | os.PathLike, flag: str, inputs: dict[str, Any], repla
                                  f"another {flag}")
 
 
-def _owner(folder: Path) -> str | None:
-    try:
-        return (folder / OWNER_FILE).read_text().strip()
-    except OSError:
-        return None
+def file_record(path: Path) -> dict:
+    """What an ownership manifest remembers of a file: its size, and its sha256 (up to ``HASH_LIMIT`` bytes)
+    or, for a larger one, its modification time in nanoseconds (hashing gigabytes on every run costs too much)."""
+    st = path.stat()
+    if st.st_size > HASH_LIMIT:
+        return {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return {"size": st.st_size, "sha256": digest.hexdigest()}
 
 
-def check_replaceable(folder: str | os.PathLike, flag: str, owner: str) -> Path:
-    """``folder`` may be replaced as a whole by ``owner`` (e.g. "sgmodel predict"): absent, empty, or written
-    by ``owner`` (its ``OWNER_FILE`` says so), and creatable or writable; ValueError naming ``flag`` otherwise.
-    Creates nothing."""
+def _contents(folder: Path) -> list[Path]:
+    """The files under ``folder`` (any depth) that count: not the manifest, the lock, or temp files of
+    unfinished writes (``TMP_PREFIX``, a rerun's to remove)."""
+    return sorted(p for p in folder.rglob("*") if (p.is_file() or p.is_symlink()) and p.name not in
+                  (OWNER_FILE, LOCK_FILE) and not any(part.startswith(TMP_PREFIX) for part in
+                                                      p.relative_to(folder).parts))
+
+
+def write_manifest(folder: str | os.PathLike, owner: str, open_: bool = False) -> Path:
+    """Record in ``folder/OWNER_FILE`` that ``owner`` (e.g. "sgmodel predict") wrote every file now under
+    ``folder``, each with its ``file_record``: what ``check_replaceable`` later reads to decide whether the
+    folder may be replaced. Call it when the command has written the folder (also when it stops early: what
+    it wrote is then known to be its own). ``open_``: ``owner`` is writing the folder now; if it is killed
+    before it closes the manifest, what it added is taken as its own by its rerun (which resumes)."""
     folder = Path(folder)
-    check_writable(folder.parent if folder.parent != folder else folder, flag, create=False)
-    if folder.is_dir() and any(folder.iterdir()):
-        found = _owner(folder)
-        if found != owner:
-            what = f"the output of `{found}`" if found else \
-                f"files not written by `{owner}` (e.g. {sorted(p.name for p in folder.iterdir())[0]!r})"
-            raise ValueError(f"{flag} {folder}: holds {what}, and `{owner}` replaces the whole folder; choose "
-                             f"a new or empty {flag}")
-    elif folder.exists() and not folder.is_dir():
-        raise ValueError(f"{flag} {folder}: exists and is not a folder")
+    files = {str(p.relative_to(folder)): file_record(p) for p in _contents(folder) if p.is_file()}
+    doc = {"owner": owner, "files": files} | ({"open": True} if open_ else {})
+    return atomic_write_json(folder / OWNER_FILE, doc, indent=None, sort_keys=True)
+
+
+def _manifest(folder: Path) -> dict | None:
+    """The manifest of ``folder``: {"owner", "files"}, {"owner": name} for a marker of an earlier version (the
+    command's name alone, no file list), or None (none, or unreadable)."""
+    try:
+        text = (folder / OWNER_FILE).read_text()
+    except (OSError, UnicodeDecodeError):
+        return None
+    try:
+        doc = json.loads(text)
+    except ValueError:
+        return {"owner": text.strip()} if text.strip() and "\n" not in text.strip() else None
+    if not (isinstance(doc, dict) and isinstance(doc.get("owner"), str) and isinstance(doc.get("files"), dict)):
+        return None
+    return doc
+
+
+def foreign_file(folder: str | os.PathLike, owner: str) -> str | None:
+    """None when every file under ``folder`` is ``owner``'s (its manifest lists it, same size and hash), or
+    when the folder is absent or empty; otherwise why not, naming one file: the one owner of "may this
+    command replace what is there"."""
+    folder = Path(folder)
+    found = _contents(folder) if folder.is_dir() else []
+    if not found:
+        return None
+    manifest = _manifest(folder)
+    first = str(found[0].relative_to(folder))
+    if manifest is None:
+        return f"holds files not written by `{owner}` (e.g. {first!r})"
+    if manifest["owner"] != owner:
+        return f"holds the output of `{manifest['owner']}`"
+    if "files" not in manifest:
+        return (f"holds the output of an earlier version of `{owner}`, which kept no list of its files (e.g. "
+                f"{first!r}); delete it yourself if you no longer need it")
+    if manifest.get("open"):  # a run of owner's that was killed: what it left is its own, and its rerun resumes
+        return None
+    for p in found:
+        name = str(p.relative_to(folder))
+        if name not in manifest["files"] or p.is_symlink():
+            return f"holds files not written by `{owner}` (e.g. {name!r})"
+        if file_record(p) != manifest["files"][name]:
+            return f"holds {name!r}, changed since `{owner}` wrote it"
+    return None
+
+
+def check_replaceable(folder: str | os.PathLike, flag: str, owner: str, marker: str | None = None) -> Path:
+    """``folder`` may be (re)written by ``owner`` (e.g. "sgmodel predict"): absent, empty, or every file in it
+    ``owner``'s (``foreign_file``), and creatable or writable; ValueError naming ``flag`` and a file that is
+    not ``owner``'s otherwise. ``marker``: for commands that resume (train, build, encode), a folder holding
+    this file is theirs, and their own rules decide (settings, fingerprints). A symbolic link is followed:
+    the folder it points to is the one checked and written. Creates nothing; returns the folder to write."""
+    folder = Path(folder)
+    if folder.is_symlink():
+        folder = folder.resolve()
+    check_writable(folder, flag, create=False)  # a folder, or creatable (names the file standing in the way)
+    if folder.exists() and folder.parent != folder:
+        check_writable(folder.parent, flag, create=False)  # replacing it renames it
+    if marker is not None and (folder / marker).is_file():
+        return folder
+    why = foreign_file(folder, owner)
+    if why is not None:
+        raise ValueError(f"{flag} {folder}: {why}, and `{owner}` replaces only what it wrote; choose a new or empty "
+                         f"{flag}")
     return folder
+
+
+class OwnedFolder:
+    """``with OwnedFolder(folder, owner):`` for a command that writes files into ``folder`` in place (an
+    importer's shards, rendered frames): on entry the manifest is marked open (the folder is being written);
+    when the block ends, however it ends, ``write_manifest`` records every file there as ``owner``'s, so a
+    rerun may replace them. Check with ``check_replaceable`` first."""
+
+    def __init__(self, folder: str | os.PathLike, owner: str) -> None:
+        self.folder, self.owner = Path(folder), owner
+
+    def __enter__(self) -> Path:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        write_manifest(self.folder, self.owner, open_=True)
+        return self.folder
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self.folder.is_dir():
+            write_manifest(self.folder, self.owner)
 
 
 class StagedFolder:
     """``with StagedFolder(target, owner) as tmp:`` write the new content into ``tmp`` (a hidden folder beside
-    ``target``, same file system); when the block ends normally, ``tmp`` gets ``OWNER_FILE`` and replaces
-    ``target`` as a whole (two renames: an interruption between them leaves ``target`` absent, never mixed);
-    when it raises, ``tmp`` is removed and ``target`` is untouched. Staging folders of dead processes for
-    the same target are swept on entry. Check the target with ``check_replaceable`` before any work."""
+    ``target``, same file system; a symbolic link ``target`` is followed); when the block ends normally, ``tmp``
+    gets its manifest (``write_manifest``) and replaces ``target`` as a whole (two renames); when it raises,
+    ``tmp`` is removed and ``target`` is untouched. On entry, staging folders of dead processes for the same
+    target are swept, and an earlier ``target`` that such a process had moved aside (killed between the two
+    renames) is put back. Check the target with ``check_replaceable`` before any work."""
 
     def __init__(self, target: str | os.PathLike, owner: str) -> None:
-        self.target, self.owner = Path(target).absolute(), owner
+        target = Path(target)
+        self.target, self.owner = (target.resolve() if target.is_symlink() else target.absolute()), owner
         self._prefix = f"{TMP_PREFIX}{self.target.name}.pid"
         self.tmp: Path | None = None
 
     def _sweep(self) -> None:
-        for p in self.target.parent.glob(f"{self._prefix}*"):
+        for p in sorted(self.target.parent.glob(f"{self._prefix}*")):
             pid = p.name[len(self._prefix):].split(".", 1)[0]
-            if p.is_dir() and pid.isdigit() and not pid_alive(int(pid)):
+            if not (p.is_dir() and pid.isdigit() and not pid_alive(int(pid))):
+                continue
+            if p.name.endswith(".old") and not self.target.exists():
+                log.warning(f"{self.target}: put back the earlier folder that an interrupted run had moved aside")
+                os.rename(p, self.target)
+            else:
                 shutil.rmtree(p, ignore_errors=True)
 
     def __enter__(self) -> Path:
@@ -254,7 +358,8 @@ class StagedFolder:
     def __exit__(self, exc_type, exc, tb) -> None:
         try:
             if exc_type is None:
-                (self.tmp / OWNER_FILE).write_text(self.owner + "\n")
+                os.chmod(self.tmp, 0o777 & ~_umask())  # mkdtemp makes 0700
+                write_manifest(self.tmp, self.owner)
                 old = None
                 if self.target.exists():
                     old = self.tmp.with_name(self.tmp.name + ".old")
@@ -265,6 +370,12 @@ class StagedFolder:
         finally:
             if self.tmp.exists():
                 shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+def _umask() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
 
 
 class FolderLock:

@@ -13,14 +13,43 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import sys
+import tempfile
 import threading
 from dataclasses import dataclass
 
 import torch
 import warp as wp
 
+#: What Warp's native library prints (C stdio, past Python's sys.stderr) on a machine without the CUDA driver: every
+#: command would start with it; our own device checks say "no CUDA device" where a command asked for one.
+NO_DRIVER_NOTICE = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver"
+
+
+def _init_quietly() -> None:
+    """``wp.init()``; without a CUDA driver (torch sees no GPU), the native stderr (file descriptor 2) goes to a
+    temp file meanwhile and all of it but ``NO_DRIVER_NOTICE`` is printed back."""
+    if torch.cuda.is_available():
+        wp.init()
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as caught:
+        os.dup2(caught.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            caught.seek(0)
+            rest = [line for line in caught.read().decode(errors="replace").splitlines(keepends=True)
+                    if not line.startswith(NO_DRIVER_NOTICE)]
+    sys.stderr.write("".join(rest))
+
+
 wp.config.log_level = wp.LOG_WARNING  # no banner or per-module compile lines
-wp.init()
+_init_quietly()
 
 # SPEC section 2, step 6: a Gaussian touches a pixel when o * exp(-sigma) >= 1/255.
 ALPHA_MIN = 1.0 / 255.0

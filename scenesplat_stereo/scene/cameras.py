@@ -21,9 +21,10 @@ import numpy as np
 # Right-multiplying an OpenGL c2w by this flips the camera's y and z axes: the OpenCV c2w of the same
 # camera (and vice versa: the matrix is its own inverse).
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
-#: A stereo baseline longer than this (metres) is a likely unit mistake (millimetres or centimetres given as
-#: metres): ``sgmodel rectify`` warns, ``import multiview`` refuses it.
-LONG_BASELINE = 2.0
+#: A stereo baseline outside [SHORT_BASELINE, LONG_BASELINE] metres is most likely given in another unit: the
+#: cameras of a stereo rig sit millimetres (a phone) to a metre or two (a car, a mount) apart (``baseline_doubt``;
+#: ``import multiview`` refuses a baseline beyond LONG_BASELINE).
+SHORT_BASELINE, LONG_BASELINE = 0.003, 2.0
 
 
 def _as_poses(c2w: np.ndarray, name: str) -> np.ndarray:
@@ -208,3 +209,16 @@ def orbit_poses(
     horizontal = np.cos(az)[:, None] * a + np.sin(az)[:, None] * b
     eyes = center + radius * (math.cos(el) * horizontal + math.sin(el) * up)
     return look_at(eyes, np.broadcast_to(center, eyes.shape), up)
+
+
+def baseline_doubt(baseline: float, where: str, fix_long: str, fix_short: str) -> str | None:
+    """The one plausibility check of a stereo baseline (metres), wherever one comes in (``--baseline`` of every
+    command, a calibration file, ``--rig-units``): a warning text naming ``where`` and the fix (``fix_long`` for a
+    baseline over ``LONG_BASELINE``, e.g. "give --rig-units mm", ``fix_short`` under ``SHORT_BASELINE``), or None."""
+    if baseline > LONG_BASELINE:
+        return (f"{where}: a baseline of {baseline:.4g} m is long for a stereo rig (up to {LONG_BASELINE:g} m is "
+                f"usual): {fix_long}")
+    if baseline < SHORT_BASELINE:
+        return (f"{where}: a baseline of {baseline:.4g} m is short for a stereo rig ({SHORT_BASELINE * 1000:g} mm "
+                f"or more is usual): {fix_short}")
+    return None

@@ -86,6 +86,10 @@ def _ping(seconds: float) -> int:
 def _init_worker() -> None:
     import OpenImageIO as oiio
 
+    from scenesplat_stereo.common.commandline import quiet_worker_interrupts
+
+    quiet_worker_interrupts()  # Ctrl-C: the command says one line; the workers nothing
+
     oiio.attribute("threads", 1)
 
 

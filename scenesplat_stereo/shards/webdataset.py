@@ -361,17 +361,6 @@ def write_index(root: Path, split: str) -> dict:
     return index
 
 
-def check_import_out(out: Path, split: str, report_name: str) -> None:
-    """The ``--out`` of an importer (``import stereonvs``, ``import multiview``): new, empty or an earlier import
-    of the same kind (it holds ``report_name``); a folder holding another ``split`` or a build is refused
-    (ValueError naming --out), so an import never replaces shards it did not write. Reads only."""
-    out = Path(out)
-    others = [p for p in (out / split / INDEX_NAME, out / "build.json") if p.exists()]
-    if others and not (out / report_name).exists():
-        raise ValueError(f"--out {out}: holds another dataset ({others[0].name}) and no {report_name}; use a new "
-                         "--out (an earlier import is replaced, a build never)")
-
-
 def splits_present(root: Path) -> list[str]:
     """The split folders of ``root`` that hold at least one finished shard, sorted."""
     root = Path(root)

@@ -60,9 +60,9 @@ export SGMODEL_CACHE=$data/weights PYTHONUNBUFFERED=1 NCCL_NVLS_ENABLE=0 TORCH_S
 py=python3
 run=$root/run
 launch="$py -m torch.distributed.run --standalone --nproc_per_node=$gpus"
-train_cmd="$launch -m sgmodel.cli train --data $root/dataset --out $run --encoder-cache $root/cache --device $dev
-  --resolution $S --encoder $ENC --steps $STEPS --batch-size $BATCH --val-every $VAL_EVERY --workers $WORKERS
-  --no-progress $TRAIN_EXTRA"
+train_cmd="$launch -m sgmodel.cli train --data $root/dataset --out $run --encoder-cache $root/cache --device $dev"
+train_cmd+=" --resolution $S --encoder $ENC --steps $STEPS --batch-size $BATCH --val-every $VAL_EVERY"
+train_cmd+=" --workers $WORKERS --no-progress $TRAIN_EXTRA"
 
 captures() {  # the capture files, without (held_out=0) or only (held_out=1) the held-out ones
   for f in "$data"/captures/*; do

@@ -171,6 +171,8 @@ def benchmark_flag(text: str) -> tuple[str, Path]:
     """``--data [NAME=]PATH``: a benchmark's name (default: its folder's name) and folder (a path that holds
     '=' needs a NAME)."""
     name, _, path = text.partition("=") if "=" in text else ("", "", text)
+    if not path:  # Path("") is the current folder: never evaluate that by accident
+        raise argparse.ArgumentTypeError(f"--data {text!r}: no PATH (give [NAME=]PATH)")
     path = Path(path)
     return (name or path.resolve().name), path
 
@@ -196,8 +198,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def check_report_folder(out: Path, inputs: dict[str, Path | None]) -> None:
     """REPORT may be replaced by a new report: absent, empty or an earlier report, writable, apart from the
     ``inputs`` ({flag: path}: the data, the checkpoint); ValueError naming --out. Reads only."""
-    check_replaceable(out, "--out", OWNER)
     check_apart(out, "--out", inputs, replaced=True)
+    check_replaceable(out, "--out", OWNER)
 
 
 def methods_of(args: argparse.Namespace) -> list[str]:

@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from scenesplat_stereo.common.files import atomic_write_bytes, check_apart, check_replaceable, check_writable
+from scenesplat_stereo.common.files import OwnedFolder, atomic_write_bytes, check_apart, check_replaceable
 from scenesplat_stereo.common.text import key_safe_name, markdown_table
 from scenesplat_stereo.shards.benchmark_file import read_benchmark
 from sgmodel.data.loader import read_split
@@ -127,36 +127,37 @@ def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:
     """Evaluate every method on every ``--data`` folder, write the reports and the table, print it. OUT and
     each report folder in it (replaced as a whole) are checked before anything runs."""
     cols = columns(args.data, args.split)
-    check_writable(args.out, "--out", create=False)
     check_apart(args.out, "--out", eval_inputs(args))
+    check_replaceable(args.out, "--out", OWNER)  # its tables and reports of earlier runs, nothing of anyone else
     for c in cols:
         for m in methods:
             check_replaceable(Path(args.out) / c.name / m, "--out", OWNER)
     labels = dict(ROWS)
     order = [m for m, _ in ROWS if m in methods]
     built = {m: method_of(m, args, device) for m in order}  # every checkpoint and encoder loads before any run
-    rows, targets, lpips, shown = [], {}, "", {c.name: c for c in cols}
-    for m in order:
-        means = {}
-        for c in cols:
-            result = evaluate(built[m], c.data, args.split, Path(args.out) / c.name / m, device, args.lpips_vgg,
-                              args.batch_size, not args.no_progress)
-            means[c.name], targets[c.name], lpips = result["mean"], result["targets"], result["lpips"]
-            for g, group_mean in result.get("groups", {}).items():  # a column per target group after the benchmark's
-                name = f"{c.name} {g}"
-                shown.setdefault(name, dataclasses.replace(c, name=name))
-                means[name], targets[name] = group_mean, result["group_targets"][g]
-        rows.append(Row(m, labels[m], built[m].encoder, built[m].resolution, means))
-    cols = sorted(shown.values(), key=lambda c: [k.name for k in cols].index(c.name.split(" ")[0]))
-    text = table_markdown(cols, rows) + "\n\n" + notes(cols, rows, args.split, targets, lpips) + "\n"
-    doc = {"split": args.split, "lpips": lpips,
-           "benchmarks": [{"name": c.name, "data": str(c.data.resolve()), "masked": c.masked, "region": c.region,
-                           "targets": targets[c.name]} for c in cols],
-           "rows": [{"method": r.method, "label": r.label, "encoder": r.encoder, "resolution": r.resolution,
-                     "cells": {c.name: {m: cell(r.means[c.name], m, c.masked) for m, _, _, _ in COLUMNS}
-                               for c in cols}} for r in rows]}
-    atomic_write_bytes(Path(args.out) / TABLE_MD, text.encode())
-    atomic_write_bytes(Path(args.out) / TABLE_JSON, (json.dumps(doc, indent=2) + "\n").encode())
+    with OwnedFolder(args.out, OWNER):  # every file in OUT recorded as eval's, however it ends
+        rows, targets, lpips, shown = [], {}, "", {c.name: c for c in cols}
+        for m in order:
+            means = {}
+            for c in cols:
+                result = evaluate(built[m], c.data, args.split, Path(args.out) / c.name / m, device, args.lpips_vgg,
+                                  args.batch_size, not args.no_progress)
+                means[c.name], targets[c.name], lpips = result["mean"], result["targets"], result["lpips"]
+                for g, group_mean in result.get("groups", {}).items():  # a column per target group after its benchmark's
+                    name = f"{c.name} {g}"
+                    shown.setdefault(name, dataclasses.replace(c, name=name))
+                    means[name], targets[name] = group_mean, result["group_targets"][g]
+            rows.append(Row(m, labels[m], built[m].encoder, built[m].resolution, means))
+        cols = sorted(shown.values(), key=lambda c: [k.name for k in cols].index(c.name.split(" ")[0]))
+        text = table_markdown(cols, rows) + "\n\n" + notes(cols, rows, args.split, targets, lpips) + "\n"
+        doc = {"split": args.split, "lpips": lpips,
+               "benchmarks": [{"name": c.name, "data": str(c.data.resolve()), "masked": c.masked, "region": c.region,
+                               "targets": targets[c.name]} for c in cols],
+               "rows": [{"method": r.method, "label": r.label, "encoder": r.encoder, "resolution": r.resolution,
+                         "cells": {c.name: {m: cell(r.means[c.name], m, c.masked) for m, _, _, _ in COLUMNS}
+                                   for c in cols}} for r in rows]}
+        atomic_write_bytes(Path(args.out) / TABLE_MD, text.encode())
+        atomic_write_bytes(Path(args.out) / TABLE_JSON, (json.dumps(doc, indent=2) + "\n").encode())
     print(text)
     print(f"reports in {args.out}/<benchmark>/<method>/; table in {Path(args.out) / TABLE_MD}")
     return 0

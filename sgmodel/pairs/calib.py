@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from scenesplat_stereo.scene.cameras import baseline_doubt
+
 _MIDDLEBURY_KEYS = ("cam0", "cam1", "doffs", "baseline", "width", "height", "ndisp", "isint", "vmin", "vmax",
                     "dyavg", "dymax")
 _MIDDLEBURY_REQUIRED = ("cam0", "baseline")
@@ -100,10 +102,15 @@ def _check_K(K: np.ndarray, where: str) -> np.ndarray:
     return K
 
 
-def _check_baseline(b: float, where: str) -> float:
+def _check_baseline(b: float, where: str, scale: float = 1.0, hint: str = "") -> float:
+    """The baseline ``b`` (in the file's unit) times ``scale`` (to metres): CalibError when not positive; a warning
+    when implausible for a rig (``cameras.baseline_doubt``), with ``hint``: how the unit is read."""
     if b <= 0:
         raise CalibError(f"{where}: baseline must be positive, got {b:g}")
-    return b
+    doubt = baseline_doubt(b * scale, where, hint, hint)
+    if doubt:
+        log.warning(doubt)
+    return b * scale
 
 
 def _matrix(text: str, where: str) -> np.ndarray:
@@ -140,7 +147,8 @@ def _read_middlebury(path: Path, lines: list[str]) -> Calibration:
             raise CalibError(f"{fields['cam1'][1]}: a rectified pair has the same fx, fy and cy in cam0 and "
                              f"cam1, got {K.tolist()} and {K1.tolist()}")
     doffs = nums.get("doffs", float(K1[0, 2] - K[0, 2]) if "cam1" in fields else 0.0)
-    baseline = _check_baseline(nums["baseline"], fields["baseline"][1]) * _MM
+    baseline = _check_baseline(nums["baseline"], fields["baseline"][1], _MM,
+                               "Middlebury 2014's baseline= is in millimetres (e.g. baseline=193.001)")
     size = None
     if "width" in fields or "height" in fields:
         if not ("width" in fields and "height" in fields):
@@ -165,7 +173,8 @@ def _read_foundation_stereo(path: Path, lines: list[str]) -> Calibration:
     b = lines[1].split()
     if len(b) != 1:
         raise CalibError(f"{path}: line 2 (baseline) must hold 1 number, got {len(b)}")
-    baseline = _check_baseline(_float(b[0], f"{path}: line 2 (baseline)"), f"{path}: line 2 (baseline)")
+    baseline = _check_baseline(_float(b[0], f"{path}: line 2 (baseline)"), f"{path}: line 2 (baseline)",
+                               hint="FoundationStereo's line 2 is in metres (120 mm is 0.12)")
     return Calibration(K, baseline, 0.0, None, str(path))
 
 
@@ -201,5 +210,6 @@ def calib_from_flags(intrinsics: str, baseline: str | float) -> Calibration:
         raise CalibError(f"--intrinsics: expected 4 comma-separated numbers fx,fy,cx,cy, got {intrinsics!r}")
     fx, fy, cx, cy = (_float(v.strip(), "--intrinsics") for v in values)
     K = _check_K(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], dtype=np.float64), "--intrinsics")
-    b = _check_baseline(_float(str(baseline).strip(), "--baseline"), "--baseline")
+    b = _check_baseline(_float(str(baseline).strip(), "--baseline"), "--baseline",
+                        hint="--baseline is in metres (120 mm is --baseline 0.12)")
     return Calibration(K, b, 0.0, None, "--intrinsics/--baseline")

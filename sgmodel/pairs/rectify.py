@@ -27,8 +27,9 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, atomic_write_json, check_replaceable
-from scenesplat_stereo.scene.cameras import LONG_BASELINE, rotation_angle_deg
+from scenesplat_stereo.common.files import (StagedFolder, atomic_write_bytes, atomic_write_json, check_apart,
+                                            check_replaceable)
+from scenesplat_stereo.scene.cameras import baseline_doubt, rotation_angle_deg
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from sgmodel.pairs import rig as rig_mod
 from sgmodel.pairs import stereo_check
@@ -129,11 +130,14 @@ class Rectification:
                 f"the raw left camera is {self.rotation_deg:.2f} deg from the rectified one")
 
     def report(self, log=print, warn=stereo_check.stderr_line) -> None:
-        """The summary to ``log``; a baseline over ``LONG_BASELINE`` to ``warn`` as a likely unit mistake."""
+        """The summary to ``log``; an implausible baseline (``cameras.baseline_doubt``) to ``warn`` as a likely unit
+        mistake (``--rig-units``)."""
         log(self.summary())
-        if self.baseline > LONG_BASELINE:
-            warn(f"warning: a baseline of {self.baseline:.4g} m is long for a stereo rig: if the calibration's T is "
-                 f"not in metres, give --rig-units mm or cm")
+        doubt = baseline_doubt(self.baseline, f"--rig {self.rig.source}", "if the calibration's T is not in "
+                               "metres, give --rig-units mm or cm", "if the calibration's T is in metres, leave "
+                               "--rig-units out (it scales T from mm or cm)")
+        if doubt:
+            warn(f"warning: {doubt}")
 
     def to_json(self) -> dict:
         """What ``sgmodel rectify`` records beside the images (matrices as row lists)."""
@@ -210,6 +214,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def rectify_command(args: argparse.Namespace, log=print) -> None:
     """Do the work of ``sgmodel rectify`` (raises a CalibError / ValueError naming the flag on bad input)."""
+    check_apart(args.out, "--out", {"--left": args.left, "--right": args.right, "--rig": args.rig}, replaced=True)
     check_replaceable(args.out, "--out", RECTIFY_OWNER)
     rig = rig_mod.read_rig(args.rig, args.rig_units)
     left, right = read_image(args.left, "--left"), read_image(args.right, "--right")

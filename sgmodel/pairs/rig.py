@@ -133,6 +133,15 @@ def read_rig(paths: str | Path | list, units: str = "m") -> StereoRig:
             raise RigError(f"{p}: calibration file not found") from None
         except OSError as e:
             raise RigError(f"{p}: cannot read the calibration file: {e.strerror or e}") from None
+    ros = [p for p, t in zip(paths, texts) if re.search(rb"^camera_matrix\s*:", t, re.M)
+           and re.search(rb"^projection_matrix\s*:", t, re.M)]
+    if ros:
+        what = "are ROS camera_info files" if len(ros) > 1 else "is a ROS camera_info file"
+        raise RigError(f"{' and '.join(map(str, ros))} {what} (one camera each, from camera_calibration): they hold "
+                       f"no stereo extrinsics (R and T between the two cameras); give the stereo calibration "
+                       f"(OpenCV stereoCalibrate's R and T, or Kalibr's camchain.yaml), or, for images already "
+                       f"rectified with them, --calib/--intrinsics with the baseline -Tx/fx of the right "
+                       f"projection_matrix")
     kalibr = [bool(re.search(rb"^cam0\s*:", t, re.M)) for t in texts]
     if any(kalibr):
         if len(paths) != 1:

@@ -159,7 +159,13 @@ def measure(left, right, doffs: float = 0.0, rectified_here: bool = False, max_s
         warnings.append(f"vertical disparity median {dy_median:.2f} px, 95th percentile {dy_p95:.2f} px over {n} "
                         f"matches, {pattern} (a rectified pair stays under {DY_MEDIAN_MAX:g} px and "
                         f"{DY_P95_MAX:g} px): {cause}")
-    if negative > NEGATIVE_MAX:
+    if negative > NEGATIVE_MAX and warnings:  # not rectified (or by a calibration that does not fit): say that
+        cause = ("the calibration that rectified them does not fit these images (one of another resolution?)"
+                 if rectified_here else "the pair is not rectified")
+        warnings.append(f"{negative:.0%} of {n} matches have negative disparity (median {disparity[1]:+.1f} px): with "
+                        f"the vertical disparity above, {cause} is the likelier cause than swapped images; fix that "
+                        f"first")
+    elif negative > NEGATIVE_MAX:
         warnings.append(f"{negative:.0%} of {n} matches have negative disparity (median {disparity[1]:+.1f} px): the "
                         f"left and right images are probably swapped (--left must be the left camera's image)")
     return StereoCheck(n, dy_median, dy_p95, shift, negative, disparity, tuple(warnings))

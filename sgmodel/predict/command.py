@@ -75,6 +75,7 @@ ORBIT_FRAMES = 24
 DEFAULT_FORMAT, DEFAULT_FRAME_FORMAT = "ply", "spz"
 #: Pairs per model call in a video.
 DEFAULT_BATCH = 4
+DEFAULT_CODEC = "mp4v"  # the novel-view video of --video
 #: Fraction of a pair's pixels at the depth clamp from which its depth is refused (doffs or baseline wrong);
 #: from half of them on, a warning.
 CLAMPED_REFUSED, CLAMPED_WARNED = 0.99, 0.5
@@ -109,13 +110,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f"checkpoint's; {DEFAULT_RESOLUTION} for --method)")
     add_device_argument(parser)
     vid = parser.add_argument_group("video")
-    vid.add_argument("--trajectory", default="orbit", help="novel view of each frame: offset:dx,dy,dz (metres "
+    vid.add_argument("--trajectory", help="novel view of each frame: offset:dx,dy,dz (metres "
                      "from the left camera, its axes, not turned) or orbit[:radius[,seconds]] (default: radius "
                      f"{video.ORBIT_RADIUS} x the first frame's median depth, {video.ORBIT_PERIOD:g} s a turn)")
     vid.add_argument("--frames", action="store_true", help="also write one scene per frame (OUT/frames/)")
-    vid.add_argument("--codec", choices=sorted(video.CODECS), default="mp4v",
+    vid.add_argument("--codec", choices=sorted(video.CODECS),
                      help="novel-view video: mp4v (.mp4, default), mjpg (.avi) or ffv1 (.mkv, lossless)")
-    vid.add_argument("--batch-size", type=int, default=DEFAULT_BATCH,
+    vid.add_argument("--batch-size", type=int,
                      help=f"pairs per model call (default {DEFAULT_BATCH})")
     vid.add_argument("--max-frames", type=int, help="stop after this many frames")
     vid.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -176,19 +177,29 @@ def _check_args(args: argparse.Namespace) -> None:
         raise PredictError(f"--resolution must be at least {SIZE_MULTIPLE}, got {args.resolution}")
     if args.method == "forward-splat" and (args.format or args.frames):
         raise PredictError("--format/--frames write Gaussians; --method forward-splat has none")
-    if args.left and (args.frames or args.max_frames is not None):
-        raise PredictError("--frames and --max-frames are for a video (--video or --left-video/--right-video)")
+    if args.left:
+        video_only = [f for f, given in (("--frames", args.frames), ("--max-frames", args.max_frames is not None),
+                                         ("--trajectory", args.trajectory is not None), ("--codec", args.codec),
+                                         ("--batch-size", args.batch_size is not None)) if given]
+        if video_only:
+            raise PredictError(f"{', '.join(video_only)}: for a video (--video or --left-video/--right-video); a "
+                               f"still pair writes one scene and its views")
+    elif args.format and not args.frames:
+        raise PredictError(f"--format {args.format}: a video writes scene files only with --frames (OUT/frames/); add "
+                           f"--frames, or leave --format out")
+    args.trajectory, args.codec = args.trajectory or "orbit", args.codec or DEFAULT_CODEC
+    args.batch_size = DEFAULT_BATCH if args.batch_size is None else args.batch_size
     if args.batch_size < 1 or (args.max_frames is not None and args.max_frames < 1):
         raise PredictError(f"--batch-size and --max-frames must be at least 1, got {args.batch_size} and "
                            f"{args.max_frames}")
     out = Path(args.out)
     if not out.resolve().parent.is_dir():
         raise PredictError(f"--out {args.out}: parent folder {out.resolve().parent} does not exist")
-    check_replaceable(out, "--out", OWNER)
     inputs = ("--left", "--right", "--video", "--left-video", "--right-video", "--calib", "--rig")
     paths = {f: getattr(args, f[2:].replace("-", "_")) for f in inputs}
     paths["--checkpoint"] = None if args.method else checkpoint_path(args.checkpoint)
     check_apart(out, "--out", paths, replaced=True)
+    check_replaceable(out, "--out", OWNER)
 
 
 def check_depth(z: torch.Tensor, calib: Calibration) -> None:

@@ -31,8 +31,7 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from scenesplat_stereo.common.commandline import Interrupted
-from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, atomic_write_json, check_apart,
-                                            check_writable)
+from scenesplat_stereo.common.files import FolderLock, atomic_write_json, check_apart, check_replaceable
 from scenesplat_stereo.common.text import format_table, whole_number
 from scenesplat_stereo.shards.webdataset import (PlannedShards, iter_shard, read_done, remove_unplanned, shard_number,
                                                  write_index)
@@ -45,6 +44,9 @@ from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder
 from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import encode_pair
 from sgmodel.train.distributed import World, all_sum, barrier, close_world, init_world
+
+
+OWNER = "sgmodel encode"  # a cache holds cache.json; any other --out must be new or empty
 
 
 class PairChunks(Dataset):
@@ -93,15 +95,10 @@ def check_data(data: Path, splits: list[str], size: int) -> dict[str, list[Shard
 def check_out(out: Path, data: Path, wanted: dict) -> dict:
     """``--out`` can take this cache (see the module docstring); the cache.json to write: ``wanted`` with the
     splits of an earlier cache kept. Reads only."""
-    check_writable(out, "--out", create=False)
+    check_replaceable(out, "--out", OWNER, marker=cache_format.MANIFEST)  # new, empty, or a cache (cache.json)
     check_apart(out, "--out", {"--data": data})
-    present = [p for p in out.iterdir() if p.name != LOCK_FILE and not p.name.startswith(TMP_PREFIX)] \
-        if out.is_dir() else []
-    if not present:
-        return wanted
     if not (out / cache_format.MANIFEST).is_file():
-        raise ValueError(f"--out {out}: holds {sorted(p.name for p in present)[0]!r} and is not an encoder cache; "
-                         f"choose a new or empty --out")
+        return wanted
     try:
         found = cache_format.read_manifest(out)
     except DataError as e:
@@ -124,7 +121,7 @@ def encode_dataset(data: Path, out: Path, encoder, size: int, precision: str, sp
     world = world or World(0, 1, torch.device(device))
     shards = check_data(data, splits, size)
     info = check_out(out, data, cache_format.manifest(encoder, size, precision, data, splits))
-    lock = FolderLock(out, "--out", "sgmodel encode")
+    lock = FolderLock(out, "--out", OWNER)
     if world.main:
         lock.acquire()
     try:

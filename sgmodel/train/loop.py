@@ -14,8 +14,8 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from scenesplat_stereo.common.commandline import Interrupted
-from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, append_line, atomic_write_bytes,
-                                            check_apart, check_writable, read_json, read_json_lines, remove_temp_files)
+from scenesplat_stereo.common.files import (FolderLock, append_line, atomic_write_bytes, check_apart,
+                                            check_replaceable, read_json, read_json_lines, remove_temp_files)
 from scenesplat_stereo.common.text import format_table
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
@@ -30,6 +30,7 @@ from sgmodel.train.distributed import World, all_sum, broadcast_flag, close_worl
 from sgmodel.train.losses import create_objective
 
 log = logging.getLogger(__name__)
+OWNER = "sgmodel train"  # a run folder holds config.json; any other --out must be new or empty
 
 
 class TrainingDiverged(ValueError):
@@ -184,20 +185,11 @@ def open_run_cache(path: Path, data: Path, encoder, resolution: int, device: str
     return open_cache(path, data, encoder, resolution, precision_of(device, amp), list(RUN_SPLITS))
 
 
-def _run_files(root: Path) -> list[Path]:
-    """What RUN holds besides the lock and the temp files of killed writes."""
-    return [p for p in root.iterdir() if p.name != LOCK_FILE and not p.name.startswith(TMP_PREFIX)] \
-        if root.is_dir() else []
-
-
 def check_run_folder(paths: RunPaths, data: Path) -> None:
     """``--out`` can hold a run: a folder (or creatable), writable, not inside ``--data``, and either free
-    of other files or a run (config.json). Reads only."""
-    check_writable(paths.root, "--out", create=False)
+    of other files or a run (config.json; ``common.files.check_replaceable``, the one owner). Reads only."""
+    check_replaceable(paths.root, "--out", OWNER, marker=paths.config.name)
     check_apart(paths.root, "--out", {"--data": data})
-    if _run_files(paths.root) and not paths.config.exists():
-        raise ValueError(f"--out {paths.root}: exists and is not a training run (no config.json); choose another "
-                         f"--out")
 
 
 def _check_resumable(paths: RunPaths, config: dict) -> bool:
@@ -277,7 +269,7 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
     cache = open_run_cache(encoder_cache, data, model.encoder, model_params.resolution, world.device, tp.amp) \
         if encoder_cache is not None else None
     config = run_config(model_params, tp, data, model.encoder, objective, _init_from(init_from, model), cache)
-    lock = FolderLock(paths.root, "--out", "sgmodel train")
+    lock = FolderLock(paths.root, "--out", OWNER)
     if world.main:
         lock.acquire()  # the first write: RUN and its .lock (both undone if what follows refuses the run)
     try:
@@ -333,16 +325,21 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
     t_start = time.perf_counter()
     bar = tqdm(total=tp.steps, initial=step, disable=not (progress and world.main), unit="step", dynamic_ncols=True)
     saved = step if resume else None  # the step last.pt holds
+    first_shown: dict = {}  # the renders of this process's first validation (step 0 of a new run)
 
     def validation(step: int, best: float) -> tuple[bool, float]:
         """Validate, log, draw the sheet; (is it the best so far, its PSNR). Step 0 is never the best."""
         val, shown = validate(net, val_loader, world, tp.amp, tp.sheet_samples, tp.val_samples)
         improved = broadcast_flag(world, step > 0 and val["val_psnr"] > best)
+        for sample in shown:
+            sample["step"] = step
+        if not first_shown and shown:  # the sheets show this first validation's renders beside each later one
+            first_shown.update(step=step, renders=[sample["renders"] for sample in shown])
         if world.main:
             bar.write(f"step {step}: val PSNR {val['val_psnr']:.2f} dB (valid pixels {val['val_psnr_masked']:.2f})"
                       f"{' best' if improved else ''}")
             append_line(paths.metrics, json.dumps({"step": step, **val}))
-            atomic_write_bytes(paths.sheet(step), validation_sheet(shown))
+            atomic_write_bytes(paths.sheet(step), validation_sheet(shown, first_shown or None))
         return improved, val["val_psnr"]
 
     def diverged(at: int, what: str) -> TrainingDiverged:

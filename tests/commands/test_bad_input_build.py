@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from scenesplat_stereo.cli import main
+from scenesplat_stereo.common.files import StagedFolder
 from tests.support.bad_input import run_cli, snapshot, tiny_teacher
 
 
@@ -26,6 +27,7 @@ def out(tmp_path) -> Path:
     out = tmp_path / "out"
     (out / "train").mkdir(parents=True)
     (out / "train" / "keep.txt").write_text("earlier output")
+    (out / "build.json").write_text("{}\n")  # an earlier build's (whose rules decide what it may replace)
     return out
 
 
@@ -100,6 +102,14 @@ def test_refused_build_then_corrected_build_is_accepted(teachers, tmp_path, caps
     assert json.loads((out / "build.json").read_text())["trainval"]["targets"] == 2
 
 
+@pytest.fixture
+def frames(tmp_path) -> Path:
+    """An earlier render's OUT (its manifest says so): a refused render must leave it as it was."""
+    with StagedFolder(tmp_path / "frames", "scenesplat-stereo render") as tmp:
+        (tmp / "frame_0000.png").write_bytes(b"an earlier frame")
+    return tmp_path / "frames"
+
+
 RENDER_CASES = [
     (["--resolution", "0x0"], "--resolution '0x0': width and height must be >= 1"),
     (["--batch", "0"], "--batch 0: must be >= 1"),
@@ -110,22 +120,22 @@ RENDER_CASES = [
 
 
 @pytest.mark.parametrize("flags,message", RENDER_CASES, ids=[" ".join(c[0]) for c in RENDER_CASES])
-def test_render_flags(teachers, out, capsys, flags, message):
-    before = snapshot(out)
-    rc, text = run_cli(main, ["render", str(teachers / "room_a"), "--out", str(out), *flags], capsys)
+def test_render_flags(teachers, frames, capsys, flags, message):
+    before = snapshot(frames)
+    rc, text = run_cli(main, ["render", str(teachers / "room_a"), "--out", str(frames), *flags], capsys)
     assert rc == 2 and message in text, text
-    assert snapshot(out) == before
+    assert snapshot(frames) == before
 
 
-def test_render_missing_source(tmp_path, out, capsys):
-    before = snapshot(out)
-    rc, text = run_cli(main, ["render", str(tmp_path / "none.ply"), "--out", str(out), "--device", "cpu"], capsys)
-    assert rc == 2 and "SOURCE" in text and "no such file" in text and snapshot(out) == before
+def test_render_missing_source(tmp_path, frames, capsys):
+    before = snapshot(frames)
+    rc, text = run_cli(main, ["render", str(tmp_path / "none.ply"), "--out", str(frames), "--device", "cpu"], capsys)
+    assert rc == 2 and "SOURCE" in text and "no such file" in text and snapshot(frames) == before
 
 
-def test_render_garbage_ply(tmp_path, out, capsys):
+def test_render_garbage_ply(tmp_path, frames, capsys):
     ply = tmp_path / "junk.ply"
     ply.write_bytes(b"not a ply at all")
-    before = snapshot(out)
-    rc, text = run_cli(main, ["render", str(ply), "--out", str(out), "--device", "cpu"], capsys)
-    assert rc == 2 and "not a PLY file" in text and snapshot(out) == before
+    before = snapshot(frames)
+    rc, text = run_cli(main, ["render", str(ply), "--out", str(frames), "--device", "cpu"], capsys)
+    assert rc == 2 and "not a PLY file" in text and snapshot(frames) == before

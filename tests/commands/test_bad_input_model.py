@@ -182,7 +182,7 @@ def test_train_out_holds_other_files(demo_dataset, tmp_path, capsys):
     (tmp_path / "photos" / "a.jpg").write_bytes(b"jpeg")
     before = snapshots(tmp_path / "photos")
     rc, err = refusal(main, ["train", "--data", demo_dataset, "--out", tmp_path / "photos", *TINY], capsys)
-    assert rc == 2 and "exists and is not a training run (no config.json)" in err
+    assert rc == 2 and "holds files not written by `sgmodel train` (e.g. 'a.jpg')" in err
     assert snapshots(tmp_path / "photos") == before
 
 
@@ -304,8 +304,8 @@ PREDICT_CASES = [
     ({"--calib": "neg.txt"}, r"neg.txt: principal point cx=-3"),
     ({"--calib": "mb_doffs.txt"}, r"mb_doffs.txt: 100.0% of the pixels get a depth at the clamp .* doffs -500 px"),
     ({"--checkpoint": "nan.pt", "--method": None}, r"nan.pt: 1 weight tensors hold NaN or infinity"),
-    ({"--out": "l.png"}, r"--out .*l.png: exists and is not a folder"),
-    ({"--out": "."}, r"--out .*: holds files not written by `sgmodel predict`"),
+    ({"--out": "l.png"}, r"--out .*l.png: inside --left .*l.png; write outputs apart from the inputs"),
+    ({"--out": "."}, r"--out .*: holds --left .*l.png, and the whole folder is replaced"),
     ({"--device": "cuda:2"}, r"--device cuda:2: no CUDA device"),
 ]
 

@@ -79,5 +79,5 @@ def test_an_import_never_replaces_another_dataset(good_set, tmp_path, capsys):
     (out / "test" / "index.json").write_text("{}")
     before = snapshot(out)
     rc, err = refusal(cli_main, ["import", "multiview", good_set, "--out", out] + FLAGS, capsys)
-    assert rc == 2 and "--out" in err and "multiview.json" in err
+    assert rc == 2 and "--out" in err and "not written by `scenesplat-stereo import multiview`" in err
     assert snapshot(out) == before

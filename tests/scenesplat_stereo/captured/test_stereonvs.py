@@ -15,6 +15,7 @@ from scenesplat_stereo.build.inspection import inspect_dataset
 from scenesplat_stereo.captured import stereonvs as S
 from scenesplat_stereo.captured.llff import LlffError, llff_to_opencv, opencv_to_llff, read_poses_bounds
 from scenesplat_stereo.cli import main as cli_main
+from scenesplat_stereo.common.files import write_manifest
 from scenesplat_stereo.scene.cameras import translation
 from scenesplat_stereo.shards.encode import decode_image, encode_jpeg
 from scenesplat_stereo.shards.sample import SampleMeta
@@ -279,10 +280,11 @@ def test_a_refused_import_names_the_problem_and_leaves_out_alone(stereonvs_scene
     out = tmp_path / "out"
     (out / "test").mkdir(parents=True)
     (out / "test" / "keep.txt").write_text("earlier")
+    write_manifest(out, S.OWNER)  # an earlier import's
     assert cli_main(["import", "stereonvs", str(root), "--out", str(out), "--baseline", "0.12", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1, err
-    assert sorted(p.name for p in out.rglob("*")) == ["keep.txt", "test"]
+    assert sorted(p.name for p in out.rglob("*")) == [".written-by", "keep.txt", "test"]
 
 
 def turned_right(rows, pair, degrees):
@@ -331,7 +333,7 @@ def test_an_import_never_replaces_a_build(stereonvs_scenes, replicags_dataset, t
     out = tmp_path / "build"
     shutil.copytree(replicags_dataset, out)
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
-    with pytest.raises(ValueError, match="holds another dataset"):  # shards.check_import_out
+    with pytest.raises(ValueError, match="holds files not written by `scenesplat-stereo import stereonvs`"):
         S.import_stereonvs(stereonvs_scenes[0].folder.parent, out, BASELINE, progress=False)
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
 

@@ -5,6 +5,7 @@ named by the command; and the file helpers that keep outputs whole (``scenesplat
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import logging
 import os
@@ -186,7 +187,8 @@ def test_staged_folder_replaces_the_whole_target_or_nothing(tmp_path):
     with StagedFolder(out, "tool do") as tmp:
         (tmp / "scene.ply").write_text("first")
         (tmp / "depth.png").write_text("first")
-    assert (out / OWNER_FILE).read_text() == "tool do\n"
+    assert json.loads((out / OWNER_FILE).read_text()) == {"owner": "tool do", "files": {
+        name: {"size": 5, "sha256": hashlib.sha256(b"first").hexdigest()} for name in ("depth.png", "scene.ply")}}
     with pytest.raises(RuntimeError):
         with StagedFolder(out, "tool do") as tmp:
             (tmp / "depth.png").write_text("second")
@@ -215,8 +217,8 @@ def test_check_replaceable_refuses_a_folder_of_other_files(tmp_path):
     (tmp_path / "mine" / "thesis.tex").write_text("years of work")
     with pytest.raises(ValueError, match=r"--out .*mine: holds files not written by `tool do` \(e.g. 'thesis.tex'\)"):
         check_replaceable(tmp_path / "mine", "--out", "tool do")
-    with StagedFolder(tmp_path / "other", "other tool"):
-        pass
+    with StagedFolder(tmp_path / "other", "other tool") as tmp:
+        (tmp / "report.md").write_text("theirs")
     with pytest.raises(ValueError, match="holds the output of `other tool`"):
         check_replaceable(tmp_path / "other", "--out", "tool do")
     (tmp_path / "file").write_text("x")

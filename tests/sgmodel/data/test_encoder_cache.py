@@ -241,7 +241,7 @@ def test_cli_encode_then_train_from_the_cache(demo_dataset, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("setup,match", [
-    ("foreign", "is not an encoder cache"),
+    ("foreign", "holds files not written by `sgmodel encode` .e.g. 'notes.txt'"),
     ("other", "holds an encoder cache of other settings"),
     ("inside", "inside --data"),
     ("no-data", "does not exist"),

@@ -185,17 +185,23 @@ def test_predict_with_rig_refuses_mixed_calibration_and_other_sizes(raw_rig, tmp
         assert not out.exists()
 
 
-def test_long_baseline_is_reported_as_a_likely_unit_mistake(raw_rig):
+def test_long_and_short_baselines_are_reported_as_likely_unit_mistakes(raw_rig):
     r = raw_rig("radtan")
     rect = Rectification.of(read_rig(r.folder / "opencv.yml", units="mm"), (W, H))   # 0.1 read as mm: 0.1 mm
     lines = []
     rect.report(lines.append, lines.append)
-    assert rect.baseline == pytest.approx(1e-4) and len(lines) == 1 and lines[0].startswith("rectified with")
+    assert rect.baseline == pytest.approx(1e-4) and len(lines) == 2 and lines[0].startswith("rectified with")
+    assert lines[1] == (f"warning: --rig {r.folder / 'opencv.yml'}: a baseline of 0.0001 m is short for a stereo rig "
+                        "(3 mm or more is usual): if the calibration's T is in metres, leave --rig-units out (it "
+                        "scales T from mm or cm)")
     rig = read_rig(r.folder / "opencv.yml")
     rect = Rectification.of(dataclasses.replace(rig, T=rig.T * 1000), (W, H))          # millimetres read as metres
     rect.report(lines.append, lines.append)
-    assert lines[2] == ("warning: a baseline of 100 m is long for a stereo rig: if the calibration's T is not in "
-                        "metres, give --rig-units mm or cm")
+    assert lines[3] == (f"warning: --rig {r.folder / 'opencv.yml'}: a baseline of 100 m is long for a stereo rig (up "
+                        "to 2 m is usual): if the calibration's T is not in metres, give --rig-units mm or cm")
+    rect = Rectification.of(rig, (W, H))                                               # 0.1 m: plausible
+    rect.report(lines.append, lines.append)
+    assert len(lines) == 5
 
 
 def test_rectify_command_writes_the_pair_and_a_k_txt_that_reads_back(raw_rig, tmp_path, capsys):
@@ -227,10 +233,16 @@ def test_rectify_command_writes_the_pair_and_a_k_txt_that_reads_back(raw_rig, tm
     err = capsys.readouterr().err
     assert err.startswith("sgmodel rectify: error: --right") and len(err.strip().splitlines()) == 1
     assert not bad.exists()
-    # OUT is replaced as a whole on a second run; a folder another command wrote is refused and left as it was.
-    (out / "K.txt").write_text("stale")
+    # OUT is replaced as a whole on a second run, unless a file in it changed since (the user's edit is kept); a
+    # folder another command wrote is refused and left as it was.
     rerun = ["rectify", "--left", str(r.folder / "left.png"), "--right", str(r.folder / "right.png"),
              "--rig", str(r.folder / "intrinsics.yml"), str(r.folder / "extrinsics.yml")]
+    written = (out / "K.txt").read_bytes()
+    (out / "K.txt").write_text("edited")
+    assert main(rerun + ["--out", str(out)]) == 2
+    assert "holds 'K.txt', changed since `sgmodel rectify` wrote it" in capsys.readouterr().err
+    assert (out / "K.txt").read_text() == "edited"
+    (out / "K.txt").write_bytes(written)  # put back as the command wrote it: OUT is all its own again
     assert main(rerun + ["--out", str(out)]) == 0
     assert read_calib(out / "K.txt").baseline == rect.baseline
     capsys.readouterr()

@@ -149,7 +149,7 @@ def small_pair(tmp_path):
     ({"--checkpoint": "ckpt.pt"}, "--checkpoint CKPT or --method .*, not both"),
     ({"--method": None, "--checkpoint": "nope.pt"}, "--checkpoint .*nope.pt: file not found"),
     ({"--resolution": "8"}, "--resolution must be at least 16"),
-    ({"--out": "K.txt"}, "--out .*K.txt: exists and is not a folder"),
+    ({"--out": "K.txt"}, "--out .*K.txt: inside --calib .*K.txt; write outputs apart from the inputs"),
     ({"--out": "no/such/out"}, "--out .*: parent folder .* does not exist"),
     ({"--encoder": "no-such-encoder"}, "--encoder"),
 ])
