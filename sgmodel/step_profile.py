@@ -92,8 +92,12 @@ class StepProfile:
                 "cache_mb": sum(t.numel() * t.element_size() for t in cached) / 2**20}
 
 
-def gathered_record(world: World, values: dict[str, float]) -> dict[str, list[float]]:
-    """``values`` of every rank, gathered (one collective): {name: [rank 0's, rank 1's, ...]}, rounded to
-    0.01 (ms) for ``metrics.jsonl``."""
-    rows = all_gather_rows(world, list(values.values()))
-    return {name: [round(row[i], 2) for row in rows] for i, name in enumerate(values)}
+def gathered_record(world: World, values: dict[str, float], means: dict[str, float] | None = None) -> dict:
+    """``values`` of every rank, gathered: {name: [rank 0's, rank 1's, ...]}, rounded to 0.01 (ms) for
+    ``metrics.jsonl``; and, in the same collective, ``means`` averaged over ranks ({name: mean}: a step's
+    loss and PSNR, as ``train.mean_over_ranks``)."""
+    means = means or {}
+    rows = all_gather_rows(world, [*means.values(), *values.values()])
+    out = {name: sum(row[i] for row in rows) / world.size for i, name in enumerate(means)}
+    out.update({name: [round(row[len(means) + i], 2) for row in rows] for i, name in enumerate(values)})
+    return out

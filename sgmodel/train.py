@@ -441,9 +441,11 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
                     raise diverged(step, "a gradient is NaN or infinite" if not grads_ok else
                                    "a weight is NaN or infinite")
             if logged:
-                stats = mean_over_ranks(world, stats)
-                if profile is not None:  # every rank's phases of this step (one more gather where one ran)
-                    stats.update(gathered_record(world, profile.phases(data_ms, batch)))
+                if profile is None:
+                    stats = mean_over_ranks(world, stats)
+                else:  # every rank's phases of this step, in the collective that averages the loss
+                    means = {k: v for k, v in stats.items() if k != "lr"}
+                    stats = {**stats, **gathered_record(world, profile.phases(data_ms, batch), means)}
                 if world.main:
                     append_line(paths.metrics, json.dumps({"step": step, **stats, "step_ms": ms}))
             if checkpoint:
