@@ -20,11 +20,14 @@
 #   3 (carry .gpukit/b, .whl):         SGMODEL_CACHE=/root/sgcache bash scripts/gpu_scale.sh data live
 #   4 (carry .gpukit/b, .whl):         SGMODEL_CACHE=/root/sgcache bash scripts/gpu_scale.sh cache build
 # (one call carries at most 64 MiB and runs at most 10 minutes.) STEPS (default 60), SKIP (15), BATCH (32),
-# FRAMES (100), BUILD_FRAMES (160) change the sizes. DEVICE=cpu runs every phase tiny on the CPU with gloo
+# FRAMES (100), BUILD_FRAMES (400) change the sizes. DEVICE=cpu runs every phase tiny on the CPU with gloo
 # and 2 ranks (a dry run, about 10 minutes on 2 cores).
 set -uo pipefail
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 phases=${*:-data live cache build}
+for phase in $phases; do
+  [[ " data live cache build " == *" $phase "* ]] || { echo "gpu_scale.sh: unknown phase $phase (data, live, cache, build)" >&2; exit 2; }
+done
 dev=${DEVICE:-cuda}
 work=/tmp/sgscale; mkdir -p $work
 if [[ $dev == cuda ]]; then
@@ -36,7 +39,7 @@ if [[ $dev == cuda ]]; then
   gpus=$(python3 -c "import torch; print(torch.cuda.device_count())")
   ranks=$( ((gpus >= 4)) && echo "2 4" || echo "$gpus" ); counts=$( ((gpus >= 4)) && echo "1 2 4" || echo "1 $gpus" )
   S=256 BATCH=${BATCH:-32} STEPS=${STEPS:-60} SKIP=${SKIP:-15} FRAMES=${FRAMES:-100} RES=340x256 ENC=psmnet-kitti
-  VAL=16 TRAIN_EXTRA="" BUILD_FRAMES=${BUILD_FRAMES:-160} BUILD_RES=616x456 BUILD_EXTRA="--jpeg-encoder nvjpeg"
+  VAL=16 TRAIN_EXTRA="" BUILD_FRAMES=${BUILD_FRAMES:-400} BUILD_RES=616x456 BUILD_EXTRA="--jpeg-encoder nvjpeg"
   teachers=16 gaussians=200000
 else
   export PYTHONPATH=$PWD:${PYTHONPATH:-}
@@ -60,8 +63,9 @@ for phase in $phases; do
       launch=$( ((n > 1)) && echo "$py -m torch.distributed.run --standalone --nproc_per_node=$n" || echo $py )
       $launch -m sgmodel.cli encode --data $work/dataset --out $work/cache --encoder $ENC --resolution $S \
         --device $dev --no-progress $( [[ $dev == cpu ]] && echo --preset cpu-small --workers 0 )
-      echo "data: $(cat $work/dataset/*/index.json | grep -o '"num_samples": [0-9]*' | awk '{s+=$2} END {print s}') \
-samples (train and val), $RES, encoder cache of $ENC at ${S}x$S, on $dev" | tee "$OUT/data.md" ;;
+      pairs=$($py -c "import sys; from sgmodel.data import read_split; print(', '.join(f'{s} {sum(len(x.keys) \
+for x in read_split(sys.argv[1], s))}' for s in ('train', 'val')))" $work/dataset)
+      echo "data: demo rooms, pairs: $pairs, $RES, encoder cache of $ENC at ${S}x$S, on $dev" | tee "$OUT/data.md" ;;
     live|cache)
       rm -rf $work/runs-$phase
       extra=$( [[ $phase == live ]] && echo "--noise-floor --label encoder-live" || \
@@ -76,7 +80,6 @@ samples (train and val), $RES, encoder cache of $ENC at ${S}x$S, on $dev" | tee 
         --gaussians $gaussians --no-progress
       $py scripts/ray_build_scale.py --teachers $work/build-teachers --work $work/builds --gpus $counts --device $dev \
         --out "$OUT/build.md" -- --resolution $BUILD_RES --val-scenes 0 --min-psnr none $BUILD_EXTRA ;;
-    *) echo "gpu_scale.sh: unknown phase $phase (data, live, cache, build)" >&2; exit 2 ;;
   esac
   echo "== phase $phase: $((SECONDS - t0)) s"
 done
