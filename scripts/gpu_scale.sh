@@ -7,7 +7,7 @@
 #          2 and 4 GPUs under torchrun; median step, pairs/s, speed-up, weights vs 1 GPU, per-rank profile
 #   cache  the same with --encoder-cache (each rank reads its share of the cache), without the noise floor
 #   build  scripts/ray_build_scale.py: `scenesplat-stereo build --backend ray` on 1, 2, 4 GPUs (16 demo
-#          teachers at 616x456, nvJPEG), and the paper's build projected for 4 GPUs
+#          teachers at 616x456; nvJPEG when the machine has it), and the paper's build projected for 4 GPUs
 # Each phase writes its markdown table to $OUT (data.md, live.md, cache.md, build.md) for docs/benchmarks.md.
 # Here, once (git-ignored folders):
 #   bash ../shared/tools/warp-gpu-kit .gpukit
@@ -39,7 +39,10 @@ if [[ $dev == cuda ]]; then
   gpus=$(python3 -c "import torch; print(torch.cuda.device_count())")
   ranks=$( ((gpus >= 4)) && echo "2 4" || echo "$gpus" ); counts=$( ((gpus >= 4)) && echo "1 2 4" || echo "1 $gpus" )
   S=256 BATCH=${BATCH:-32} STEPS=${STEPS:-60} SKIP=${SKIP:-15} FRAMES=${FRAMES:-100} RES=340x256 ENC=psmnet-kitti
-  VAL=16 TRAIN_EXTRA="" BUILD_FRAMES=${BUILD_FRAMES:-400} BUILD_RES=616x456 BUILD_EXTRA="--jpeg-encoder nvjpeg"
+  VAL=16 TRAIN_EXTRA="" BUILD_FRAMES=${BUILD_FRAMES:-400} BUILD_RES=616x456 BUILD_EXTRA="--jpeg-encoder cpu"
+  # nvJPEG where the machine has it (the fastest build, docs/dataset.md), else the host's JPEG encoder
+  python3 -c "from scenesplat_stereo.nvjpeg import load_library; load_library()" 2>/dev/null \
+    && BUILD_EXTRA="--jpeg-encoder nvjpeg"
   teachers=16 gaussians=200000
 else
   export PYTHONPATH=$PWD:${PYTHONPATH:-}
