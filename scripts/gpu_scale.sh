@@ -21,8 +21,8 @@
 #   4 (carry .gpukit/b, .whl):         SGMODEL_CACHE=/root/sgcache bash scripts/gpu_scale.sh cache build
 # (one call carries at most 64 MiB and runs at most 10 minutes.) STEPS (default 60), SKIP (15), BATCH (32),
 # FRAMES (100), BUILD_FRAMES (400) change the sizes; TRAIN_MORE adds `sgmodel train` flags to every training
-# run (e.g. TRAIN_MORE="--ddp-bf16-grads" or "--ddp-bucket-mb 2" with the phase cache, OUT elsewhere). DEVICE=cpu runs every phase tiny on the CPU with gloo
-# and 2 ranks (a dry run, about 10 minutes on 2 cores).
+# run (e.g. TRAIN_MORE="--ddp-bf16-grads" or "--ddp-bucket-mb 2" with the phase cache, OUT elsewhere).
+# DEVICE=cpu runs every phase tiny on the CPU with gloo and 2 ranks (a dry run, about 10 minutes on 2 cores).
 set -uo pipefail
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 phases=${*:-data live cache build}
