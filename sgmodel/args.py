@@ -69,7 +69,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="steps between metrics.jsonl records (default 10)")
     g.add_argument("--seed", type=whole_number("--seed", 0, MAX_SEED),
                    help="data order, target draws and initialisation (default 0)")
-    g.add_argument("--workers", type=whole_number("--workers", 0), help="DataLoader workers per rank (default 4)")
+    g.add_argument("--workers", type=whole_number("--workers", 0),
+                   help="DataLoader workers per rank (default: this host's CPUs shared among its ranks, one "
+                        "left to each rank, at most 8)")
     g.add_argument("--no-amp", action="store_true", help="float32 convolutions on CUDA (default: bf16 autocast)")
     g.add_argument("--no-compile-lpips", action="store_true",
                    help="run the LPIPS term's VGG16 eagerly on CUDA (default: torch.compile, about 15 s once "
@@ -77,12 +79,20 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-compile-composer", action="store_true",
                    help="run the composer eagerly on CUDA (default: torch.compile, about 20 s once per process "
                         "and batch shape for a step about 3%% faster)")
+    g.add_argument("--ddp-bucket-mb", type=positive_number("--ddp-bucket-mb"),
+                   help="several GPUs: DDP's gradient bucket size in MiB (default 25)")
+    g.add_argument("--ddp-bf16-grads", action="store_true",
+                   help="several GPUs: all-reduce the gradients in bfloat16 (half the bytes; a run of its own: "
+                        "the averaged gradient is rounded to bf16)")
+    g.add_argument("--profile", action="store_true",
+                   help="write each rank's time per step phase (data, encoder, forward, backward, exposed "
+                        "all-reduce, optimiser) and validation time into metrics.jsonl (CUDA events: no sync)")
     p.set_defaults(**{_TRAINING: True})
 
 
 _TRAINING = "training_flags"  # set by add_train_arguments: the schedule flags are the user's, check them
 _TRAIN_FLAGS = ("steps", "batch_size", "targets", "lr", "weight_decay", "warmup", "lpips_weight", "val_every",
-                "val_samples", "log_every", "seed", "workers")
+                "val_samples", "log_every", "seed", "workers", "ddp_bucket_mb")
 
 
 def params_from_args(args: argparse.Namespace) -> tuple[ModelParams, TrainParams]:
@@ -112,6 +122,8 @@ def params_from_args(args: argparse.Namespace) -> tuple[ModelParams, TrainParams
         train.compile_lpips = False
     if getattr(args, "no_compile_composer", False):
         train.compile_composer = False
+    train.ddp_bf16_grads = getattr(args, "ddp_bf16_grads", False) or train.ddp_bf16_grads
+    train.profile = getattr(args, "profile", False) or train.profile
     train.betas = tuple(train.betas)
     model.validate()
     if getattr(args, _TRAINING, False):  # the benches reuse some names (--warmup: untimed runs) for themselves

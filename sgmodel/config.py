@@ -110,11 +110,14 @@ class TrainParams:
     val_samples: int | None = None  # cap on validation samples (None: the whole split)
     log_every: int = 10  # steps between metrics.jsonl records
     seed: int = 0  # data order, target draws and initialisation
-    workers: int = 4  # DataLoader worker processes per rank
+    workers: int | None = None  # DataLoader worker processes per rank (None: ``loader_workers``' share of the host)
     amp: bool = True  # bf16 autocast for the encoder and the convolutions on CUDA (rasteriser float32)
     compile_lpips: bool = True  # torch.compile the LPIPS term's VGG16 trunk on CUDA (~15 s once per process)
     compile_composer: bool = True  # torch.compile the composer on CUDA (~20 s once per process and batch shape)
     sheet_samples: int = 4  # validation samples shown in each contact sheet
+    ddp_bucket_mb: float = 25.0  # DDP gradient bucket size (MiB) on several GPUs (PyTorch's default)
+    ddp_bf16_grads: bool = False  # all-reduce the gradients in bfloat16 on several GPUs (DDP comm hook)
+    profile: bool = False  # per-rank time of each step's phases in metrics.jsonl (``sgmodel.train.step_profile``)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -138,8 +141,10 @@ class TrainParams:
             raise ValueError(f"betas {self.betas}: each must be in [0, 1)")
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"--seed {self.seed}: must be in 0..{MAX_SEED}")
-        if self.workers < 0:
+        if self.workers is not None and self.workers < 0:
             raise ValueError(f"--workers {self.workers}: must be >= 0")
+        if not (math.isfinite(self.ddp_bucket_mb) and self.ddp_bucket_mb > 0):
+            raise ValueError(f"--ddp-bucket-mb {self.ddp_bucket_mb}: must be a finite number > 0")
 
 
 # Small configurations for a CPU: the same method at a size two cores train in minutes.

@@ -79,6 +79,8 @@ class TeacherResult:
     write_s: float = 0.0
     error: str | None = None
     path: str = ""
+    started: float = 0.0  # when its task began and ended (time.time(), s: one host's clock; not in any file)
+    finished: float = 0.0
 
 
 @dataclass
@@ -118,7 +120,7 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
     """Render, encode and write the missing shards of one teacher. Never raises for a bad teacher: the
     error is returned in the result, and no unfinished shard is left behind."""
     t = job.teacher
-    result = TeacherResult(t.scene_id, t.subset, job.split, path=str(t.ply_path))
+    result = TeacherResult(t.scene_id, t.subset, job.split, path=str(t.ply_path), started=time.time())
     sink = shards.PlannedShards(settings.out, job.split, job.chunks)
     encoder = jpeg = None
     try:
@@ -153,6 +155,7 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
     if encoder is not None:
         result.encode_s, result.write_s = encoder.encode_s, encoder.sink_s
     result.shards, result.pairs = sink.done, sink.pairs
+    result.finished = time.time()
     return result
 
 
@@ -370,11 +373,15 @@ def summary(report: BuildReport) -> str:
     renders = sum(r.renders for r in report.results)
     render_s = sum(r.render_s for r in report.results)
     rate = f"{pairs / report.wall_s:.2f} pairs/s, {renders / report.wall_s:.1f} renders/s" if report.wall_s else "-"
+    ran = [r for r in report.results if r.finished > 0]
+    window = max(r.finished for r in ran) - min(r.started for r in ran) if ran else 0.0
     lines += [
         "",
         f"kept from an earlier run: {report.skipped_shards} shards; removed stale: {report.removed_stale}",
         f"time: render {render_s:.1f} s, encode {sum(r.encode_s for r in report.results):.1f} worker-s, "
-        f"write {sum(r.write_s for r in report.results):.1f} s, wall {report.wall_s:.1f} s ({rate})",
+        f"write {sum(r.write_s for r in report.results):.1f} s, wall {report.wall_s:.1f} s ({rate})"
+        + (f"; first teacher's start to last one's end {window:.1f} s ({pairs / window:.2f} pairs/s)"
+           if window > 0 else ""),
     ]
     return "\n".join(lines)
 

@@ -1,20 +1,28 @@
-"""Several GPUs, measured and checked in one go (the recipe behind ``scripts/gpu/ddp.sh``; also run on the CPU
-with gloo by ``tests/sgmodel/train/test_distributed.py``).
+"""Several GPUs, measured and checked in one go (the recipe behind ``scripts/gpu/scale.sh``; also run on the
+CPU with gloo by ``tests/sgmodel/train/test_distributed.py``).
 
-    python scripts/checks/ddp_check.py --data DATASET --work DIR --ranks 2 [--device cuda] [--steps 200]
-                                [--out report.md] [-- extra `sgmodel train` flags]
+    python scripts/checks/ddp_check.py --data DATASET --work DIR --ranks 2 [4 ...] [--device cuda] [--steps 200]
+                                       [--noise-floor] [--no-resume] [--profile] [--label TEXT] [--out report.md]
+                                       [-- extra `sgmodel train` flags]
 
 Runs, each with the same flags and seed (``--val-every`` a quarter of ``--steps``):
 
 1. one process, uninterrupted (the reference, and the one-GPU throughput);
-2. ``torchrun --nproc_per_node=RANKS``, uninterrupted (the several-GPU throughput; its weights against 1);
-3. RANKS processes stopped (SIGKILL, every rank) at their first checkpoint, resumed on one process;
-4. one process stopped at its first checkpoint, resumed on RANKS processes.
+2. with ``--noise-floor``, one process again: how far two runs of the same seed drift apart on this device
+   (bf16 autocast, cuDNN's and the rasteriser's nondeterministic summation order), the floor against which
+   the several-rank runs' difference is read;
+3. for each of ``--ranks``, ``torchrun --nproc_per_node=RANKS``, uninterrupted (the throughput; its weights
+   against 1);
+4. unless ``--no-resume``, with the first of ``--ranks``: RANKS processes stopped (SIGKILL, every rank) at
+   their first checkpoint, resumed on one process; one process stopped at its first checkpoint, resumed on
+   RANKS processes.
 
 Throughput is pairs per second from the median ``step_ms`` of ``metrics.jsonl`` (the first ``--skip`` steps
 left out: cuDNN autotuning, Triton compilation, loader start-up), ``--batch-size`` pairs a step over all
 ranks. Weights are compared as ||difference|| / ||weights|| over all parameters (``weight_difference``):
-DDP averages the ranks' gradients, which equals one process's mean up to float summation order.
+DDP averages the ranks' gradients, which equals one process's mean up to float summation order
+(``tests/sgmodel/train/test_distributed.py`` holds the gradients of one step to that on the CPU). With ``--profile`` the
+runs record each rank's step phases (``sgmodel.train.step_profile``) and the report adds their medians.
 """
 
 from __future__ import annotations
@@ -110,47 +118,96 @@ def pairs_per_second(run: Path, batch: int, skip: int) -> tuple[float, float]:
     return batch / (median / 1e3), median
 
 
+def profile_rows(run: Path, skip: int) -> list[str]:
+    """Markdown rows: each rank's median phase times (ms) after step ``skip``, and its validation time."""
+    from sgmodel.train.step_profile import PHASES
+
+    steps = [r for r in records(run) if "forward" in r and r["step"] > skip]
+    if not steps:
+        return []
+    val = [r["val_ms"] for r in records(run) if "val_ms" in r and r["step"] > 0]
+    writes = [r["write_ms"] for r in records(run) if "write_ms" in r and r["step"] > 0]
+    rows = []
+    for rank in range(len(steps[0]["forward"])):
+        cells = [statistics.median(r[k][rank] for r in steps) for k in PHASES]
+        cells += [statistics.median(v[rank] for v in val) if val else float("nan"),
+                  statistics.median(writes) if writes and rank == 0 else 0.0]
+        rows.append(f"| {run.name} | {rank} | " + " | ".join(f"{c:.1f}" for c in cells) + " |")
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
                                 allow_abbrev=False)
     p.add_argument("--data", type=Path, required=True, help="a dataset built by `scenesplat-stereo build`")
     p.add_argument("--work", type=Path, required=True, help="folder for the runs (created)")
-    p.add_argument("--ranks", type=int, default=2, help="processes (GPUs) of the several-GPU runs (default 2)")
+    p.add_argument("--ranks", type=int, nargs="+", default=[2], help="processes (GPUs) of the several-GPU runs "
+                                                                     "(default 2)")
     p.add_argument("--device", default="cuda", help="cuda (NCCL) or cpu (gloo)")
     p.add_argument("--steps", type=int, default=200, help="steps of every run (default 200)")
     p.add_argument("--batch-size", type=int, default=32, help="pairs a step over all ranks (default 32)")
     p.add_argument("--skip", type=int, default=20, help="steps left out of the throughput (default 20)")
+    p.add_argument("--noise-floor", action="store_true", help="a second one-process run of the same seed")
+    p.add_argument("--no-resume", action="store_true", help="leave out the stopped-and-resumed runs")
+    p.add_argument("--profile", action="store_true", help="`sgmodel train --profile`: a table of step phases")
+    p.add_argument("--label", default="", help="a word for the report's first line (e.g. 'encoder cache')")
     p.add_argument("--out", type=Path, help="also write the markdown report here")
     p.add_argument("extra", nargs=argparse.REMAINDER, help="after --: more `sgmodel train` flags")
     args = p.parse_args(argv)
     extra = args.extra[1:] if args.extra[:1] == ["--"] else args.extra
     flags = ["--device", args.device, "--steps", str(args.steps), "--batch-size", str(args.batch_size),
-             "--val-every", str(max(1, args.steps // 4)), "--log-every", "1", "--no-progress", *extra]
-    work = args.work
-    runs = {"one": work / "one", "many": work / f"ranks{args.ranks}", "many-then-one": work / f"{args.ranks}to1",
-            "one-then-many": work / f"1to{args.ranks}"}
-    train(1, args.data, runs["one"], flags)
-    train(args.ranks, args.data, runs["many"], flags)
-    stopped = {"many-then-one": stop_at_first_checkpoint(args.ranks, args.data, runs["many-then-one"], flags),
-               "one-then-many": stop_at_first_checkpoint(1, args.data, runs["one-then-many"], flags)}
-    train(1, args.data, runs["many-then-one"], flags)
-    train(args.ranks, args.data, runs["one-then-many"], flags)
+             "--val-every", str(max(1, args.steps // 4)), "--log-every", "1", "--no-progress", *extra,
+             *(["--profile"] if args.profile else [])]
+    work, first = args.work, args.ranks[0]
+    one = work / "one"
+    train(1, args.data, one, flags)
+    again = work / "one-again"
+    if args.noise_floor:
+        train(1, args.data, again, flags)
+    many = {r: work / f"ranks{r}" for r in args.ranks}
+    for r, run in many.items():
+        train(r, args.data, run, flags)
+    resumed = {}
+    if not args.no_resume:
+        resumed = {f"{first} processes, resumed on 1": (first, 1, work / f"{first}to1"),
+                   f"1 process, resumed on {first}": (1, first, work / f"1to{first}")}
+        stopped = {label: stop_at_first_checkpoint(a, args.data, run, flags) for label, (a, _, run) in resumed.items()}
+        for label, (_, b, run) in resumed.items():
+            train(b, args.data, run, flags)
 
-    (one_pps, one_ms), (many_pps, many_ms) = (pairs_per_second(runs[k], args.batch_size, args.skip)
-                                              for k in ("one", "many"))
-    reference = last_weights(runs["one"])[1]
-    lines = [f"`sgmodel train` on {args.device}, {args.steps} steps, batch {args.batch_size} over all ranks, "
-             f"flags `{' '.join(extra)}`; throughput from the median step after step {args.skip}.", "",
+    one_pps, one_ms = pairs_per_second(one, args.batch_size, args.skip)
+    reference = last_weights(one)[1]
+    lines = [f"`sgmodel train` on {args.device}{', ' + args.label if args.label else ''}, {args.steps} steps, batch "
+             f"{args.batch_size} over all ranks, flags `{' '.join(extra)}`; throughput from the median step after "
+             f"step {args.skip}.", "",
              "| processes | median step (ms) | pairs/s | speed-up |", "|---:|---:|---:|---:|",
-             f"| 1 | {one_ms:.1f} | {one_pps:.1f} | 1.00 |",
-             f"| {args.ranks} | {many_ms:.1f} | {many_pps:.1f} | {many_pps / one_pps:.2f} |", "",
-             "| run | stopped at step | final step | weights vs one process (rel. L2 diff) |", "|---|---:|---:|---:|",
-             f"| {args.ranks} processes, uninterrupted | - | {last_weights(runs['many'])[0]} | "
-             f"{weight_difference(reference, last_weights(runs['many'])[1]):.2e} |"]
-    for key, label in (("many-then-one", f"{args.ranks} processes, resumed on 1"),
-                       ("one-then-many", f"1 process, resumed on {args.ranks}")):
-        step, w = last_weights(runs[key])
-        lines.append(f"| {label} | {stopped[key]} | {step} | {weight_difference(reference, w):.2e} |")
+             f"| 1 | {one_ms:.1f} | {one_pps:.1f} | 1.00 |"]
+    for r, run in many.items():
+        pps, ms = pairs_per_second(run, args.batch_size, args.skip)
+        lines.append(f"| {r} | {ms:.1f} | {pps:.1f} | {pps / one_pps:.2f} |")
+    lines += ["", "| run | stopped at step | final step | weights vs one process (rel. L2 diff) |",
+              "|---|---:|---:|---:|"]
+    if args.noise_floor:
+        step, w = last_weights(again)
+        lines.append(f"| 1 process again, same seed (the noise floor) | - | {step} | "
+                     f"{weight_difference(reference, w):.2e} |")
+    for r, run in many.items():
+        step, w = last_weights(run)
+        lines.append(f"| {r} processes, uninterrupted | - | {step} | {weight_difference(reference, w):.2e} |")
+    for label, (_, _, run) in resumed.items():
+        step, w = last_weights(run)
+        lines.append(f"| {label} | {stopped[label]} | {step} | {weight_difference(reference, w):.2e} |")
+    if args.profile:
+        from sgmodel.train.step_profile import PHASES
+
+        lines += ["", f"Per rank, median ms of a step after step {args.skip} (`--profile`; GPU phases are stream "
+                  "time between CUDA events; allreduce: the all-reduce's exposed part after the last gradient; "
+                  "cache_mb: encoder-cache MiB a step), validation ms per rank, and rank 0's writes (sheet, "
+                  "checkpoints) while the others wait:", "",
+                  "| run | rank | " + " | ".join(PHASES) + " | validation | rank-0 writes |",
+                  "|---|---:|" + "---:|" * (len(PHASES) + 2)]
+        for run in [one, *many.values()]:
+            lines += profile_rows(run, args.skip)
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

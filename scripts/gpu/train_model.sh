@@ -13,11 +13,12 @@
 #           pairs of .devdata/pairs, and leaves it all in $OUT (model.pt, results.tgz)
 # Here, once (git-ignored .devdata):
 #   bash scripts/gpu/train_model.sh prepare      (captures, guitar, multiview shards, weights, real pairs)
-# Device calls (kind nvidia-h100-x4), each within 30 s of the one before:
-#   1 (carry .gpukit/a):                   bash .gpukit/a/stash.sh
-#   2 (carry .raykit, .devdata):           bash scripts/gpu/train_model.sh stash
-#   3 (carry .gpukit/b, .whl):             bash scripts/gpu/train_model.sh data train
-#   4.. (carry .gpukit/b, .whl):           bash scripts/gpu/train_model.sh wait [finish]
+# Device calls (kind nvidia-h100-x4), each within 30 s of the one before (one call carries at most 64 MiB):
+#   1 (carry .gpukit/a):                                   bash .gpukit/a/stash.sh
+#   2 (carry .raykit, .devdata/weights):                   bash scripts/gpu/train_model.sh stash
+#   3 (carry .devdata/captures, .devdata/multiview, .devdata/pairs, .whl):  bash scripts/gpu/train_model.sh stash
+#   4 (carry .gpukit/b):                                   bash scripts/gpu/train_model.sh data train
+#   5.. (no carry):                                        bash scripts/gpu/train_model.sh wait [finish]
 # STEPS (default 4000), BATCH (global, default 64), ROOMS (per capture, 6), FRAMES (200), SIZE (344x256) change
 # the recipe; HELD_OUT names the captures kept out (default statue-trumpet tarot-box). DEVICE=cpu runs every
 # phase tiny on the CPU with gloo and 2 ranks (a dry run).
@@ -38,12 +39,15 @@ if [[ $phases == prepare ]]; then
   [[ -d ${PAIRS:-/work/realdata/pairs} ]] && cp -r "${PAIRS:-/work/realdata/pairs}"/. .devdata/pairs/
   du -sh .devdata/*; exit 0
 fi
-if [[ $phases == stash ]]; then  # call 2: data and Ray onto the machine (they stay while it is warm)
-  set -e; mkdir -p /root/sgdata && cp -r .devdata/. /root/sgdata/ && source .raykit/install.sh; exit 0
+if [[ $phases == stash ]]; then  # calls 2-3: whatever part of the data, Ray and OpenImageIO this call carries
+  set -e; mkdir -p /root/sgdata && cp -r .devdata/. /root/sgdata/ 2>/dev/null || true
+  [[ -f .raykit/install.sh ]] && source .raykit/install.sh
+  [[ -d .whl ]] && python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl
+  du -sh /root/sgdata/*; exit 0
 fi
 if [[ $dev == cuda ]]; then
-  source .gpukit/b/install.sh || exit 1
-  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl 2>/dev/null || true
+  if [[ -d /root/warpkit/warp ]]; then export PYTHONPATH=/root/warpkit${PYTHONPATH:+:$PYTHONPATH}
+  else source .gpukit/b/install.sh || exit 1; fi
   export PYTHONPATH=/tmp/site:$PWD:${PYTHONPATH:-}
   [[ -d /root/raykit/site ]] && export PYTHONPATH=/root/raykit/site:$PYTHONPATH PATH=/root/raykit/bin:$PATH
   data=/root/sgdata

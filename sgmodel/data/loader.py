@@ -28,6 +28,7 @@ Bad input raises ``DataError`` naming the file (and the JSON field, through ``Sa
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -365,6 +366,14 @@ def check_first_sample(shards: list[Shard], load) -> None:
 
 def init_loader_worker(_: int) -> None:
     cv2.setNumThreads(1)  # one resize thread per loader worker; the workers are the parallelism
+
+
+def loader_workers(workers: int | None, local_ranks: int = 1) -> int:
+    """DataLoader workers per rank: ``workers`` when given, else this host's CPUs (those this process may
+    run on) shared among its ``local_ranks`` ranks, one left to each rank's own process, at most 8."""
+    if workers is not None:
+        return workers
+    return max(1, min(8, len(os.sched_getaffinity(0)) // max(local_ranks, 1) - 1))
 
 
 def make_loader(root: Path, split: str, batch_size: int, resolution: int = RESOLUTION,

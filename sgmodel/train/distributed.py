@@ -11,6 +11,11 @@ from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
+from torch.distributed.algorithms.ddp_comm_hooks.default_hooks import bf16_compress_hook
+from torch.nn.parallel import DistributedDataParallel
+
+#: DDP's gradient bucket size (MiB) unless ``--ddp-bucket-mb`` says otherwise (PyTorch's default)
+BUCKET_MB = 25
 
 
 @dataclass(frozen=True)
@@ -18,6 +23,7 @@ class World:
     rank: int  # this process, 0..size-1
     size: int  # processes in the job
     device: torch.device  # this process's device
+    local_size: int = 1  # processes of the job on this host (torchrun's LOCAL_WORLD_SIZE)
 
     @property
     def main(self) -> bool:
@@ -38,7 +44,7 @@ def init_world(device: str) -> World:
     else:
         dev = torch.device(device)
         dist.init_process_group("gloo")
-    return World(rank, size, dev)
+    return World(rank, size, dev, int(os.environ.get("LOCAL_WORLD_SIZE", size)))
 
 
 def close_world(world: World) -> None:
@@ -53,6 +59,39 @@ def all_sum(world: World, values: list[float]) -> list[float]:
     t = torch.tensor(values, dtype=torch.float64, device=world.device)
     dist.all_reduce(t)
     return t.tolist()
+
+
+def all_gather_rows(world: World, values: list[float]) -> list[list[float]]:
+    """Every rank's ``values`` (the same length on every rank), in rank order (float64 on the rank's device)."""
+    if world.size == 1:
+        return [list(values)]
+    t = torch.tensor(values, dtype=torch.float64, device=world.device)
+    rows = [torch.empty_like(t) for _ in range(world.size)]
+    dist.all_gather(rows, t)
+    return [r.tolist() for r in rows]
+
+
+def wrap_model(model: torch.nn.Module, world: World, bucket_mb: float = BUCKET_MB, bf16_grads: bool = False
+               ) -> torch.nn.Module:
+    """``model`` under DDP on several ranks (itself on one). Its gradients are views into DDP's buckets (no
+    copy between them and ``.grad``). Not ``static_graph``: with it the first step's gradients of the
+    predictor's back-layer head come out wrong (tests/sgmodel/train/test_distributed.py holds DDP's gradient against one
+    process's). ``bf16_grads``: each bucket is all-reduced in bfloat16 (half the bytes, the mean rounded to
+    bf16 before the optimiser sees it: a different run)."""
+    if world.size == 1:
+        return model
+    net = DistributedDataParallel(model, device_ids=[world.device] if world.device.type == "cuda" else None,
+                                  bucket_cap_mb=bucket_mb, gradient_as_bucket_view=True)
+    if bf16_grads:
+        net.register_comm_hook(dist.group.WORLD, bf16_compress_hook)
+    return net
+
+
+def same_on_every_rank(world: World, value: int) -> bool:
+    """Whether every rank holds the same ``value`` (an integer below 2**53)."""
+    if world.size == 1:
+        return True
+    return len({row[0] for row in all_gather_rows(world, [float(value)])}) == 1
 
 
 def barrier(world: World) -> None:

@@ -14,20 +14,23 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from scenesplat_stereo.common.commandline import Interrupted
-from scenesplat_stereo.common.files import (FolderLock, append_line, atomic_write_bytes, check_apart,
-                                            check_replaceable, read_json, read_json_lines, remove_temp_files)
+from scenesplat_stereo.common.files import (FolderLock, append_line, atomic_write_bytes, check_apart, check_replaceable,
+                                            read_json, read_json_lines, remove_temp_files)
 from scenesplat_stereo.common.text import format_table
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
-from sgmodel.data.loader import RUN_SPLITS, check_first_sample, load_sample, make_loader, read_split, to_device
+from sgmodel.data.loader import (RUN_SPLITS, check_first_sample, load_sample, loader_workers, make_loader, read_split,
+                                 to_device)
 from sgmodel.metrics import image as metrics
 from sgmodel.metrics.sheets import validation_sheet
 from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from sgmodel.model.layers import amp_autocast, compiles
 from sgmodel.model.network import StereoGaussians, create_model
 from sgmodel.model.render import render_views
-from sgmodel.train.distributed import World, all_sum, broadcast_flag, close_world, init_world
+from sgmodel.train.distributed import (World, all_sum, broadcast_flag, close_world, init_world, same_on_every_rank,
+                                       wrap_model)
 from sgmodel.train.losses import create_objective
+from sgmodel.train.step_profile import StepProfile, gathered_record
 
 log = logging.getLogger(__name__)
 OWNER = "sgmodel train"  # a run folder holds config.json; any other --out must be new or empty
@@ -87,12 +90,21 @@ def create_optimizer(params, device: torch.device, **settings) -> torch.optim.Ad
     return torch.optim.AdamW(params, fused=device.type == "cuda", **settings)
 
 
-def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, scheduler, amp: bool) -> dict:
-    """One optimiser step on one batch; returns loss, its parts, PSNR (dB) and the learning rate used."""
+def _no_mark(_: str) -> None:
+    pass
+
+
+def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, scheduler, amp: bool,
+               mark=_no_mark) -> dict:
+    """One optimiser step on one batch; returns loss, its parts, PSNR (dB) and the learning rate used.
+    ``mark(name)``: called once the loss ("forward"), the backward ("backward") and the optimiser step
+    ("optimizer") are queued (``StepProfile.mark``)."""
     optimizer.zero_grad(set_to_none=True)
     rgb, _, _ = render_targets(model, batch, amp)
     loss, parts = objective(rgb.flatten(0, 1), batch["targets"].flatten(0, 1))
+    mark("forward")
     loss.backward()
+    mark("backward")
     # checked once the backward is queued (the GPU is not left idle while the host starts it), before the
     # optimiser: a non-finite loss still changes no weight
     if not torch.isfinite(loss):
@@ -100,6 +112,7 @@ def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, 
     lr = optimizer.param_groups[0]["lr"]
     optimizer.step()
     scheduler.step()
+    mark("optimizer")
     psnr = metrics.psnr(rgb.detach(), batch["targets"]).mean()
     values = torch.stack([loss.detach(), psnr, *parts.values()]).tolist()  # one transfer for all of them
     return {"loss": values[0], "psnr": values[1], "lr": lr, **dict(zip(parts, values[2:]))}
@@ -203,7 +216,7 @@ def _check_resumable(paths: RunPaths, config: dict) -> bool:
     differs = [part for part in ("model", "data", "encoder", "loss", "init_from") if old.get(part) != config[part]]
     # workers do not change results, compilation only their rounding (and a run from before a compile flag
     # existed resumes)
-    ignore = ("workers", "compile_lpips", "compile_composer")
+    ignore = ("workers", "compile_lpips", "compile_composer", "ddp_bucket_mb", "profile")
     if {k: v for k, v in old.get("train", {}).items() if k not in ignore} != \
             {k: v for k, v in config["train"].items() if k not in ignore}:
         differs.append("train")
@@ -256,6 +269,8 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
            vgg_path: str | None, progress: bool, init_from: Path | None, encoder_cache: Path | None) -> dict:
     if tp.batch_size % world.size:
         raise ValueError(f"--batch-size {tp.batch_size} must be divisible by the {world.size} ranks")
+    if tp.ddp_bf16_grads and world.device.type != "cuda":
+        raise ValueError("--ddp-bf16-grads: the bfloat16 all-reduce needs NCCL (CUDA devices)")
     check_run_folder(paths, data)
     read_split_checked(data, model_params.resolution, tp.targets)
     torch.manual_seed(tp.seed)
@@ -306,10 +321,15 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
                                                     pct_start=tp.warmup, div_factor=tp.div_factor,
                                                     final_div_factor=tp.final_div_factor)
     step, best, best_step, resume = _resume_state(paths, config, model, optimizer, scheduler, world)
+    if not same_on_every_rank(world, step):
+        raise ValueError(f"--out {paths.root}: the ranks resume from different steps (this rank {world.rank}: "
+                         f"{step}); on several hosts RUN must be one shared folder, or hold the same "
+                         f"config.json and checkpoints/last.pt on every host")
     pinned = world.device.type == "cuda"  # page-locked batches: the copy to the GPU does not block the host
-    train_loader = make_loader(data, "train", local_batch, S, tp.targets, tp.seed, tp.workers, world.rank,
+    workers = loader_workers(tp.workers, world.local_size)
+    train_loader = make_loader(data, "train", local_batch, S, tp.targets, tp.seed, workers, world.rank,
                                world.size, train=True, start_step=step, cache=cache, pin_memory=pinned)
-    val_loader = make_loader(data, "val", local_batch, S, None, tp.seed, tp.workers, world.rank, world.size,
+    val_loader = make_loader(data, "val", local_batch, S, None, tp.seed, workers, world.rank, world.size,
                              train=False, cache=cache, pin_memory=pinned)
     if world.main:
         print(f"sgmodel train: {'resuming at step ' + str(step) if resume else 'new run'} in {paths.root}; "
@@ -319,28 +339,34 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
         remove_temp_files(paths.root)  # of a killed run's unfinished writes (we hold the lock)
         atomic_write_bytes(paths.config, (json.dumps(config, indent=2) + "\n").encode())
         _trim_metrics(paths.metrics, step if resume else None)
-    net = DistributedDataParallel(model, device_ids=[world.device] if world.device.type == "cuda" else None) \
-        if world.size > 1 else model
+    net = wrap_model(model, world, tp.ddp_bucket_mb, tp.ddp_bf16_grads)
     net.train()
+    profile = StepProfile(model, params, world.device) if tp.profile else None
     t_start = time.perf_counter()
     bar = tqdm(total=tp.steps, initial=step, disable=not (progress and world.main), unit="step", dynamic_ncols=True)
     saved = step if resume else None  # the step last.pt holds
     first_shown: dict = {}  # the renders of this process's first validation (step 0 of a new run)
 
-    def validation(step: int, best: float) -> tuple[bool, float]:
-        """Validate, log, draw the sheet; (is it the best so far, its PSNR). Step 0 is never the best."""
+    def validation(step: int, best: float) -> tuple[bool, float, float]:
+        """Validate (each rank its share), log, draw the sheet; (is it the best so far, its PSNR, when rank 0
+        began writing). Step 0 is never the best. With ``--profile`` the record also holds each rank's
+        validation time (``val_ms``)."""
+        t0 = time.perf_counter()
         val, shown = validate(net, val_loader, world, tp.amp, tp.sheet_samples, tp.val_samples)
+        if profile is not None:
+            val.update(gathered_record(world, {"val_ms": (time.perf_counter() - t0) * 1e3}))
         improved = broadcast_flag(world, step > 0 and val["val_psnr"] > best)
         for sample in shown:
             sample["step"] = step
         if not first_shown and shown:  # the sheets show this first validation's renders beside each later one
             first_shown.update(step=step, renders=[sample["renders"] for sample in shown])
+        t_write = time.perf_counter()
         if world.main:
             bar.write(f"step {step}: val PSNR {val['val_psnr']:.2f} dB (valid pixels {val['val_psnr_masked']:.2f})"
                       f"{' best' if improved else ''}")
             append_line(paths.metrics, json.dumps({"step": step, **val}))
             atomic_write_bytes(paths.sheet(step), validation_sheet(shown, first_shown or None))
-        return improved, val["val_psnr"]
+        return improved, val["val_psnr"], t_write
 
     def diverged(at: int, what: str) -> TrainingDiverged:
         held = f"{paths.last} holds step {saved}" if saved is not None else "no checkpoint was written before it"
@@ -358,8 +384,12 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
         while step < tp.steps:
             t0 = time.perf_counter()
             batch = to_device(next(batches), world.device)
+            if profile is not None:
+                data_ms = (time.perf_counter() - t0) * 1e3
+                profile.begin()
             try:
-                stats = train_step(net, batch, objective, optimizer, scheduler, tp.amp)
+                stats = train_step(net, batch, objective, optimizer, scheduler, tp.amp,
+                                   profile.mark if profile is not None else _no_mark)
             except TrainingDiverged as e:
                 raise diverged(step + 1, str(e)) from None
             step += 1
@@ -375,18 +405,25 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
                     raise diverged(step, "a gradient is NaN or infinite" if not grads_ok else
                                    "a weight is NaN or infinite")
             if logged:
-                stats = mean_over_ranks(world, stats)
+                if profile is None:
+                    stats = mean_over_ranks(world, stats)
+                else:  # every rank's phases of this step, in the collective that averages the loss
+                    means = {k: v for k, v in stats.items() if k != "lr"}
+                    stats = {**stats, **gathered_record(world, profile.phases(data_ms, batch), means)}
                 if world.main:
                     append_line(paths.metrics, json.dumps({"step": step, **stats, "step_ms": ms}))
             if checkpoint:
-                improved, psnr = validation(step, best)
+                improved, psnr, t_write = validation(step, best)
                 if improved:
                     best, best_step = psnr, step
-                if world.main:
+                if world.main:  # the other ranks go on and wait for rank 0 in the next step's all-reduce
                     state = _state(model, config, optimizer, scheduler, step, best, best_step, world)
                     save_checkpoint(paths.last, state)
                     if improved:
                         save_checkpoint(paths.best, state)
+                    if profile is not None:
+                        append_line(paths.metrics, json.dumps(
+                            {"step": step, "write_ms": (time.perf_counter() - t_write) * 1e3}))
                 saved = step
     except KeyboardInterrupt:
         bar.close()

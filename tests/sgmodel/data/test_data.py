@@ -306,3 +306,15 @@ def test_iter_shard_reads_only_wanted_samples(demo_dataset, monkeypatch):
     wanted_bytes = sum(len(v) for v in full[1][1].values())
     assert sum(reads) < wanted_bytes + 512 * (4 + sum(len(m) for _, m in full)), (sum(reads), wanted_bytes)
     assert sum(reads) < 0.6 * shard.stat().st_size
+
+
+def test_loader_workers_share_the_hosts_cpus_among_its_ranks(monkeypatch):
+    import os
+
+    from sgmodel.data.loader import loader_workers
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _: set(range(64)))
+    assert loader_workers(3, 4) == 3 and loader_workers(0, 4) == 0  # given: as given
+    assert [loader_workers(None, ranks) for ranks in (1, 4, 8, 16)] == [8, 8, 7, 3]  # 64 CPUs: min(8, 64 / r - 1)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _: {0, 1})
+    assert loader_workers(None, 1) == 1 and loader_workers(None, 4) == 1  # at least one
