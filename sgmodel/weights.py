@@ -72,7 +72,7 @@ class ShippedModel:
 
 SHIPPED = ShippedModel(
     name="default", file="model/shipped/stereogaussians-default.pt",
-    sha256="",
+    sha256="61a57c55f59007a365f779e03adc1074e2eee3ba5f05fbd01d329655f8c13e92",
     about="StereoGaussians trained on real captures composed into rooms, the guitar and procedural rooms "
           "(docs/model_card.md)")
 
