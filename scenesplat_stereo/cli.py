@@ -2,10 +2,11 @@
 its flags (``add_arguments``) and its work (``run``).
 
 Commands: ``render`` (a teacher to PNG images), ``build``, ``import stereonvs``, ``import multiview``, ``inspect``,
-``demo-teachers``, ``compose-teachers``, ``bench render``, ``bench build``, ``bench encode``, ``bench scenes``, ``bench formats``.
-Units and conventions are stated in each command's ``--help``. Exit status (``scenesplat_stereo.common.commandline``):
-0 done, 2 bad arguments or input (one line naming the flag or file), 130 interrupted, 1 internal error (traceback
-with ``--debug``); ``build`` exits 3 when a teacher failed, ``inspect`` 1 when a check failed.
+``demo-teachers``, ``compose-teachers``, ``bench render``, ``bench build``, ``bench encode``, ``bench scenes``,
+``bench formats``. Units and conventions are stated in each command's ``--help``. Exit status
+(``scenesplat_stereo.common.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or file),
+130 interrupted, 1 internal error (traceback with ``--debug``); ``build`` exits 3 when a teacher failed,
+``inspect`` 1 when a check failed.
 """
 
 from __future__ import annotations

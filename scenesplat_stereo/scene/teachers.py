@@ -15,9 +15,9 @@ reader each (nerfstudio dataparser style):
 
 Any layout may carry ``scene.json`` ``{"psnr": float, "camera_convention": "opencv"|"opengl",
 "subset": str, "baseline": metres, "rho": metres}`` (its PSNR counts when the layout has none; ``baseline`` and
-``rho``, both > 0, replace the PSNR tier's for this teacher, e.g. a desk-scale scene's 0.06 m). Folders without these files are grouping
-folders (e.g. ``ScanNetGS/``), searched up to ``MAX_GROUP_DEPTH`` deep; hidden folders are skipped. A
-root that holds a teacher itself is the only one.
+``rho``, both > 0, replace the PSNR tier's for this teacher, e.g. a desk-scale scene's 0.06 m). Folders without
+these files are grouping folders (e.g. ``ScanNetGS/``), searched up to ``MAX_GROUP_DEPTH`` deep; hidden folders
+are skipped. A root that holds a teacher itself is the only one.
 
 Trajectories come out as OpenCV c2w in world units (metres for the paper's tiers; read by ``trajectories``):
 ``transforms*.json`` (nerfstudio: ``frames[i].transform_matrix`` c2w; ``fl_x fl_y cx cy w h`` or
