@@ -46,7 +46,7 @@ def ffs(path, repo=FFS_REPO):
 def normalised(x: torch.Tensor) -> torch.Tensor:
     """[0,1] -> the stand-ins' input: [0,255], padded at the bottom and right to multiples of 32 (edge
     replication), ImageNet-normalised."""
-    from standin_foundation_stereo.standin_stereo import normalise
+    from tests.support.standin_foundation_stereo.standin_stereo import normalise
 
     h, w = x.shape[-2:]
     return normalise(F.pad(x * 255, (0, -w % 32, 0, -h % 32), mode="replicate"))
@@ -78,7 +78,7 @@ def test_foundation_stereo_features_and_disparity(fs_checkpoint):
         image, vit = m.feature(torch.cat([L, R]))
         cnet = m.cnet(L, vit_feat=vit[:1], num_layers=3)
         net, inp = [torch.tanh(x[0]) for x in cnet], [torch.relu(x[1]) for x in cnet]
-        from standin_foundation_stereo.standin_stereo import block_match
+        from tests.support.standin_foundation_stereo.standin_stereo import block_match
 
         disp, geo = F.avg_pool2d(block_match(L, R), 4) / 4, m.proj_cmb(image[0][:1])
         for _ in range(32):
@@ -168,7 +168,7 @@ def test_offline_with_an_empty_torch_hub_cache(tmp_path, monkeypatch):
 
 def test_timm_backbones_are_built_without_pretrained_weights(tmp_path, monkeypatch):
     """With timm installed, both repositories call timm.create_model('edgenext_small', pretrained=True)."""
-    from standin_foundation_stereo.standin_stereo import TinyEdgeNext
+    from tests.support.standin_foundation_stereo.standin_stereo import TinyEdgeNext
 
     calls = []
 

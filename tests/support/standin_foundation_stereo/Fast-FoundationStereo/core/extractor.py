@@ -11,7 +11,7 @@ except ImportError:
     timm = None
 from core.submodule import Conv2x_IN
 
-from standin_foundation_stereo.standin_stereo import EDGENEXT_SMALL_CHANS, TinyEdgeNext
+from tests.support.standin_foundation_stereo.standin_stereo import EDGENEXT_SMALL_CHANS, TinyEdgeNext
 
 
 class ContextNetSharedBackbone(nn.Module):

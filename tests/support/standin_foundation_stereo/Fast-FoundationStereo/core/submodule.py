@@ -4,4 +4,4 @@
 import Utils as U  # noqa: F401 - as in the real module
 from Utils import AMP_DTYPE  # noqa: F401
 
-from standin_foundation_stereo.standin_stereo import Conv2xUp as Conv2x_IN  # noqa: F401 - used by core/extractor.py
+from tests.support.standin_foundation_stereo.standin_stereo import Conv2xUp as Conv2x_IN  # noqa: F401 - used by core/extractor.py

@@ -4,7 +4,7 @@ and returns the list. ``encoder.convc1`` is the layer their pruned release narro
 import torch
 from torch import nn
 
-from standin_foundation_stereo.standin_stereo import ConvGRU
+from tests.support.standin_foundation_stereo.standin_stereo import ConvGRU
 
 
 class BasicMotionEncoder(nn.Module):

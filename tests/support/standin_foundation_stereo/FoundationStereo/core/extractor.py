@@ -13,7 +13,7 @@ except ImportError:
 from core.submodule import Conv2x_IN
 from Utils import freeze_model, get_resize_keep_aspect_ratio
 
-from standin_foundation_stereo.standin_stereo import EDGENEXT_SMALL_CHANS, TinyEdgeNext
+from tests.support.standin_foundation_stereo.standin_stereo import EDGENEXT_SMALL_CHANS, TinyEdgeNext
 
 
 class DepthAnythingFeature(nn.Module):

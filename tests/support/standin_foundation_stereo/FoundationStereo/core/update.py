@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from standin_foundation_stereo.standin_stereo import ConvGRU
+from tests.support.standin_foundation_stereo.standin_stereo import ConvGRU
 
 
 def pool2x(x):
