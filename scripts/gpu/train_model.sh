@@ -97,7 +97,8 @@ for phase in $phases; do
         --device $dev --no-progress $( [[ $dev == cpu ]] && echo --preset cpu-small --workers 0 ) | tail -6
       set +e ;;
     train)  # in its own session: it outlives this call (the machine is held while calls follow)
-      setsid bash -c "$train_cmd > $root/train.log 2>&1; echo \$? > $root/train.rc" < /dev/null &
+      # its own output too: a background job holding this call's stdout would keep the call open until it ends
+      setsid bash -c "$train_cmd > $root/train.log 2>&1; echo \$? > $root/train.rc" < /dev/null > /dev/null 2>&1 &
       sleep 5; echo "training started ($STEPS steps, global batch $BATCH, $gpus ranks); log $root/train.log" ;;
     wait)
       deadline=$((SECONDS + ${WAIT:-540}))
