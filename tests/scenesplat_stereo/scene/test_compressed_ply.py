@@ -133,7 +133,7 @@ def _unorm(t: float, bits: int) -> int:
 
 
 def reference_file(scene: GaussianScene) -> bytes:
-    """The compressed layout from its description (module docstring of scenesplat_stereo.compressed_ply, as
+    """The compressed layout from its description (module docstring of scenesplat_stereo.scene.compressed_ply, as
     splat-transform writes it), chunk by chunk and value by value in Python floats, in ``reference_morton``'s
     order: boxes of the float32 values (the last chunk padded with its last row; log scales clamped to +-20
     in the box), t = (v - lo) / (hi - lo) (0 at or below lo, 1 at or above hi, 0 in a range under 1e-5),
