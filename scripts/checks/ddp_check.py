@@ -39,6 +39,8 @@ from pathlib import Path
 
 import torch
 
+from sgmodel.bench import report
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -208,10 +210,7 @@ def main(argv: list[str] | None = None) -> int:
                   "|---|---:|" + "---:|" * (len(PHASES) + 2)]
         for run in [one, *many.values()]:
             lines += profile_rows(run, args.skip)
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        args.out.write_text(text)
+    report("\n".join(lines) + "\n", args.out)
     return 0
 
 

@@ -27,7 +27,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from sgmodel.bench import report
+
+REPO = Path(__file__).resolve().parents[2]
 RATE = re.compile(r"wall ([0-9.]+) s \(([0-9.]+) pairs/s.*start to last one's end ([0-9.]+) s \(([0-9.]+) pairs/s")
 
 
@@ -88,10 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         lines += ["", f"The paper's training set ({sum(PAPER_TRAIN_PAIRS.values()):,} pairs x 12 images at "
                   f"{', '.join(f'{w}x{h}' for w, h in PAPER_TRAIN_PAIRS)}) on {k} GPUs of this host, from "
                   f"{rate:.1f} pairs/s at {size[0]}x{size[1]} scaled by pixel count: **{hours:.2f} h**."]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        args.out.write_text(text)
+    report("\n".join(lines) + "\n", args.out)
     return 0
 
 

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-CLI = ROOT / "scripts" / "viewer" / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
+ROOT = Path(__file__).resolve().parents[2]
+CLI = ROOT / "scripts" / "checks" / "viewer" / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"
 sys.path.insert(0, str(ROOT))
 
 from scenesplat_stereo.scene.ply import columns, read_elements, read_ply_header  # noqa: E402
