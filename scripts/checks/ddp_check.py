@@ -2,8 +2,8 @@
 CPU with gloo by ``tests/sgmodel/train/test_distributed.py``).
 
     python scripts/checks/ddp_check.py --data DATASET --work DIR --ranks 2 [4 ...] [--device cuda] [--steps 200]
-                                       [--noise-floor] [--no-resume] [--profile] [--label TEXT] [--out report.md]
-                                       [-- extra `sgmodel train` flags]
+                                       [--weak-ranks 2 4] [--noise-floor] [--no-resume] [--profile] [--label TEXT]
+                                       [--out report.md] [-- extra `sgmodel train` flags]
 
 Runs, each with the same flags and seed (``--val-every`` a quarter of ``--steps``):
 
@@ -13,13 +13,16 @@ Runs, each with the same flags and seed (``--val-every`` a quarter of ``--steps`
    the several-rank runs' difference is read;
 3. for each of ``--ranks``, ``torchrun --nproc_per_node=RANKS``, uninterrupted (the throughput; its weights
    against 1);
-4. unless ``--no-resume``, with the first of ``--ranks``: RANKS processes stopped (SIGKILL, every rank) at
+4. for each of ``--weak-ranks``, RANKS processes at ``--batch-size`` pairs each (RANKS x that a step: the
+   paper's "effective batch = GPUs x per-GPU batch", each GPU as full as the one-process run's), throughput
+   only (a different batch trains other weights);
+5. unless ``--no-resume``, with the first of ``--ranks``: RANKS processes stopped (SIGKILL, every rank) at
    their first checkpoint, resumed on one process; one process stopped at its first checkpoint, resumed on
    RANKS processes.
 
 Throughput is pairs per second from the median ``step_ms`` of ``metrics.jsonl`` (the first ``--skip`` steps
 left out: cuDNN autotuning, Triton compilation, loader start-up), ``--batch-size`` pairs a step over all
-ranks. Weights are compared as ||difference|| / ||weights|| over all parameters (``weight_difference``):
+ranks (``--weak-ranks``: RANKS x ``--batch-size``). Weights are compared as ||difference|| / ||weights|| over all parameters (``weight_difference``):
 DDP averages the ranks' gradients, which equals one process's mean up to float summation order
 (``tests/sgmodel/train/test_distributed.py`` holds the gradients of one step to that on the CPU). With ``--profile`` the
 runs record each rank's step phases (``sgmodel.train.step_profile``) and the report adds their medians.
@@ -145,6 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, required=True, help="folder for the runs (created)")
     p.add_argument("--ranks", type=int, nargs="+", default=[2], help="processes (GPUs) of the several-GPU runs "
                                                                      "(default 2)")
+    p.add_argument("--weak-ranks", type=int, nargs="*", default=[],
+                   help="processes of runs at --batch-size pairs per rank (throughput at a full GPU each)")
     p.add_argument("--device", default="cuda", help="cuda (NCCL) or cpu (gloo)")
     p.add_argument("--steps", type=int, default=200, help="steps of every run (default 200)")
     p.add_argument("--batch-size", type=int, default=32, help="pairs a step over all ranks (default 32)")
@@ -157,9 +162,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("extra", nargs=argparse.REMAINDER, help="after --: more `sgmodel train` flags")
     args = p.parse_args(argv)
     extra = args.extra[1:] if args.extra[:1] == ["--"] else args.extra
-    flags = ["--device", args.device, "--steps", str(args.steps), "--batch-size", str(args.batch_size),
-             "--val-every", str(max(1, args.steps // 4)), "--log-every", "1", "--no-progress", *extra,
-             *(["--profile"] if args.profile else [])]
+
+    def flags_at(batch: int) -> list[str]:
+        return ["--device", args.device, "--steps", str(args.steps), "--batch-size", str(batch),
+                "--val-every", str(max(1, args.steps // 4)), "--log-every", "1", "--no-progress", *extra,
+                *(["--profile"] if args.profile else [])]
+
+    flags = flags_at(args.batch_size)
     work, first = args.work, args.ranks[0]
     one = work / "one"
     train(1, args.data, one, flags)
@@ -169,6 +178,9 @@ def main(argv: list[str] | None = None) -> int:
     many = {r: work / f"ranks{r}" for r in args.ranks}
     for r, run in many.items():
         train(r, args.data, run, flags)
+    weak = {r: work / f"weak{r}" for r in args.weak_ranks}
+    for r, run in weak.items():
+        train(r, args.data, run, flags_at(r * args.batch_size))
     resumed = {}
     if not args.no_resume:
         resumed = {f"{first} processes, resumed on 1": (first, 1, work / f"{first}to1"),
@@ -182,11 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     lines = [f"`sgmodel train` on {args.device}{', ' + args.label if args.label else ''}, {args.steps} steps, batch "
              f"{args.batch_size} over all ranks, flags `{' '.join(extra)}`; throughput from the median step after "
              f"step {args.skip}.", "",
-             "| processes | median step (ms) | pairs/s | speed-up |", "|---:|---:|---:|---:|",
-             f"| 1 | {one_ms:.1f} | {one_pps:.1f} | 1.00 |"]
-    for r, run in many.items():
-        pps, ms = pairs_per_second(run, args.batch_size, args.skip)
-        lines.append(f"| {r} | {ms:.1f} | {pps:.1f} | {pps / one_pps:.2f} |")
+             "| processes | pairs a step | median step (ms) | pairs/s | speed-up |", "|---:|---:|---:|---:|---:|",
+             f"| 1 | {args.batch_size} | {one_ms:.1f} | {one_pps:.1f} | 1.00 |"]
+    for r, run, batch in [*((r, run, args.batch_size) for r, run in many.items()),
+                          *((r, run, r * args.batch_size) for r, run in weak.items())]:
+        pps, ms = pairs_per_second(run, batch, args.skip)
+        lines.append(f"| {r} | {batch} ({batch // r} per rank) | {ms:.1f} | {pps:.1f} | {pps / one_pps:.2f} |")
     lines += ["", "| run | stopped at step | final step | weights vs one process (rel. L2 diff) |",
               "|---|---:|---:|---:|"]
     if args.noise_floor:
@@ -208,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
                   "checkpoints) while the others wait:", "",
                   "| run | rank | " + " | ".join(PHASES) + " | validation | rank-0 writes |",
                   "|---|---:|" + "---:|" * (len(PHASES) + 2)]
-        for run in [one, *many.values()]:
+        for run in [one, *many.values(), *weak.values()]:
             lines += profile_rows(run, args.skip)
     report("\n".join(lines) + "\n", args.out)
     return 0

@@ -4,7 +4,9 @@
 #   data   demo rooms built into shards on GPU 0 (the training data), and their encoder cache (`sgmodel
 #          encode` under torchrun on every GPU)
 #   live   scripts/checks/ddp_check.py with the encoder run live: 1 GPU, 1 GPU again (the weights' noise floor),
-#          2 and 4 GPUs under torchrun; median step, pairs/s, speed-up, weights vs 1 GPU, per-rank profile
+#          2 and 4 GPUs under torchrun at BATCH pairs a step over all ranks, and at BATCH pairs per rank
+#          (--weak-ranks: the paper's effective batch, GPUs x per-GPU batch); median step, pairs/s, speed-up,
+#          weights vs 1 GPU, per-rank profile
 #   cache  the same with --encoder-cache (each rank reads its share of the cache), without the noise floor
 #   build  scripts/checks/ray_build_scale.py: `scenesplat-stereo build --backend ray` on 1, 2, 4 GPUs (16 demo
 #          teachers at 616x456; nvJPEG when the machine has it), and the paper's build projected for 4 GPUs
@@ -12,15 +14,20 @@
 # Here, once (git-ignored folders):
 #   bash ../shared/tools/warp-gpu-kit .gpukit
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 -d .whl OpenImageIO
-#   mkdir -p .devdata && cp ~/.cache/sgmodel/* .devdata/
+#   mkdir -p .devdata/weights && cp ~/.cache/sgmodel/*.{tar,pth} .devdata/weights/
 #   bash scripts/inputs/ray_kit.sh                       (.raykit: Ray, about 30 MB)
-# Device calls on kind nvidia-h100-x4, each within 30 s of the one before (the machine stays the same):
+# Device calls on kind nvidia-h100-x4, each within 30 s of the one before (the machine stays the same; one call
+# carries at most 64 MiB and runs at most 10 minutes, so the phases run as a background job,
+# scripts/gpu/background.sh):
 #   1 (carry .gpukit/a):               bash .gpukit/a/stash.sh
-#   2 (carry .devdata, .raykit):       mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/ && source .raykit/install.sh
-#   3 (carry .gpukit/b, .whl):         SGMODEL_CACHE=/root/sgcache bash scripts/gpu/scale.sh data live
-#   4 (carry .gpukit/b, .whl):         SGMODEL_CACHE=/root/sgcache bash scripts/gpu/scale.sh cache build
-# (one call carries at most 64 MiB and runs at most 10 minutes.) STEPS (default 60), SKIP (15), BATCH (32),
-# FRAMES (100), BUILD_FRAMES (400) change the sizes; TRAIN_MORE adds `sgmodel train` flags to every training
+#   2 (carry .gpukit/b, .whl):         source .gpukit/b/install.sh
+#   3 (carry .devdata/weights, .raykit):
+#       mkdir -p /root/sgcache && cp .devdata/weights/* /root/sgcache/ && source .raykit/install.sh &&
+#       SGMODEL_CACHE=/root/sgcache STEPS=40 SKIP=10 bash scripts/gpu/background.sh start scale \
+#         bash scripts/gpu/scale.sh data live cache build
+#   4.. (no carry):                    bash scripts/gpu/background.sh wait scale      (until it exits 0)
+# STEPS (default 60), SKIP (15), BATCH (32),
+# FRAMES (100), BUILD_FRAMES (150) change the sizes; TRAIN_MORE adds `sgmodel train` flags to every training
 # run (e.g. TRAIN_MORE="--ddp-bf16-grads" or "--ddp-bucket-mb 2" with the phase cache, OUT elsewhere).
 # DEVICE=cpu runs every phase tiny on the CPU with gloo and 2 ranks (a dry run, about 10 minutes on 2 cores).
 set -uo pipefail
@@ -40,7 +47,7 @@ if [[ $dev == cuda ]]; then
   gpus=$(python3 -c "import torch; print(torch.cuda.device_count())")
   ranks=$( ((gpus >= 4)) && echo "2 4" || echo "$gpus" ); counts=$( ((gpus >= 4)) && echo "1 2 4" || echo "1 $gpus" )
   S=256 BATCH=${BATCH:-32} STEPS=${STEPS:-60} SKIP=${SKIP:-15} FRAMES=${FRAMES:-100} RES=340x256 ENC=psmnet-kitti
-  VAL=16 TRAIN_EXTRA="" BUILD_FRAMES=${BUILD_FRAMES:-400} BUILD_RES=616x456 BUILD_EXTRA="--jpeg-encoder cpu"
+  VAL=16 TRAIN_EXTRA="" BUILD_FRAMES=${BUILD_FRAMES:-150} BUILD_RES=616x456 BUILD_EXTRA="--jpeg-encoder cpu"
   # nvJPEG where the machine has it (the fastest build, docs/dataset.md), else the host's JPEG encoder
   python3 -c "from scenesplat_stereo.shards.nvjpeg import load_library; load_library()" 2>/dev/null \
     && BUILD_EXTRA="--jpeg-encoder nvjpeg"
@@ -75,7 +82,8 @@ for x in read_split(sys.argv[1], s))}' for s in ('train', 'val')))" $work/datase
       extra=$( [[ $phase == live ]] && echo "--noise-floor --label encoder-live" || \
                echo "--no-resume --label encoder-cache" )
       cache=$( [[ $phase == cache ]] && echo "--encoder-cache $work/cache" || true )
-      $py scripts/checks/ddp_check.py --data $work/dataset --work $work/runs-$phase --ranks $ranks --device $dev \
+      $py scripts/checks/ddp_check.py --data $work/dataset --work $work/runs-$phase --ranks $ranks --weak-ranks $ranks \
+        --device $dev \
         --steps $STEPS --batch-size $BATCH --skip $SKIP --profile $extra $( [[ $phase == live ]] && echo --no-resume ) \
         --out "$OUT/$phase.md" -- $train_flags $cache ;;
     build)
