@@ -1,10 +1,10 @@
 """Open an ``sgmodel predict`` output in a real viewer in headless Chromium (software WebGL) and take a
 screenshot; compare it with the left image (PSNR over the pixels the scene covers in the left image).
 
-* ``--viewer supersplat`` (default): the SuperSplat viewer with the scene (``scene.compressed.ply`` or
-  ``scene.ply``) and ``settings.json``, opened with ``?noui&noanim&webgl``;
+* ``--viewer supersplat`` (default): the SuperSplat viewer with the scene (``scene.compressed.ply``,
+  ``scene.ply`` or ``scene.sog``) and ``settings.json``, opened with ``?noui&noanim&webgl``;
 * ``--viewer spark``: Spark (three.js; ``scripts/checks/viewer/spark.html``) with the scene (``scene.spz``,
-  ``scene.ply`` or ``scene.compressed.ply``) seen from the camera of ``cameras.json``.
+  ``scene.ply``, ``scene.compressed.ply`` or ``scene.sog``) seen from the camera of ``cameras.json``.
 
 Needs npm packages and Debian's Chromium (not part of the Python package):
 
@@ -38,8 +38,8 @@ from scenesplat_stereo.common.measure import psnr_from_mse
 VIEWER = Path(__file__).resolve().parent / "viewer"
 PUBLIC = VIEWER / "node_modules" / "@playcanvas" / "supersplat-viewer" / "public"
 #: Scene files each viewer opens, in order of preference, and the viewer file it needs.
-SCENES = {"supersplat": (("scene.compressed.ply", "scene.ply"), "settings.json"),
-          "spark": (("scene.spz", "scene.ply", "scene.compressed.ply"), "cameras.json")}
+SCENES = {"supersplat": (("scene.compressed.ply", "scene.ply", "scene.sog"), "settings.json"),
+          "spark": (("scene.spz", "scene.ply", "scene.compressed.ply", "scene.sog"), "cameras.json")}
 
 
 def serve(folder: Path) -> tuple[http.server.ThreadingHTTPServer, int]:
