@@ -8,6 +8,7 @@ import json
 
 import pytest
 
+from scenesplat_stereo.common.files import OWNER_FILE
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
 from sgmodel.evaluation.ablate import ablate, variants
@@ -84,6 +85,10 @@ def test_ablate_writes_the_table_4_layout_and_resumes(demo_dataset, tmp_path):
     assert "| Without RGB-D conditioning | n/a |" in text  # sgbm has no features: not applicable
     assert "| naive-gs |" in text and "| forward-splat |" in text
     assert (tmp_path / "table.md").read_text() == text
+    manifest = json.loads((tmp_path / OWNER_FILE).read_text())  # every file recorded as the ablation's
+    assert manifest["owner"] == "sgmodel ablate" and "open" not in manifest
+    assert {"table.md", "shared-default/eval/metrics.json", "shared-default/run/checkpoints/best.pt"} <= \
+        set(manifest["files"])
     before = (tmp_path / "shared-default/eval/metrics.json").stat().st_mtime_ns
     ablate(params, schedule, demo_dataset, tmp_path, "cpu", None, only=["default"], progress=False)
     assert (tmp_path / "shared-default/eval/metrics.json").stat().st_mtime_ns == before  # read back, not redone
