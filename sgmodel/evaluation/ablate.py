@@ -146,11 +146,16 @@ def table(rows: list[tuple[str, str, dict]], schedule: TrainParams, base: ModelP
             body.append([name, "n/a", "", "", "", result["not_applicable"]])
             continue
         m = result["mean"]
-        lpips = f"{m['lpips']:.4f}" if "lpips" in m else "n/a"
-        body.append([f"**{name}**" if not block else name, f"{m['psnr']:.3f}", f"{m['ssim']:.4f}", lpips,
-                     f"{m['psnr_masked']:.3f}", f"{m['ssim_masked']:.4f}"])
+        body.append([f"**{name}**" if not block else name, _cell(m, "psnr", 3), _cell(m, "ssim", 4),
+                     _cell(m, "lpips", 4), _cell(m, "psnr_masked", 3), _cell(m, "ssim_masked", 4)])
     header = ["Variant", "PSNR ↑", "SSIM ↑", "LPIPS ↓", "PSNR (valid) ↑", "SSIM (valid) ↑"]
     return "\n".join(lines) + "\n" + markdown_table(header, body) + "\n"
+
+
+def _cell(mean: dict, key: str, digits: int) -> str:
+    """A mean of metrics.json as text; "n/a" when it was not computed (LPIPS without weights) or is undefined (no
+    target with a valid pixel: None)."""
+    return "n/a" if mean.get(key) is None else f"{mean[key]:.{digits}f}"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
