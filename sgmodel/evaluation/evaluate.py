@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import markdown_table, whole_number
 from sgmodel.config import EncoderParams
@@ -237,8 +238,12 @@ def report(args: argparse.Namespace, method_name: str, device: str) -> int:
     """``sgmodel eval`` with one ``--data`` folder and one method: REPORT is ``--out``."""
     check_report_folder(args.out, eval_inputs(args))
     method = method_of(method_name, args, device)
-    result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
-                      not args.no_progress)
+    try:
+        result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
+                          not args.no_progress)
+    except KeyboardInterrupt:
+        raise Interrupted(f"--out {args.out} is as it was (a report replaces it only when complete); rerun the "
+                          f"same command") from None
     print((args.out / "scenes.md").read_text())
     left_out = result["targets_without_valid_pixels"]
     note = f" ({left_out} without a valid pixel, left out of the masked means)" if left_out else ""

@@ -26,6 +26,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.files import OwnedFolder, atomic_write_bytes, check_apart, check_replaceable
 from scenesplat_stereo.common.text import key_safe_name, markdown_table
 from scenesplat_stereo.shards.benchmark_file import read_benchmark
@@ -140,12 +141,18 @@ def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:
     order = [m for m, _ in ROWS if m in methods]
     built = {m: method_of(m, args, device) for m in order}  # every checkpoint and encoder loads before any run
     with OwnedFolder(args.out, OWNER):  # every file in OUT recorded as eval's, however it ends
-        rows, targets, left_out, lpips, shown = [], {}, {}, "", {c.name: c for c in cols}
+        rows, targets, left_out, lpips, shown, done = [], {}, {}, "", {c.name: c for c in cols}, []
         for m in order:
             means = {}
             for c in cols:
-                result = evaluate(built[m], c.data, args.split, Path(args.out) / c.name / m, device, args.lpips_vgg,
-                                  args.batch_size, not args.no_progress)
+                try:
+                    result = evaluate(built[m], c.data, args.split, Path(args.out) / c.name / m, device,
+                                      args.lpips_vgg, args.batch_size, not args.no_progress)
+                except KeyboardInterrupt:
+                    raise Interrupted(f"{len(done)} of {len(cols) * len(order)} reports finished and kept in "
+                                      f"{args.out} ({', '.join(done) or 'none'}), the table not written; rerun the "
+                                      f"same command") from None
+                done.append(f"{c.name}/{m}")
                 means[c.name], targets[c.name], lpips = result["mean"], result["targets"], result["lpips"]
                 left_out[c.name] = max(left_out.get(c.name, 0), result["targets_without_valid_pixels"])
                 for g, group_mean in result.get("groups", {}).items():  # a column per target group after its benchmark's
