@@ -11,8 +11,10 @@ import pytest
 from scenesplat_stereo.common.files import OWNER_FILE
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
+from sgmodel.evaluation import evaluate as evaluate_mod
 from sgmodel.evaluation.ablate import ablate, variants
 from sgmodel.train import loop as train_mod
+from tests.support.bad_input import snapshot
 
 
 def tiny() -> tuple[ModelParams, TrainParams]:
@@ -61,6 +63,26 @@ def test_eval_of_the_baselines(demo_dataset, tmp_path, method):
                 "--out", out, "--device", "cpu", "--no-progress"]) == 0
     mean = json.loads((out / "metrics.json").read_text())["mean"]
     assert 5 < mean["psnr"] < 60 and 0 < mean["ssim"] <= 1
+
+
+def test_ctrl_c_while_a_report_is_written_leaves_the_earlier_one_as_it_was(demo_dataset, tmp_path, capsys,
+                                                                          monkeypatch):
+    out = tmp_path / "report"
+    argv = ["eval", "--data", demo_dataset, "--method", "naive-gs", "--encoder", "sgbm", "--resolution", 32, "--out",
+            out, "--device", "cpu", "--no-progress"]
+    assert cli(argv) == 0
+    before = snapshot(tmp_path)
+    capsys.readouterr()
+
+    def interrupt(kept):  # Ctrl-C while the new report's files are written into its staging folder
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(evaluate_mod, "target_sheet", interrupt)
+    assert cli(argv) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"sgmodel eval: interrupted: --out {out} is as it was (a report replaces it only when complete); rerun the "
+        f"same command")
+    assert snapshot(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == ["report"]
 
 
 @pytest.mark.parametrize("argv,message", [
