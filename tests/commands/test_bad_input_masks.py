@@ -48,7 +48,7 @@ def strict_json(path: Path):
     ("train", "all", "train", "shard-000000.tar to shard-000003.tar"),
     ("train", "val", "val", "shard-000000.tar to shard-000001.tar"),
     ("ablate", "val", "val", "shard-000000.tar to shard-000001.tar"),
-])
+], ids=["eval-all-empty", "train-all-empty", "train-val-empty", "ablate-val-empty"])
 def test_a_split_without_a_valid_pixel_is_refused_before_writing(empty, tmp_path, capsys, command, data, split,
                                                                  shards):
     out = tmp_path / "out"
