@@ -11,6 +11,10 @@ rigid and within rho of the left camera); images decode at width x height (RGB J
 ``OUT/stats.json`` agrees with the counts read from the shards. ``--quick`` decodes the images of the
 first sample of each shard only. Baselines and radii that differ from the teacher's PSNR tier are noted,
 not failed (``--baseline``/``--rho`` and a teacher's ``scene.json`` ``baseline``/``rho`` override them on purpose).
+
+The contact sheet (``--contact-sheet FILE``, default ``OUT/contact_sheet.png``) replaces only a sheet that inspect
+wrote, unchanged (``common.files.check_replaceable_file``, checked before the dataset is read), and is written
+atomically with its own manifest beside it (``.written-by.<name>``).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo.build.protocol import NUM_TARGETS, tier_for_psnr
+from scenesplat_stereo.common.files import check_replaceable_file, write_owned_file
 from scenesplat_stereo.common.text import whole_number
 from scenesplat_stereo.scene.cameras import fibonacci_directions, right_camera, rigid_error, translation
 from scenesplat_stereo.shards import webdataset as shards
@@ -34,6 +39,7 @@ from scenesplat_stereo.shards.sample import SampleMeta, SampleMetaError, sample_
 
 POSE_TOLERANCE = 1e-6  # world units / unitless, for poses stored as float64 JSON
 THUMB_WIDTH = 128  # pixels, contact-sheet thumbnails
+OWNER = "scenesplat-stereo inspect"  # recorded beside the contact sheet: a later inspect may replace it
 
 
 @dataclass
@@ -135,7 +141,10 @@ def _check_images(key: str, members: dict[str, bytes], meta: SampleMeta) -> list
 
 def inspect_dataset(out: Path, contact_sheet: Path | None = None, sheet_samples: int = 4, quick: bool = False,
                     progress: bool = True) -> InspectReport:
-    """Check a built dataset (see the module docstring); write the contact sheet PNG when asked."""
+    """Check a built dataset (see the module docstring); write the contact sheet PNG when asked (ValueError
+    naming --contact-sheet, before anything is read, when it may not be replaced)."""
+    if contact_sheet is not None:
+        contact_sheet = check_replaceable_file(contact_sheet, "--contact-sheet", OWNER)
     out, report = Path(out), InspectReport()
     scenes: dict[tuple[str, str, str], dict] = {}
     sheet: list[tuple[str, dict[str, bytes]]] = []
@@ -189,8 +198,7 @@ def inspect_dataset(out: Path, contact_sheet: Path | None = None, sheet_samples:
     _check_stats(out, report, scenes)
     report.notes = sorted(set(report.notes))
     if contact_sheet is not None and sheet:
-        shards.atomic_write_bytes(Path(contact_sheet), encode_png(_contact_sheet(sheet)))
-        report.contact_sheet = Path(contact_sheet)
+        report.contact_sheet = write_owned_file(contact_sheet, encode_png(_contact_sheet(sheet)), OWNER)
     return report
 
 

@@ -10,6 +10,7 @@ fixed by the inputs alone and any worker (a local loop or a Ray task per teacher
 teacher's shards. A rerun keeps every shard that is finished (its done marker lists exactly the planned
 keys and its size matches) and redoes the rest; a teacher whose shards are all finished is not even
 loaded. Same inputs, same bytes: shards, markers, ``index.json`` and ``stats.json`` hold no timestamps.
+Ctrl-C ends a build with one line saying how many shards are finished (``Interrupted``, exit 130).
 
 A teacher that cannot be rendered (unreadable ``.ply``, NaNs in it, a render error) is reported in the
 summary and skipped; the others go on, and the teacher's unfinished shard is removed.
@@ -33,7 +34,7 @@ from scenesplat_stereo.build.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_P
                                               filter_teachers, plan_scene, split_scenes)
 from scenesplat_stereo.build.render_pairs import start_render, stream_samples
 from scenesplat_stereo.build.settings import SPLITS_OF_MODE, BuildSettings, add_arguments, settings_from_args
-from scenesplat_stereo.common.commandline import NotAvailable
+from scenesplat_stereo.common.commandline import Interrupted, NotAvailable
 from scenesplat_stereo.common.files import check_apart, check_replaceable, read_json
 from scenesplat_stereo.common.text import format_table
 from scenesplat_stereo.scene.cameras import baseline_doubt
@@ -317,9 +318,15 @@ def build(settings: BuildSettings) -> BuildReport:
                               (json.dumps(recorded, indent=1, sort_keys=True) + "\n").encode())
     remove_stale(settings, report, layout)
     total = sum(j.pairs for j in jobs)
-    with tqdm(total=total, unit="pair", disable=not settings.progress, dynamic_ncols=True) as bar:
-        run = _run_ray if settings.backend == "ray" else _run_local
-        report.results = run(jobs, settings, bar)
+    try:
+        with tqdm(total=total, unit="pair", disable=not settings.progress, dynamic_ncols=True) as bar:
+            run = _run_ray if settings.backend == "ray" else _run_local
+            report.results = run(jobs, settings, bar)
+    except KeyboardInterrupt:
+        done = sum(len(shards.finished_shards(settings.out, split)) for split in layout)
+        planned = sum(plan["shards"] for plan in report.planned.values())
+        raise Interrupted(f"{done} of {planned} shards of {settings.out} are finished and kept (each whole); rerun "
+                          f"the same command to resume") from None
     for split in SPLITS_OF_MODE[settings.split_mode]:
         shards.write_index(settings.out, split)
     _write_stats(settings, report)

@@ -16,7 +16,9 @@
   sha256), and a command replaces a folder only when every file in it is one it wrote, unchanged; otherwise
   it refuses, naming a file that is not. ``StagedFolder``: a report or prediction folder is built beside its
   target and swapped in whole, so an earlier one never leaves stale files beside the new ones; staging
-  folders of dead processes are swept on the next run. ``OwnedFolder``: a folder written in place.
+  folders of dead processes are swept on the next run. ``OwnedFolder``: a folder written in place. A
+  single-file output (``inspect --contact-sheet``) has a manifest of its own beside it (``.written-by.<name>``):
+  ``check_replaceable_file`` before any work, ``write_owned_file`` to write it.
 * ``FolderLock``: one process at a time writes a folder (``fcntl.flock`` on ``<folder>/.lock``, which
   holds the pid); the kernel drops the lock when its process dies, so a stale lock file is taken over.
 * ``check_writable`` / ``check_apart``: an output folder can be written (creating nothing) and is apart from
@@ -221,11 +223,14 @@ def file_record(path: Path) -> dict:
 
 
 def _contents(folder: Path) -> list[Path]:
-    """The files under ``folder`` (any depth) that count: not the manifest, the lock, or temp files of
-    unfinished writes (``TMP_PREFIX``, a rerun's to remove)."""
-    return sorted(p for p in folder.rglob("*") if (p.is_file() or p.is_symlink()) and p.name not in
-                  (OWNER_FILE, LOCK_FILE) and not any(part.startswith(TMP_PREFIX) for part in
-                                                      p.relative_to(folder).parts))
+    """The files under ``folder`` (any depth) that count: not the manifests (``OWNER_FILE``, and the
+    ``OWNER_FILE.<name>`` of single files), the lock, or temp files of unfinished writes (``TMP_PREFIX``)."""
+    def counts(p: Path) -> bool:
+        manifest = p.name == OWNER_FILE or p.name.startswith(f"{OWNER_FILE}.")
+        return not manifest and p.name != LOCK_FILE and not any(part.startswith(TMP_PREFIX) for part in
+                                                                p.relative_to(folder).parts)
+
+    return sorted(p for p in folder.rglob("*") if (p.is_file() or p.is_symlink()) and counts(p))
 
 
 def write_manifest(folder: str | os.PathLike, owner: str, open_: bool = False) -> Path:
@@ -240,11 +245,11 @@ def write_manifest(folder: str | os.PathLike, owner: str, open_: bool = False) -
     return atomic_write_json(folder / OWNER_FILE, doc, indent=None, sort_keys=True)
 
 
-def _manifest(folder: Path) -> dict | None:
-    """The manifest of ``folder``: {"owner", "files"}, {"owner": name} for a marker of an earlier version (the
-    command's name alone, no file list), or None (none, or unreadable)."""
+def _manifest(path: Path) -> dict | None:
+    """The manifest in the file ``path`` (a folder's ``OWNER_FILE``): {"owner", "files"}, {"owner": name} for a
+    marker of an earlier version (the command's name alone, no file list), or None (none, or unreadable)."""
     try:
-        text = (folder / OWNER_FILE).read_text()
+        text = path.read_text()
     except (OSError, UnicodeDecodeError):
         return None
     try:
@@ -264,7 +269,7 @@ def foreign_file(folder: str | os.PathLike, owner: str) -> str | None:
     found = _contents(folder) if folder.is_dir() else []
     if not found:
         return None
-    manifest = _manifest(folder)
+    manifest = _manifest(folder / OWNER_FILE)
     first = str(found[0].relative_to(folder))
     if manifest is None:
         return f"holds files not written by `{owner}` (e.g. {first!r})"
@@ -303,6 +308,46 @@ def check_replaceable(folder: str | os.PathLike, flag: str, owner: str, marker: 
         raise ValueError(f"{flag} {folder}: {why}, and `{owner}` replaces only what it wrote; choose a new or empty "
                          f"{flag}")
     return folder
+
+
+def _own_manifest(path: Path) -> Path:
+    """Where the manifest of a single-file output lives: ``.written-by.<name>`` beside it."""
+    return path.with_name(f"{OWNER_FILE}.{path.name}")
+
+
+def check_replaceable_file(path: str | os.PathLike, flag: str, owner: str) -> Path:
+    """The single-file output ``path`` may be (re)written by ``owner``: absent, or a file its own manifest
+    (``_own_manifest``, the format of a folder's) records as ``owner``'s, unchanged (or being written by a run
+    that was killed: open); and its folder writable or creatable. ValueError naming ``flag``, the file and why
+    otherwise. A symbolic link is followed. Creates nothing; returns the file to write."""
+    path = Path(path).resolve() if Path(path).is_symlink() else Path(path)
+    if path.is_dir():
+        raise ValueError(f"{flag} {path}: is a folder; give the name of the file to write")
+    check_writable(path.parent, flag, create=False)
+    if not path.exists():
+        return path
+    manifest = _manifest(_own_manifest(path))
+    if manifest is None or "files" not in manifest:
+        why = f"was not written by `{owner}` (no {_own_manifest(path).name} beside it)"
+    elif manifest["owner"] != owner:
+        why = f"is the output of `{manifest['owner']}`"
+    elif manifest.get("open") or manifest["files"].get(path.name) == file_record(path):
+        return path
+    else:
+        why = f"changed since `{owner}` wrote it"
+    raise ValueError(f"{flag} {path}: exists and {why}, and `{owner}` replaces only what it wrote; choose another "
+                     f"{flag}, or move the file away")
+
+
+def write_owned_file(path: str | os.PathLike, data: bytes, owner: str) -> Path:
+    """Write the single-file output ``path`` (checked with ``check_replaceable_file``) atomically, with its own
+    manifest: marked open first, closed with the file's record once the file is in place (a run killed in
+    between leaves it open, so its rerun may replace the file)."""
+    path, manifest = Path(path), _own_manifest(Path(path))
+    atomic_write_json(manifest, {"owner": owner, "files": {}, "open": True}, indent=None, sort_keys=True)
+    atomic_write_bytes(path, data)
+    atomic_write_json(manifest, {"owner": owner, "files": {path.name: file_record(path)}}, indent=None, sort_keys=True)
+    return path
 
 
 class OwnedFolder:

@@ -364,6 +364,24 @@ def check_first_sample(shards: list[Shard], load) -> None:
         raise DataError(f"{e.flag or '--data'}: {e}", e.flag) from None
 
 
+def check_valid_pixels(root: Path, split: str) -> None:
+    """Some target of ``root/<split>`` has a valid pixel: its masks (``mask_<jj>.png``) are read in stored order
+    until one has (on good data the first does). DataError naming the split folder and its shards when every
+    mask is empty: no masked metric is defined on such data, which says its depths were all invalid (or rho
+    wrong) when it was built. Reads only."""
+    shards = read_split(root, split)
+    for shard in shards:
+        for key, members in iter_shard(shard.path):
+            meta = read_meta(key, members, str(shard.path))
+            for j in meta.target_ids:
+                if _decode(members, f"mask_{j:02d}.png", f"{shard.path}:{key}", (meta.height, meta.width, 1)).any():
+                    return
+    names = shards[0].path.name if len(shards) == 1 else f"{shards[0].path.name} to {shards[-1].path.name}"
+    raise DataError(f"--data {Path(root) / split}: no target has a valid pixel (every mask_<jj>.png in {names} is "
+                    f"empty), so nothing can be measured over valid pixels; rebuild the split (were its depths all "
+                    f"invalid, or rho wrong?)")
+
+
 def init_loader_worker(_: int) -> None:
     cv2.setNumThreads(1)  # one resize thread per loader worker; the workers are the parallelism
 

@@ -12,8 +12,10 @@ S = 256, i.e. 0, 2P and 4P), so a smaller preset keeps the paper's proportions.
 Before anything is written: the flags, every ``--only`` word (each must match a variant or a baseline),
 the data (both splits' first samples at the run's size), ``--encoder-cache`` (it must fit the encoder, the
 resolution and the precision; every variant's run reads it, Table 4's blocks A, C and D keep the encoder),
-and OUT (a folder that can be written, not inside the data, empty or an earlier ablation). One ablation at a
-time writes OUT (``OUT/.lock``).
+and OUT (a folder that can be written, not inside the data, and new, empty or an earlier ablation: every file
+in it one an ablation wrote, unchanged; ``scenesplat_stereo.common.files.check_replaceable``, the one owner of "may
+this command replace what is there"). One ablation at a time writes OUT (``OUT/.lock``); its files are recorded
+as the ablation's when it ends, however it ends (``OwnedFolder``: a killed ablation's rerun resumes).
 """
 
 from __future__ import annotations
@@ -23,8 +25,8 @@ import copy
 import time
 from pathlib import Path
 
-from scenesplat_stereo.common.files import (LOCK_FILE, TMP_PREFIX, FolderLock, atomic_write_bytes, check_apart,
-                                            check_writable, read_json)
+from scenesplat_stereo.common.files import (FolderLock, OwnedFolder, atomic_write_bytes, check_apart, check_replaceable,
+                                            read_json)
 from scenesplat_stereo.common.text import markdown_table
 from sgmodel.args import (add_device_argument, add_model_arguments, add_train_arguments, device_from_flag,
                           params_from_args)
@@ -32,6 +34,8 @@ from sgmodel.config import ConfigurationError, ModelParams, TrainParams
 from sgmodel.encoders.flags import build_encoder
 from sgmodel.evaluation import evaluate
 from sgmodel.train.loop import open_run_cache, read_split_checked, train
+
+OWNER = "sgmodel ablate"  # recorded in OUT's manifest (files.OWNER_FILE): a later ablation may resume or replace it
 
 
 def variants(base: ModelParams) -> list[tuple[str, str, ModelParams]]:
@@ -83,7 +87,7 @@ def ablate(base: ModelParams, schedule: TrainParams, data: Path, out: Path, devi
     if encoder_cache is not None:
         open_run_cache(encoder_cache, data, build_encoder(base.encoder, device), base.resolution, device,
                        schedule.amp)
-    with FolderLock(out, "--out", "sgmodel ablate"):
+    with FolderLock(out, "--out", OWNER), OwnedFolder(out, OWNER):  # every file in OUT recorded as the ablation's
         return _ablate(base, schedule, data, out, device, lpips_vgg, only, progress, t0, encoder_cache)
 
 
@@ -95,16 +99,8 @@ def check_ablation(base: ModelParams, schedule: TrainParams, data: Path, out: Pa
             raise ValueError(f"--only {word!r}: matches no variant; the variants are {', '.join(names)}")
     base.validate()
     schedule.validate()
-    out = Path(out)
-    check_writable(out, "--out", create=False)
     check_apart(out, "--out", {"--data": data})
-    known = {"table.md", LOCK_FILE} | {_slug(n) for n in names[:-len(evaluate.METHODS)]} | \
-        {f"baseline-{m}" for m in evaluate.METHODS}
-    other = sorted(p.name for p in out.iterdir() if p.name not in known and not p.name.startswith(TMP_PREFIX)) \
-        if out.is_dir() else []
-    if other:
-        raise ValueError(f"--out {out}: holds {other[0]!r}, which is not part of an ablation; choose a new or empty "
-                         f"--out")
+    check_replaceable(out, "--out", OWNER)  # new, empty, or an earlier ablation's files only (it resumes)
     read_split_checked(data, base.resolution, schedule.targets)
 
 
@@ -150,11 +146,16 @@ def table(rows: list[tuple[str, str, dict]], schedule: TrainParams, base: ModelP
             body.append([name, "n/a", "", "", "", result["not_applicable"]])
             continue
         m = result["mean"]
-        lpips = f"{m['lpips']:.4f}" if "lpips" in m else "n/a"
-        body.append([f"**{name}**" if not block else name, f"{m['psnr']:.3f}", f"{m['ssim']:.4f}", lpips,
-                     f"{m['psnr_masked']:.3f}", f"{m['ssim_masked']:.4f}"])
+        body.append([f"**{name}**" if not block else name, _cell(m, "psnr", 3), _cell(m, "ssim", 4),
+                     _cell(m, "lpips", 4), _cell(m, "psnr_masked", 3), _cell(m, "ssim_masked", 4)])
     header = ["Variant", "PSNR ↑", "SSIM ↑", "LPIPS ↓", "PSNR (valid) ↑", "SSIM (valid) ↑"]
     return "\n".join(lines) + "\n" + markdown_table(header, body) + "\n"
+
+
+def _cell(mean: dict, key: str, digits: int) -> str:
+    """A mean of metrics.json as text; "n/a" when it was not computed (LPIPS without weights) or is undefined (no
+    target with a valid pixel: None)."""
+    return "n/a" if mean.get(key) is None else f"{mean[key]:.{digits}f}"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

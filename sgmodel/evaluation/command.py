@@ -8,12 +8,15 @@ section 7, sgmodel.metrics.image): PSNR on images clipped to [0, 1], skimage-sty
 when the VGG16 weights are available; each over the full image and over the valid mask.
 
 Writes REPORT/ after every input is checked (the data split, the checkpoint or encoder, the LPIPS weights,
-and REPORT itself: absent, empty or an earlier report, apart from the data): ``metrics.json`` (means,
-target count, encoder, method or checkpoint, split; per target group too when the samples label their
-targets, as ``scenesplat-stereo import multiview`` does: "between" and "beside"), ``targets.csv`` (one row
-per target), ``scenes.md`` (a table per scene), and ``sheet.png`` (the worst and the best targets by PSNR:
-target | render). The report is built in a staging folder that replaces REPORT as a whole
-(``scenesplat_stereo.common.files.StagedFolder``).
+and REPORT itself: absent, empty or an earlier report, apart from the data; a split in which no target has
+a valid pixel is refused): ``metrics.json`` (means, target count, encoder, method or checkpoint, split; per
+target group too when the samples label their targets, as ``scenesplat-stereo import multiview`` does:
+"between" and "beside"; a target without a valid pixel is left out of the masked means and counted,
+``targets_without_valid_pixels``, and a mean over no target is null), ``targets.csv`` (one row per target),
+``scenes.md`` (a table per scene), and ``sheet.png`` (the worst and the best targets by PSNR: target |
+render). The report is built in a staging folder that replaces REPORT as a whole
+(``scenesplat_stereo.common.files.StagedFolder``); Ctrl-C leaves REPORT as it was (a table keeps the reports
+it finished), with one line saying so (exit 130).
 """
 
 from __future__ import annotations

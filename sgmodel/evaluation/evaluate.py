@@ -14,10 +14,11 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import markdown_table, whole_number
 from sgmodel.config import EncoderParams
-from sgmodel.data.loader import eval_batches, read_split, to_device
+from sgmodel.data.loader import check_valid_pixels, eval_batches, to_device
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from sgmodel.metrics import image as metrics
@@ -107,10 +108,15 @@ def measure(method: Method, loader, device: str, lpips_net, progress: bool = Tru
 
 def summarise(rows: list[dict]) -> dict:
     """Means over targets; a masked metric of a target without a valid pixel (NaN) is left out of its mean
-    (NaN only when no target has one)."""
+    (``without_valid_pixels`` counts them), which is None (JSON null) when no target has one."""
     keys = [k for k in rows[0] if k not in LABELS]
     values = {k: [r[k] for r in rows if not math.isnan(r[k])] for k in keys}
-    return {k: sum(v) / len(v) if v else math.nan for k, v in values.items()}
+    return {k: sum(v) / len(v) if v else None for k, v in values.items()}
+
+
+def without_valid_pixels(rows: list[dict]) -> int:
+    """How many targets have no valid pixel (their masked metrics are NaN, left out of the masked means)."""
+    return sum(math.isnan(r["psnr_masked"]) for r in rows)
 
 
 def group_means(rows: list[dict]) -> dict[str, dict]:
@@ -134,7 +140,8 @@ def scene_table(rows: list[dict]) -> str:
                 continue
             mean = summarise(sel)
             body.append([s if g is None else f"{s} ({g})", len(sel)]
-                        + [f"{mean[c]:.4f}" if "psnr" not in c else f"{mean[c]:.2f}" for c in cols])
+                        + ["n/a" if mean[c] is None else f"{mean[c]:.4f}" if "psnr" not in c else f"{mean[c]:.2f}"
+                           for c in cols])
     return markdown_table(["scene", "targets"] + cols, body)
 
 
@@ -155,7 +162,7 @@ def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpi
     result = {"method": method.name, "encoder": method.encoder, "split": split, "data": str(Path(data).resolve()),
               "resolution": method.resolution, "targets": len(rows),
               "lpips": "LPIPS-VGG v0.1" if lpips_net is not None else "not computed (no VGG16 ImageNet weights)",
-              "mean": summarise(rows)}
+              "mean": summarise(rows), "targets_without_valid_pixels": without_valid_pixels(rows)}
     if group_means(rows):
         result["groups"] = group_means(rows)
         result["group_targets"] = {g: sum(r.get("group") == g for r in rows) for g in result["groups"]}
@@ -212,10 +219,10 @@ def methods_of(args: argparse.Namespace) -> list[str]:
 
 
 def eval_inputs(args: argparse.Namespace) -> dict[str, Path | None]:
-    """The inputs a report must stay apart from, by flag: each ``--data`` folder (its split checked to exist)
-    and ``--checkpoint``."""
+    """The inputs a report must stay apart from, by flag: each ``--data`` folder (its split checked to exist
+    and to have a valid pixel in some target: ``check_valid_pixels``) and ``--checkpoint``."""
     for _, path in args.data:
-        read_split(path, args.split)
+        check_valid_pixels(path, args.split)
     checkpoint = checkpoint_path(args.checkpoint) if args.checkpoint or not args.method else None
     return {f"--data {name}={path}": path for name, path in args.data} | {"--checkpoint": checkpoint}
 
@@ -231,8 +238,14 @@ def report(args: argparse.Namespace, method_name: str, device: str) -> int:
     """``sgmodel eval`` with one ``--data`` folder and one method: REPORT is ``--out``."""
     check_report_folder(args.out, eval_inputs(args))
     method = method_of(method_name, args, device)
-    result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
-                      not args.no_progress)
+    try:
+        result = evaluate(method, args.data[0][1], args.split, args.out, device, args.lpips_vgg, args.batch_size,
+                          not args.no_progress)
+    except KeyboardInterrupt:
+        raise Interrupted(f"--out {args.out} is as it was (a report replaces it only when complete); rerun the "
+                          f"same command") from None
     print((args.out / "scenes.md").read_text())
-    print(f"{result['targets']} targets; report in {args.out}")
+    left_out = result["targets_without_valid_pixels"]
+    note = f" ({left_out} without a valid pixel, left out of the masked means)" if left_out else ""
+    print(f"{result['targets']} targets{note}; report in {args.out}")
     return 0

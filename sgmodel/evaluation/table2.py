@@ -26,6 +26,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.files import OwnedFolder, atomic_write_bytes, check_apart, check_replaceable
 from scenesplat_stereo.common.text import key_safe_name, markdown_table
 from scenesplat_stereo.shards.benchmark_file import read_benchmark
@@ -113,10 +114,14 @@ def table_markdown(cols: list[Column], rows: list[Row]) -> str:
     return markdown_table(header, body)
 
 
-def notes(cols: list[Column], rows: list[Row], split: str, targets: dict[str, int], lpips: str) -> str:
-    """What each column measures, how many targets, each method's encoder and size, and what was not
-    computed."""
-    lines = [f"- {c.name}: `{c.data}`, split {split}, {targets[c.name]} targets; {c.region}" for c in cols]
+def notes(cols: list[Column], rows: list[Row], split: str, targets: dict[str, int], lpips: str,
+          left_out: dict[str, int] | None = None) -> str:
+    """What each column measures, how many targets (and how many of them, ``left_out``, have no valid pixel and
+    are left out of its masked means), each method's encoder and size, and what was not computed."""
+    left_out = left_out or {}
+    lines = [f"- {c.name}: `{c.data}`, split {split}, {targets[c.name]} targets"
+             f"{f' ({left_out[c.name]} without a valid pixel)' if left_out.get(c.name) else ''}; {c.region}"
+             for c in cols]
     lines += [f"- {r.label}: encoder {r.encoder}, {r.resolution}x{r.resolution}" for r in rows]
     if not lpips.startswith("LPIPS"):
         lines.append(f"- LPIPS {lpips}: give `--lpips-vgg` (torchvision's vgg16-397923af.pth)")
@@ -136,20 +141,27 @@ def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:
     order = [m for m, _ in ROWS if m in methods]
     built = {m: method_of(m, args, device) for m in order}  # every checkpoint and encoder loads before any run
     with OwnedFolder(args.out, OWNER):  # every file in OUT recorded as eval's, however it ends
-        rows, targets, lpips, shown = [], {}, "", {c.name: c for c in cols}
+        rows, targets, left_out, lpips, shown, done = [], {}, {}, "", {c.name: c for c in cols}, []
         for m in order:
             means = {}
             for c in cols:
-                result = evaluate(built[m], c.data, args.split, Path(args.out) / c.name / m, device, args.lpips_vgg,
-                                  args.batch_size, not args.no_progress)
+                try:
+                    result = evaluate(built[m], c.data, args.split, Path(args.out) / c.name / m, device,
+                                      args.lpips_vgg, args.batch_size, not args.no_progress)
+                except KeyboardInterrupt:
+                    raise Interrupted(f"{len(done)} of {len(cols) * len(order)} reports finished and kept in "
+                                      f"{args.out} ({', '.join(done) or 'none'}), the table not written; rerun the "
+                                      f"same command") from None
+                done.append(f"{c.name}/{m}")
                 means[c.name], targets[c.name], lpips = result["mean"], result["targets"], result["lpips"]
+                left_out[c.name] = max(left_out.get(c.name, 0), result["targets_without_valid_pixels"])
                 for g, group_mean in result.get("groups", {}).items():  # a column per target group after its benchmark's
                     name = f"{c.name} {g}"
                     shown.setdefault(name, dataclasses.replace(c, name=name))
                     means[name], targets[name] = group_mean, result["group_targets"][g]
             rows.append(Row(m, labels[m], built[m].encoder, built[m].resolution, means))
         cols = sorted(shown.values(), key=lambda c: [k.name for k in cols].index(c.name.split(" ")[0]))
-        text = table_markdown(cols, rows) + "\n\n" + notes(cols, rows, args.split, targets, lpips) + "\n"
+        text = table_markdown(cols, rows) + "\n\n" + notes(cols, rows, args.split, targets, lpips, left_out) + "\n"
         doc = {"split": args.split, "lpips": lpips,
                "benchmarks": [{"name": c.name, "data": str(c.data.resolve()), "masked": c.masked, "region": c.region,
                                "targets": targets[c.name]} for c in cols],

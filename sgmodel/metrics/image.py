@@ -18,7 +18,8 @@ it); ``ssim_map`` does not clip, so that ``1 - SSIM`` can serve as a differentia
 - LPIPS: ``sgmodel.metrics.lpips.LPIPS`` on inputs scaled to [-1, 1]; without a mask the layer maps are
   averaged spatially (``lpips`` default), with a mask the per-pixel map (``spatial=True``) is averaged
   over valid pixels.
-A mask with no valid pixel gives NaN for that image (average with ``nanmean``).
+A mask with no valid pixel gives NaN for that image (0 / 0: no value is defined); callers leave such images
+out of their means and count them (``has_valid_pixel``), so that one empty mask does not make a mean NaN.
 """
 
 from __future__ import annotations
@@ -59,6 +60,12 @@ def _masked_mean(values: Tensor, mask: Tensor | None) -> Tensor:
         return values.mean(dim=(-3, -2, -1))
     w = mask.to(values.dtype).expand_as(values)
     return (values * w).sum(dim=(-3, -2, -1)) / w.sum(dim=(-3, -2, -1))
+
+
+def has_valid_pixel(mask: Tensor) -> Tensor:
+    """[...] bool per mask [..., 1, H, W]: whether it has a valid pixel, i.e. whether the masked metrics of its
+    image are defined (they are NaN where it has none)."""
+    return mask.flatten(-3).any(dim=-1)
 
 
 def psnr(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:

@@ -25,8 +25,9 @@ centre, as with a K of another resolution), a pair's depth against the calibrati
 or the baseline puts 99% of the pixels at the depth clamp), and OUT (absent, empty, or an earlier output of
 ``sgmodel predict``; apart from the inputs). The outputs are written to a staging folder beside OUT that
 replaces OUT as a whole at the end (``scenesplat_stereo.common.files.StagedFolder``): no file of an earlier
-prediction is left beside new ones. Errors in the inputs raise ``PredictError`` (or ``CalibError``, a
-``StereoCheckError``), which the command line turns into one line and exit status 2.
+prediction is left beside new ones, and Ctrl-C leaves OUT as it was (one line, exit 130). Errors in the inputs
+raise ``PredictError`` (or ``CalibError``, a ``StereoCheckError``), which the command line turns into one line
+and exit status 2.
 
 With ``--rig`` the pair (or every video frame) is raw: it is rectified first (``sgmodel.pairs.rectify``, the pair
 transform of ``sgmodel.pairs.prepare``), the scene files are then in the raw left camera's frame (the viewer files
@@ -46,6 +47,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.scene.scene_files import FORMATS
@@ -249,6 +251,9 @@ def predict(args: argparse.Namespace, log=print) -> None:
             else:
                 _predict_video(args, source, first, reconstructor, short, trajectory, device, tmp, log)
             written = sorted(str(p.relative_to(tmp)) for p in tmp.rglob("*") if p.is_file())
+    except KeyboardInterrupt:
+        raise Interrupted(f"--out {args.out} is as it was (a prediction replaces it only when complete); rerun "
+                          f"the same command") from None
     finally:
         if source is not None:
             source.close()

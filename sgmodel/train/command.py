@@ -8,17 +8,19 @@ sheet (input, depth, targets, renders) and keeps the checkpoint with the highest
 
 Files in RUN (only rank 0 writes, every file atomically): ``config.json`` (all settings, the encoder and
 its weights hash, the loss used), ``metrics.jsonl`` (one record per ``log_every`` steps: step, loss, psnr,
-lr, step_ms; one per validation: step, val_psnr, val_psnr_masked, val_targets; whole lines only),
-``checkpoints/last.pt`` and ``best.pt`` (``sgmodel.model.checkpoint``), ``sheets/val_<step>.png``, and ``.lock``
-while a process trains in it (a second one is refused). An interrupted or killed run resumes from
-``last.pt`` exactly: weights, optimiser, scheduler, RNG and the data order (a function of seed and step);
-a torn last line of ``metrics.jsonl`` is dropped with a warning.
+lr, step_ms; one per validation: step, val_psnr, val_psnr_masked, val_targets and
+val_targets_without_valid_pixels, the targets left out of val_psnr_masked, which is null when no target has
+a valid pixel; whole lines only), ``checkpoints/last.pt`` and ``best.pt`` (``sgmodel.model.checkpoint``),
+``sheets/val_<step>.png``, and ``.lock`` while a process trains in it (a second one is refused). An
+interrupted or killed run resumes from ``last.pt`` exactly: weights, optimiser, scheduler, RNG and the data
+order (a function of seed and step); a torn last line of ``metrics.jsonl`` is dropped with a warning.
 
 Nothing is written before every input is checked: the flags, ``--out`` (a folder that can be written, not
 inside ``--data``, empty, or a run of the same settings), both splits (their first samples decoded at
-the run's size), the encoder and LPIPS weights, ``--init-from``, ``--encoder-cache`` (``sgmodel.data.encoder_cache``:
-it must fit the encoder, the resolution, the precision and the data). A RUN that holds an earlier attempt of
-other settings without any checkpoint is started afresh (nothing of value is lost).
+the run's size, and a valid pixel in some target of each), the encoder and LPIPS weights, ``--init-from``,
+``--encoder-cache`` (``sgmodel.data.encoder_cache``: it must fit the encoder, the resolution, the precision
+and the data). A RUN that holds an earlier attempt of other settings without any checkpoint is started
+afresh (nothing of value is lost).
 
 Divergence: the loss is checked every step (``train_step``; its ``.item()`` syncs anyway); the gradients
 every step with one fused norm on the device (no sync), read together with the weights' norm at every log

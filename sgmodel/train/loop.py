@@ -19,8 +19,8 @@ from scenesplat_stereo.common.files import (FolderLock, append_line, atomic_writ
 from scenesplat_stereo.common.text import format_table
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
-from sgmodel.data.loader import (RUN_SPLITS, check_first_sample, load_sample, loader_workers, make_loader, read_split,
-                                 to_device)
+from sgmodel.data.loader import (RUN_SPLITS, check_first_sample, check_valid_pixels, load_sample, loader_workers,
+                                 make_loader, read_split, to_device)
 from sgmodel.metrics import image as metrics
 from sgmodel.metrics.sheets import validation_sheet
 from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
@@ -123,10 +123,12 @@ def validate(model, loader, world: World, amp: bool, sheet_samples: int, limit: 
              ) -> tuple[dict, list]:
     """Mean PSNR over every target of the split (full image and valid pixels only), summed over ranks;
     and the first ``sheet_samples`` samples of this rank for the contact sheet. ``limit`` caps the
-    samples each rank validates on (None: all)."""
+    samples each rank validates on (None: all). A target whose mask has no valid pixel is left out of the
+    valid-pixel mean and counted (``val_targets_without_valid_pixels``); that mean is None when no target has
+    one."""
     was_training = model.training
     model.eval()
-    total, total_masked, count, shown = 0.0, 0.0, 0, []
+    total, total_masked, count, count_masked, shown = 0.0, 0.0, 0, 0, []
     samples = 0
     for batch in loader:
         if limit is not None and samples >= limit:
@@ -135,17 +137,20 @@ def validate(model, loader, world: World, amp: bool, sheet_samples: int, limit: 
         batch = to_device(batch, world.device)
         rgb, _, pred = render_targets(model, batch, amp)
         total += metrics.psnr(rgb, batch["targets"]).sum().item()
-        total_masked += metrics.psnr(rgb, batch["targets"], batch["masks"]).sum().item()
+        defined = metrics.has_valid_pixel(batch["masks"])  # the others' masked PSNR is NaN
+        total_masked += metrics.psnr(rgb, batch["targets"], batch["masks"])[defined].sum().item()
         count += rgb.shape[0] * rgb.shape[1]
+        count_masked += int(defined.sum().item())
         for i in range(rgb.shape[0]):
             if len(shown) < sheet_samples:
                 shown.append({"left": batch["left"][i], "depth": pred.depth[i], "targets": batch["targets"][i],
                               "renders": rgb[i], "key": batch["keys"][i]})
     model.train(was_training)
-    total, total_masked, count = all_sum(world, [total, total_masked, float(count)])
+    total, total_masked, count, count_masked = all_sum(world, [total, total_masked, float(count), float(count_masked)])
     if count == 0:
         raise ValueError("the validation split has no targets")
-    return {"val_psnr": total / count, "val_psnr_masked": total_masked / count, "val_targets": int(count)}, shown
+    return {"val_psnr": total / count, "val_psnr_masked": total_masked / count_masked if count_masked else None,
+            "val_targets": int(count), "val_targets_without_valid_pixels": int(count - count_masked)}, shown
 
 
 def mean_over_ranks(world: World, stats: dict) -> dict:
@@ -362,7 +367,7 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
             first_shown.update(step=step, renders=[sample["renders"] for sample in shown])
         t_write = time.perf_counter()
         if world.main:
-            bar.write(f"step {step}: val PSNR {val['val_psnr']:.2f} dB (valid pixels {val['val_psnr_masked']:.2f})"
+            bar.write(f"step {step}: val PSNR {val['val_psnr']:.2f} dB (valid pixels {valid_pixel_psnr(val, True)})"
                       f"{' best' if improved else ''}")
             append_line(paths.metrics, json.dumps({"step": step, **val}))
             atomic_write_bytes(paths.sheet(step), validation_sheet(shown, first_shown or None))
@@ -451,16 +456,30 @@ def summary_table(metrics_path: Path, summary: dict) -> str:
     """The validation history as a text table, then the best step."""
     rows = [r for r in read_json_lines(metrics_path) if "val_psnr" in r]
     table = format_table([["step", "val PSNR (dB)", "valid-pixel PSNR (dB)", "targets"]] +
-                         [[r["step"], f"{r['val_psnr']:.2f}", f"{r['val_psnr_masked']:.2f}", r["val_targets"]]
+                         [[r["step"], f"{r['val_psnr']:.2f}", valid_pixel_psnr(r), r["val_targets"]]
                           for r in rows], rule=True)
+    last = rows[-1] if rows else {}
+    if last.get("val_targets_without_valid_pixels"):
+        table += (f"\n{last['val_targets_without_valid_pixels']} of {last['val_targets']} validation targets have no "
+                  f"valid pixel: left out of the valid-pixel PSNR")
     return (f"{table}\nbest validation PSNR {summary['best_val_psnr']:.2f} dB at step {summary['best_step']}; "
             f"{summary['steps']} steps in {summary['wall_s']:.0f} s; checkpoints in {summary['run']}/checkpoints")
 
 
+def valid_pixel_psnr(record: dict, left_out: bool = False) -> str:
+    """A validation record's valid-pixel PSNR as text, in dB ("n/a" when no target had a valid pixel);
+    ``left_out``: and how many targets it leaves out (those without a valid pixel), if any."""
+    value, without = record["val_psnr_masked"], record.get("val_targets_without_valid_pixels", 0)
+    text = "n/a" if value is None else f"{value:.2f}"
+    return f"{text}; {without} of {record['val_targets']} targets without any, left out" if left_out and without \
+        else text
+
+
 def read_split_checked(data: Path, resolution: int, targets: int) -> None:
-    """Both splits a run needs exist, list readable shards, and their first samples decode at
-    ``resolution`` with ``targets`` training targets. DataError naming the file (and the flag) otherwise.
-    Reads only."""
+    """Both splits a run needs exist, list readable shards, their first samples decode at ``resolution`` with
+    ``targets`` training targets, and some target of each has a valid pixel (``check_valid_pixels``). DataError
+    naming the file or split (and the flag) otherwise. Reads only."""
     for split in RUN_SPLITS:
         check_first_sample(read_split(Path(data), split), lambda key, members, source, split=split: load_sample(
             key, members, source, resolution, targets if split == "train" else None))
+        check_valid_pixels(Path(data), split)

@@ -13,7 +13,7 @@ from scenesplat_stereo.build.protocol import SamplePlan
 from scenesplat_stereo.cli import main
 from scenesplat_stereo.scene.cameras import right_camera
 from scenesplat_stereo.shards import webdataset as shards
-from scenesplat_stereo.shards.encode import SampleImages, encode_sample
+from scenesplat_stereo.shards.encode import SampleImages, decode_image, encode_sample
 from scenesplat_stereo.shards.sample import SampleMeta
 from tests.support.bad_input import run_cli, snapshot
 
@@ -72,3 +72,53 @@ def test_broken_files_are_named(tmp_path, capsys, name, content, message):
 def test_negative_sheet_samples(tmp_path, capsys):
     rc, text = run_cli(main, ["inspect", str(tmp_path), "--sheet-samples", "-1"], capsys)
     assert rc == 2 and "--sheet-samples -1: must be >= 0" in text
+
+
+# ------------------------------------------------- the contact sheet: replaced only as far as inspect wrote it
+
+
+def inspect_argv(out, *extra) -> list[str]:
+    return ["inspect", str(out), "--no-progress", *map(str, extra)]
+
+
+def test_a_users_file_at_contact_sheet_is_kept(tmp_path, capsys):
+    irs_dataset(tmp_path / "data")
+    (tmp_path / "figure.png").write_bytes(b"the user's own figure")
+    before = snapshot(tmp_path)
+    rc, text = run_cli(main, inspect_argv(tmp_path / "data", "--contact-sheet", tmp_path / "figure.png"), capsys)
+    assert rc == 2 and "error: --contact-sheet" in text and "figure.png: exists and was not written by " \
+        "`scenesplat-stereo inspect` (no .written-by.figure.png beside it)" in text, text
+    assert "samples checked" not in text and snapshot(tmp_path) == before  # refused before the dataset was read
+
+
+def test_the_default_contact_sheet_of_another_tool_is_kept(tmp_path, capsys):
+    irs_dataset(tmp_path)
+    (tmp_path / "contact_sheet.png").write_bytes(b"another tool's sheet")
+    before = snapshot(tmp_path)
+    rc, text = run_cli(main, inspect_argv(tmp_path), capsys)
+    assert rc == 2 and "contact_sheet.png: exists and was not written by `scenesplat-stereo inspect`" in text, text
+    assert snapshot(tmp_path) == before
+
+
+def test_a_contact_sheet_is_replaced_by_inspect_only_while_unchanged(tmp_path, capsys):
+    irs_dataset(tmp_path / "data")
+    sheet = tmp_path / "sheet.png"
+    assert run_cli(main, inspect_argv(tmp_path / "data", "--contact-sheet", sheet), capsys)[0] == 0
+    first = sheet.read_bytes()
+    assert decode_image(first, "png").ndim == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".written-by.sheet.png", "data", "sheet.png"]  # no temp file
+    assert run_cli(main, inspect_argv(tmp_path / "data", "--contact-sheet", sheet), capsys)[0] == 0  # its own: replaced
+    assert sheet.read_bytes() == first
+    sheet.write_bytes(first + b"the user's edit")
+    before = snapshot(tmp_path)
+    rc, text = run_cli(main, inspect_argv(tmp_path / "data", "--contact-sheet", sheet), capsys)
+    assert rc == 2 and "sheet.png: exists and changed since `scenesplat-stereo inspect` wrote it" in text, text
+    assert snapshot(tmp_path) == before
+
+
+def test_contact_sheet_that_is_a_folder(tmp_path, capsys):
+    irs_dataset(tmp_path / "data")
+    (tmp_path / "sheets").mkdir()
+    rc, text = run_cli(main, inspect_argv(tmp_path / "data", "--contact-sheet", tmp_path / "sheets"), capsys)
+    assert rc == 2 and "--contact-sheet" in text and "sheets: is a folder" in text, text
+    assert list((tmp_path / "sheets").iterdir()) == []

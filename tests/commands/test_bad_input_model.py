@@ -387,10 +387,12 @@ def test_exif_orientation_is_applied_as_opencv_does(tmp_path, orientation):
 
 @pytest.fixture
 def earlier_ablation(tmp_path) -> Path:
+    """An earlier ablation's OUT: its files, and its manifest listing them (``sgmodel ablate`` wrote them)."""
     out = tmp_path / "ablation"
     (out / "shared-default" / "eval").mkdir(parents=True)
     (out / "shared-default" / "eval" / "metrics.json").write_text('{"mean": {}}\n')
     (out / "table.md").write_text("| earlier |\n")
+    files.write_manifest(out, "sgmodel ablate")
     return out
 
 
@@ -416,7 +418,7 @@ def test_ablate_out_of_other_files(demo_dataset, tmp_path, capsys):
     (tmp_path / "thesis").mkdir()
     (tmp_path / "thesis" / "main.tex").write_text("x")
     rc, err = refusal(main, ["ablate", "--data", demo_dataset, "--out", tmp_path / "thesis", *TINY], capsys)
-    assert rc == 2 and "holds 'main.tex', which is not part of an ablation" in err
+    assert rc == 2 and "holds files not written by `sgmodel ablate` (e.g. 'main.tex')" in err
     assert [p.name for p in (tmp_path / "thesis").iterdir()] == ["main.tex"]
 
 

@@ -26,7 +26,7 @@ from scenesplat_stereo.common import files
 from scenesplat_stereo.common.files import OWNER_FILE, OwnedFolder, StagedFolder, check_replaceable, write_manifest
 from scenesplat_stereo.shards.encode import encode_png
 from sgmodel.cli import main as sgmodel
-from tests.support.bad_input import refusal, snapshots, tiny_teacher
+from tests.support.bad_input import earlier_output, refusal, refused, tiny_teacher
 
 
 class caplog_warnings:
@@ -45,25 +45,6 @@ class caplog_warnings:
         import logging
 
         logging.getLogger().removeHandler(self.handler)
-
-
-def refused(main, argv: list, capsys, message: str, *folders: Path) -> None:
-    """``main(argv)`` exits 2 with one line holding ``message`` and leaves every file under ``folders`` as it was."""
-    before = snapshots(*folders)
-    rc, err = refusal(main, argv, capsys)
-    assert rc == 2 and len(err.splitlines()) == 1 and message in err, err
-    assert snapshots(*folders) == before
-
-
-def earlier_output(folder: Path, owner: str, names=("scene.ply",), user_file: str | None = "notes.txt") -> Path:
-    """An earlier output of ``owner`` (its manifest lists ``names``), and a file of the user's added to it since."""
-    with StagedFolder(folder, owner) as tmp:
-        for name in names:
-            (tmp / name).parent.mkdir(parents=True, exist_ok=True)
-            (tmp / name).write_text(f"an earlier {name}")
-    if user_file:
-        (folder / user_file).write_text("the user's own notes, added to the earlier output")
-    return folder
 
 
 @pytest.fixture

@@ -65,6 +65,27 @@ def refusal(main, argv: list, capsys) -> tuple[int, str]:
     return rc, "\n".join(line for line in err.splitlines() if not line.startswith("Warp "))
 
 
+def refused(main, argv: list, capsys, message: str, *folders: Path) -> None:
+    """``main(argv)`` exits 2 with one line holding ``message`` and leaves every file under ``folders`` as it was."""
+    before = snapshots(*folders)
+    rc, err = refusal(main, argv, capsys)
+    assert rc == 2 and len(err.splitlines()) == 1 and message in err, err
+    assert snapshots(*folders) == before
+
+
+def earlier_output(folder: Path, owner: str, names=("scene.ply",), user_file: str | None = "notes.txt") -> Path:
+    """An earlier output of ``owner`` (its manifest lists ``names``), and a file of the user's added to it since."""
+    from scenesplat_stereo.common.files import StagedFolder
+
+    with StagedFolder(folder, owner) as tmp:
+        for name in names:
+            (tmp / name).parent.mkdir(parents=True, exist_ok=True)
+            (tmp / name).write_text(f"an earlier {name}")
+    if user_file:
+        (folder / user_file).write_text("the user's own notes, added to the earlier output")
+    return folder
+
+
 def model_checkpoint(path: Path, params=None, nan: bool = False, **fields) -> Path:
     """A checkpoint of an untrained model (``sgmodel.model.checkpoint`` format) of ``params`` (default: the
     cpu-small preset at 32x32, padding 2); ``nan`` puts a NaN in one weight; ``fields`` override the

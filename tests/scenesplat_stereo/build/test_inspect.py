@@ -2,21 +2,18 @@
 
 from __future__ import annotations
 
-import hashlib
-import io
 import json
 import shutil
-import tarfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 from tests.scenesplat_stereo.build.test_build import settings, write_teachers
+from tests.support.shard_edits import rewrite
 
 from scenesplat_stereo.build.inspection import THUMB_WIDTH, inspect_dataset, table
 from scenesplat_stereo.build.run import build
 from scenesplat_stereo.cli import main
-from scenesplat_stereo.shards import webdataset as shards
 from scenesplat_stereo.shards.encode import decode_image, encode_mask_png
 
 
@@ -32,26 +29,6 @@ def damaged(dataset, tmp_path) -> Path:
     out = tmp_path / "out"
     shutil.copytree(dataset, out)
     return out
-
-
-def rewrite(out: Path, split: str, name: str, change) -> None:
-    """Rewrite one shard with ``change(key, members) -> members`` and update index.json to match, so that
-    only the damage itself is left to find."""
-    path = out / split / name
-    samples = [(k, change(k, dict(m))) for k, m in shards.iter_shard(path)]
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w") as tar:
-        for key, members in samples:
-            for suffix, data in members.items():
-                info = tarfile.TarInfo(f"{key}.{suffix}")
-                info.size = len(data)
-                tar.addfile(info, io.BytesIO(data))
-    path.write_bytes(buf.getvalue())
-    index_path = out / split / "index.json"
-    index = json.loads(index_path.read_text())
-    entry = next(e for e in index["shards"] if e["name"] == name)
-    entry["bytes"], entry["sha256"] = len(buf.getvalue()), hashlib.sha256(buf.getvalue()).hexdigest()
-    index_path.write_text(json.dumps(index))
 
 
 def first_key_only(change):

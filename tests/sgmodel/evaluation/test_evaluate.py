@@ -8,10 +8,13 @@ import json
 
 import pytest
 
+from scenesplat_stereo.common.files import OWNER_FILE
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
+from sgmodel.evaluation import evaluate as evaluate_mod
 from sgmodel.evaluation.ablate import ablate, variants
 from sgmodel.train import loop as train_mod
+from tests.support.bad_input import snapshot
 
 
 def tiny() -> tuple[ModelParams, TrainParams]:
@@ -62,6 +65,26 @@ def test_eval_of_the_baselines(demo_dataset, tmp_path, method):
     assert 5 < mean["psnr"] < 60 and 0 < mean["ssim"] <= 1
 
 
+def test_ctrl_c_while_a_report_is_written_leaves_the_earlier_one_as_it_was(demo_dataset, tmp_path, capsys,
+                                                                          monkeypatch):
+    out = tmp_path / "report"
+    argv = ["eval", "--data", demo_dataset, "--method", "naive-gs", "--encoder", "sgbm", "--resolution", 32, "--out",
+            out, "--device", "cpu", "--no-progress"]
+    assert cli(argv) == 0
+    before = snapshot(tmp_path)
+    capsys.readouterr()
+
+    def interrupt(kept):  # Ctrl-C while the new report's files are written into its staging folder
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(evaluate_mod, "target_sheet", interrupt)
+    assert cli(argv) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"sgmodel eval: interrupted: --out {out} is as it was (a report replaces it only when complete); rerun the "
+        f"same command")
+    assert snapshot(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == ["report"]
+
+
 @pytest.mark.parametrize("argv,message", [
     (["--checkpoint", "{tmp}/none.pt"], "no such checkpoint"),
     (["--method", "naive-gs", "--encoder", "nope"], "nope"),
@@ -84,6 +107,10 @@ def test_ablate_writes_the_table_4_layout_and_resumes(demo_dataset, tmp_path):
     assert "| Without RGB-D conditioning | n/a |" in text  # sgbm has no features: not applicable
     assert "| naive-gs |" in text and "| forward-splat |" in text
     assert (tmp_path / "table.md").read_text() == text
+    manifest = json.loads((tmp_path / OWNER_FILE).read_text())  # every file recorded as the ablation's
+    assert manifest["owner"] == "sgmodel ablate" and "open" not in manifest
+    assert {"table.md", "shared-default/eval/metrics.json", "shared-default/run/checkpoints/best.pt"} <= \
+        set(manifest["files"])
     before = (tmp_path / "shared-default/eval/metrics.json").stat().st_mtime_ns
     ablate(params, schedule, demo_dataset, tmp_path, "cpu", None, only=["default"], progress=False)
     assert (tmp_path / "shared-default/eval/metrics.json").stat().st_mtime_ns == before  # read back, not redone

@@ -12,7 +12,7 @@ import pytest
 
 from scenesplat_stereo.shards.benchmark_file import BENCHMARK_NAME
 from sgmodel.data.loader import DataError
-from sgmodel.evaluation.evaluate import benchmark_flag, summarise
+from sgmodel.evaluation.evaluate import benchmark_flag, summarise, without_valid_pixels
 from sgmodel.evaluation.table2 import Column, Row, cell, columns, table_markdown
 from tests.support.model_helpers import sgmodel_status
 
@@ -58,8 +58,9 @@ def test_the_table_layout_bold_best_and_missing_lpips():
 def test_means_leave_out_targets_without_a_valid_pixel():
     rows = [{"key": "a", "scene": "s", "target": 0, "psnr": 10.0, "psnr_masked": math.nan},
             {"key": "a", "scene": "s", "target": 1, "psnr": 20.0, "psnr_masked": 30.0}]
-    assert summarise(rows) == {"psnr": 15.0, "psnr_masked": 30.0}
-    assert math.isnan(summarise(rows[:1])["psnr_masked"])
+    assert summarise(rows) == {"psnr": 15.0, "psnr_masked": 30.0} and without_valid_pixels(rows) == 1
+    assert summarise(rows[:1]) == {"psnr": 10.0, "psnr_masked": None}  # undefined: JSON null, never NaN
+    assert without_valid_pixels(rows[1:]) == 0
 
 
 def test_columns_are_checked_before_anything_runs(stereonvs_dataset, replicags_dataset, demo_dataset, tmp_path):

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from sgmodel import weights
+from sgmodel.metrics.image import lpips
 from sgmodel.metrics.lpips import LPIPS, create_lpips, find_vgg16_weights, tap_distance
 from sgmodel.train.losses import create_objective
 from sgmodel.weights import WeightsError
@@ -134,6 +135,17 @@ def test_zero_for_identical_positive_otherwise_batched(net):
     assert diff.shape == (2, 2) and torch.all(diff > 0)
     torch.testing.assert_close(diff[1, 1], net(a[1, 1], b[1, 1]))  # batching does not mix images
     assert torch.all(net.per_pixel(a, a) == 0)
+
+
+def test_masked_lpips_of_a_target_without_a_valid_pixel_is_nan_and_the_others_unchanged(net):
+    g = torch.Generator().manual_seed(4)
+    a = torch.rand(3, 3, 24, 24, generator=g)
+    b = (a + 0.1 * torch.randn(a.shape, generator=g)).clamp(0, 1)
+    mask = torch.rand(3, 1, 24, 24, generator=g) < 0.5
+    mask[1] = False
+    got = lpips(net, a, b, mask)
+    assert torch.isnan(got[1]) and torch.isfinite(got[[0, 2]]).all()
+    torch.testing.assert_close(got[2], lpips(net, a[2:], b[2:], mask[2:])[0])  # no other target is touched
 
 
 def test_gradient_reaches_input_not_weights(net):

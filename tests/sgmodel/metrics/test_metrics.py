@@ -7,7 +7,7 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from sgmodel.metrics.image import image_metrics, psnr, ssim, ssim_map
+from sgmodel.metrics.image import has_valid_pixel, image_metrics, psnr, ssim, ssim_map
 
 SK = dict(gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1)
 
@@ -85,6 +85,20 @@ def test_edge_values():
     out = image_metrics(t, t.flip(-1), empty)
     assert torch.isnan(out["psnr"][0]) and torch.isnan(out["ssim"][0])
     assert torch.isfinite(out["psnr"][1]) and torch.isfinite(out["ssim"][1]) and "lpips" not in out
+
+
+def test_a_mask_without_a_valid_pixel_is_found_and_spoils_no_other_image():
+    a, b = (torch.from_numpy(np.clip(x, 0, 1)) for x in pair((2, 2, 3, 16, 16), seed=5))
+    mask = torch.ones(2, 2, 1, 16, 16, dtype=torch.bool)
+    mask[0, 1] = False  # a target whose every pixel is invalid
+    mask[1, 0] = False
+    mask[1, 0, 0, 0, 0] = True  # one valid pixel left: still defined
+    assert has_valid_pixel(mask).tolist() == [[True, False], [True, True]]
+    got = image_metrics(a, b, mask)
+    for name, value in got.items():
+        assert torch.isnan(value[0, 1]) and torch.isfinite(value[has_valid_pixel(mask)]).all(), name
+    mse = ((a[1, 0] - b[1, 0])[:, 0, 0] ** 2).mean().item()  # the one valid pixel
+    assert got["psnr"][1, 0].item() == pytest.approx(10 * np.log10(1 / mse), abs=1e-9)
 
 
 def test_bad_shapes_raise():

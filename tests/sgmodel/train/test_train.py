@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import re
 
+import numpy as np
 import pytest
 import torch
 
@@ -13,6 +14,7 @@ from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
 from sgmodel.model.network import create_model
 from sgmodel.train import loop as train_mod
+from sgmodel.train.distributed import World
 from sgmodel.train.losses import create_objective
 from tests.support.model_helpers import StandInEncoder, textured_batch
 
@@ -49,6 +51,33 @@ def test_overfitting_one_batch_raises_psnr_by_10db():
 
 def _records(run):
     return [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_validation_leaves_out_and_counts_targets_without_a_valid_pixel(monkeypatch):
+    """One target, then a whole sample, without a valid pixel: the valid-pixel PSNR is the mean over the other
+    targets (computed here from its definition), never NaN; None when no target has a valid pixel."""
+    batches = [textured_batch(B=2, T=2, S=32, seed=s) for s in (0, 1)]
+    batches[0]["masks"][0, 0, :, :16] = False  # half the pixels
+    batches[0]["masks"][0, 1] = False  # a target without a valid pixel
+    batches[1]["masks"][1] = False  # a sample without one
+    monkeypatch.setattr(train_mod, "render_targets", lambda model, batch, amp: (batch["targets"].flip(-1), None, None))
+    world = World(rank=0, size=1, device=torch.device("cpu"))
+    val, _ = train_mod.validate(torch.nn.Identity(), batches, world, amp=False, sheet_samples=0)
+    want = []
+    for b in batches:
+        for i in range(2):
+            for t in range(2):
+                m = b["masks"][i, t, 0].numpy()
+                if m.any():
+                    err = (b["targets"][i, t].flip(-1) - b["targets"][i, t]).numpy()[:, m]
+                    want.append(10 * np.log10(1 / (err.astype(np.float64) ** 2).mean()))
+    assert len(want) == 5 and val["val_targets"] == 8 and val["val_targets_without_valid_pixels"] == 3
+    assert val["val_psnr_masked"] == pytest.approx(np.mean(want), abs=1e-4) and np.isfinite(val["val_psnr"])
+    for b in batches:
+        b["masks"][:] = False
+    val, _ = train_mod.validate(torch.nn.Identity(), batches, world, amp=False, sheet_samples=0)
+    assert val["val_psnr_masked"] is None and val["val_targets_without_valid_pixels"] == 8
+    assert train_mod.valid_pixel_psnr(val, left_out=True) == "n/a; 8 of 8 targets without any, left out"
 
 
 def test_short_run_raises_validation_psnr_and_writes_its_files(demo_dataset, tmp_path):
