@@ -192,8 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     one_pps, one_ms = pairs_per_second(one, args.batch_size, args.skip)
     reference = last_weights(one)[1]
     lines = [f"`sgmodel train` on {args.device}{', ' + args.label if args.label else ''}, {args.steps} steps, batch "
-             f"{args.batch_size} over all ranks, flags `{' '.join(extra)}`; throughput from the median step after "
-             f"step {args.skip}.", "",
+             f"{args.batch_size} over all ranks{' (and, in the rows of --weak-ranks, per rank)' if weak else ''}, flags "
+             f"`{' '.join(extra)}`; throughput from the median step after step {args.skip}.", "",
              "| processes | pairs a step | median step (ms) | pairs/s | speed-up |", "|---:|---:|---:|---:|---:|",
              f"| 1 | {args.batch_size} | {one_ms:.1f} | {one_pps:.1f} | 1.00 |"]
     for r, run, batch in [*((r, run, args.batch_size) for r, run in many.items()),

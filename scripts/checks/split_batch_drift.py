@@ -1,0 +1,133 @@
+"""How far a global batch computed in shares drifts from the same batch computed whole, in float32 and under
+bf16 autocast: the part of the several-GPU weight difference that is not a bug (issue 34).
+
+    python scripts/checks/split_batch_drift.py --data DATASET [--steps 40] [--batch-size 8] [--shares 2 4]
+                                               [--device cpu] [--out report.md] [-- `sgmodel train` model flags]
+
+DDP on R ranks computes each step's gradient as the mean of R shares' gradients; one process computes it
+over the whole batch at once. In exact arithmetic they are equal (the CPU test of
+``tests/sgmodel/train/test_distributed.py`` holds them to 6e-7 in float32). Under bf16 autocast every
+convolution's weight gradient of a share is rounded to bf16 (8 significant bits) before the shares are
+summed in float32, and the kernels chosen for a share's batch shape need not be those of the whole batch;
+AdamW then divides each gradient by its own running magnitude, so a relative rounding of 2^-9 in a gradient
+that is near zero becomes a step of up to ``lr`` in its weight. Two runs of one process on the same shapes
+(``scripts/checks/ddp_check.py --noise-floor``) see neither effect.
+
+This script trains one model from one seed for ``--steps`` steps on the same batches (``make_loader`` at
+``--batch-size``, the targets ``sgmodel train`` draws), in each precision: float32; "bf16 gradients", float32
+with every parameter's gradient of each backward rounded to bf16 before it is accumulated (what autocast does
+to a weight gradient, alone: runs on any device; PyTorch's CPU autocast lacks the decoder's antialiased
+bf16 resize); and on CUDA bf16 autocast itself. Three ways in each: whole; in
+``--shares`` equal shares whose gradients are averaged, as DDP averages its ranks' (gradient accumulation on
+one process: the all-reduce left out); and whole again (this device's own run-to-run floor). It reports
+||w - w_whole|| / ||w_whole|| over all parameters (``ddp_check.weight_difference``) after the first step and
+the last.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+
+from scripts.checks.ddp_check import weight_difference  # noqa: E402
+from sgmodel.args import preset_params  # noqa: E402
+from sgmodel.bench import report  # noqa: E402
+from sgmodel.data.loader import make_loader, to_device  # noqa: E402
+from sgmodel.model.network import create_model  # noqa: E402
+from sgmodel.train.loop import cached_encoding, create_optimizer  # noqa: E402
+from sgmodel.model.render import render_views  # noqa: E402
+from sgmodel.train.losses import create_objective  # noqa: E402
+
+
+def share(batch: dict, index: int, shares: int) -> dict:
+    """Pairs ``index * B/shares .. (index + 1) * B/shares - 1`` of every batched tensor (the slots rank
+    ``index`` of ``shares`` reads, ``sgmodel.data.loader``)."""
+    n = len(batch["keys"]) // shares
+    return {k: v[index * n:(index + 1) * n] if torch.is_tensor(v) or isinstance(v, list) else v
+            for k, v in batch.items()}
+
+
+#: precision -> (bf16 autocast, gradients rounded to bf16)
+PRECISIONS = {"float32": (False, False), "bf16 gradients": (False, True), "bf16 autocast": (True, False)}
+
+
+def loss_of(model, batch: dict, objective, autocast: bool) -> torch.Tensor:
+    """The training loss of ``batch`` (``sgmodel.train.loop.render_targets``, with autocast on any device)."""
+    left = batch["left"]
+    with torch.autocast(left.device.type, dtype=torch.bfloat16, enabled=autocast):
+        pred = model(left, batch["right"], batch["K"], batch["baseline"], encoded=cached_encoding(batch))
+    S = batch["targets"].shape[-1]
+    rgb, _ = render_views(pred.gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)
+    return objective(rgb.flatten(0, 1), batch["targets"].flatten(0, 1))[0]
+
+
+def run(model0, batches: list[dict], objective, shares: int, precision: str, lr: float) -> list[dict]:
+    """Train a copy of ``model0`` on ``batches``; each step's gradient the mean over ``shares`` equal shares.
+    The weights after every step."""
+    model = copy.deepcopy(model0).train()
+    params = [p for p in model.parameters() if p.requires_grad]
+    autocast, round_grads = PRECISIONS[precision]
+    if round_grads:
+        for param in params:
+            param.register_hook(lambda g: g.to(torch.bfloat16).to(g.dtype))
+    optimizer = create_optimizer(params, batches[0]["left"].device, lr=lr)
+    history = []
+    for batch in batches:
+        optimizer.zero_grad(set_to_none=True)
+        for i in range(shares):
+            (loss_of(model, share(batch, i, shares), objective, autocast) / shares).backward()
+        optimizer.step()
+        history.append({k: v.detach().clone() for k, v in model.state_dict().items() if v.is_floating_point()})
+    return history
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, required=True, help="a dataset built by `scenesplat-stereo build`")
+    p.add_argument("--steps", type=int, default=40)
+    p.add_argument("--batch-size", type=int, default=8, help="pairs a step (divisible by every share count)")
+    p.add_argument("--shares", type=int, nargs="+", default=[2, 4], help="share counts (the ranks DDP would use)")
+    p.add_argument("--resolution", type=int, default=32)
+    p.add_argument("--preset", default="cpu-small")
+    p.add_argument("--lr", type=float, help="AdamW's learning rate, constant (default: the preset's peak)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", type=Path, help="also write the markdown report here")
+    args = p.parse_args(argv)
+    if any(args.batch_size % s for s in args.shares):
+        p.error(f"--batch-size {args.batch_size} is not divisible by every --shares {args.shares}")
+    device = torch.device(args.device)
+    model_params, train_params = preset_params(args.preset)
+    args.lr = args.lr or train_params.lr
+    model_params.resolution, model_params.padding = args.resolution, max(2, args.resolution // 16)
+    torch.manual_seed(0)
+    model0 = create_model(model_params, device)
+    loader = make_loader(args.data, "train", args.batch_size, args.resolution, 2, seed=0)
+    batches, stream = [], iter(loader)
+    for _ in range(args.steps):
+        batches.append(to_device(next(stream), device))
+    objective = create_objective(None)
+    lines = [f"Whole batch against shares, {args.steps} AdamW steps (lr {args.lr:g}) of the `{args.preset}` model at "
+             f"{args.resolution}x{args.resolution}, batch {args.batch_size}, on {device}: relative L2 distance of all "
+             "weights from the whole batch's run of the same precision.", "",
+             "| precision | run | after step 1 | after the last step |", "|---|---|---:|---:|"]
+    for name in [n for n in PRECISIONS if device.type == "cuda" or not PRECISIONS[n][0]]:
+        whole = run(model0, batches, objective, 1, name, args.lr)
+        for label, shares in [("whole again (run-to-run floor)", 1),
+                              *((f"{s} shares (what {s} ranks compute)", s) for s in args.shares)]:
+            other = run(model0, batches, objective, shares, name, args.lr)
+            lines.append(f"| {name} | {label} | {weight_difference(whole[0], other[0]):.2e} | "
+                         f"{weight_difference(whole[-1], other[-1]):.2e} |")
+            print(lines[-1], flush=True)
+    report("\n".join(lines) + "\n", args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
