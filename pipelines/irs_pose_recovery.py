@@ -19,7 +19,10 @@ Folder mode (no metric scale without depth)::
 
 writes ``{"frames": [{"image": name, "c2w": 4x4}], "registered": n, "mean_reprojection_error": e}``
 (c2w OpenCV, in COLMAP's arbitrary units; e in pixels). Images are taken in natural name order
-(frame_2 before frame_10), which sequential matching relies on.
+(frame_2 before frame_10), which sequential matching relies on. The poses file gets a manifest beside it
+(``.written-by.<name>``) and ``--work-dir`` one inside: a rerun replaces what an earlier ``recover`` wrote there;
+a file it did not write, or one changed since, is refused before COLMAP runs
+(``scenesplat_stereo.common.files``).
 
 Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
 file), 130 interrupted, 1 internal error; ``recover`` exits 1 when no image registers.
@@ -28,6 +31,7 @@ file), 130 interrupted, 1 internal error; ``recover`` exits 1 when no image regi
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import sys
 import tempfile
@@ -39,13 +43,13 @@ from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION
 from scenesplat_stereo.captured.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera, RecoveryOptions,
                                                image_size, recover_poses, recovery_json)
 from scenesplat_stereo.common.commandline import Parser, run_command
-from scenesplat_stereo.common.files import (OwnedFolder, atomic_write_json, check_apart, check_replaceable,
-                                            check_writable)
+from scenesplat_stereo.common.files import OwnedFile, OwnedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import argtype, parse_size, positive_number, whole_number
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 PROG = "irs-pose-recovery"  # the installed command (pyproject.toml [project.scripts])
 OWNER = PROG  # recorded in OUT's manifest: a later run may resume or replace what it wrote there
+RECOVER_OWNER = f"{PROG} recover"  # recorded beside recover's --out and in its --work-dir
 
 
 def _colmap_arguments(p: argparse.ArgumentParser) -> None:
@@ -103,8 +107,10 @@ def recover_parser() -> argparse.ArgumentParser:
                            "images of one folder seen by one fixed pinhole camera.")
     p.add_argument("--images", type=Path, required=True, help="folder of images (natural name order)")
     p.add_argument("--intrinsics", required=True, help="fx,fy,cx,cy in pixels (pixel centres at +0.5)")
-    p.add_argument("--out", type=Path, required=True, help="output poses.json")
-    p.add_argument("--work-dir", type=Path, default=None, help="COLMAP work folder to keep (default: a temp one)")
+    p.add_argument("--out", type=Path, required=True, help="output poses.json (a file an earlier recover wrote is "
+                   "replaced, any other refused)")
+    p.add_argument("--work-dir", type=Path, default=None, help="COLMAP work folder to keep (default: a temp one; new, "
+                   "empty, or an earlier recover's)")
     _colmap_arguments(p)
     p.set_defaults(func=run_recover)
     return p
@@ -120,13 +126,15 @@ def run_recover(args: argparse.Namespace) -> int:
     if not images:
         raise ValueError(f"--images {args.images}: no images ({', '.join(IMAGE_SUFFIXES)})")
     camera = PinholeCamera.parse(args.intrinsics, *image_size(images[0]))
-    check_writable(Path(args.out).parent, "--out", create=False)
     check_apart(args.out, "--out", {"--images": args.images, "--work-dir": args.work_dir})
+    out = OwnedFile(args.out, "--out", RECOVER_OWNER)  # before COLMAP runs
     if args.work_dir is not None:
         check_apart(args.work_dir, "--work-dir", {"--images": args.images})
-    with tempfile.TemporaryDirectory(prefix="colmap-") as tmp:
-        recovery = recover_poses(images, camera, args.work_dir or Path(tmp), _options(args))
-    atomic_write_json(args.out, recovery_json(recovery, [p.name for p in images]))
+        work = check_replaceable(args.work_dir, "--work-dir", RECOVER_OWNER)  # COLMAP's database is removed there
+    with OwnedFolder(work, RECOVER_OWNER) if args.work_dir is not None else \
+            tempfile.TemporaryDirectory(prefix="colmap-") as folder:
+        recovery = recover_poses(images, camera, Path(folder), _options(args))
+    out.write(json.dumps(recovery_json(recovery, [p.name for p in images]), indent=1) + "\n")
     print(f"{recovery.registered}/{len(images)} images registered, mean reprojection error "
           f"{recovery.mean_reprojection_error:.3f} px ({recovery.matching} matching) -> {args.out}")
     return 0 if recovery.registered else 1

@@ -43,7 +43,7 @@ from scenesplat_stereo.build.effects import CameraEffects
 from scenesplat_stereo.build.protocol import SamplePlan, plan_scene
 from scenesplat_stereo.build.render_pairs import start_render, stream_samples
 from scenesplat_stereo.build.settings import BuildSettings
-from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import psnr_from_mse, synced_clock
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.scene.cameras import intrinsics_matrix
@@ -57,6 +57,7 @@ from scenesplat_stereo.shards.webdataset import ShardWriter
 # Paper appendix B ("Scene splits and counts", "Rendering and valid masks"): training pairs per subset at
 # the subsets' native resolutions.
 PAPER_TRAIN_PAIRS = {(616, 456): 174_621, (1752, 1168): 149_196}
+OWNER = "scenesplat-stereo bench build"  # recorded beside --out: a rerun may replace its own report
 FOV_X_DEG = 70.0  # synthetic camera
 
 
@@ -253,7 +254,8 @@ def add_arguments(p) -> None:
     p.add_argument("--qualities", default="75,100", help="extra JPEG qualities timed at the first size (default 75,100)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda")
     p.add_argument("--gsplat", action="store_true", help="also time the pipeline rendering with gsplat (if importable)")
-    p.add_argument("--out", type=Path, help="also write the markdown to this file")
+    p.add_argument("--out", type=Path, help="also write the markdown to this file (a report of an earlier run of "
+                   "this bench is replaced, any other file refused)")
 
 
 def run(args) -> int:
@@ -264,6 +266,7 @@ def run(args) -> int:
             or any(j not in JPEG_ENCODERS for j in jpegs) or args.repeats < 1):
         raise SystemExit(f"bench build: --encoder-modes from {','.join(ENCODER_MODES)}; --jpeg-encoders from "
                          f"{','.join(JPEG_ENCODERS)}; --repeats >= 1")
+    report = OwnedFile(args.out, "--out", OWNER)  # before any work
     if "nvjpeg" in jpegs:
         BuildSettings(teachers=Path("-"), out=Path("-"), device=args.device, jpeg_encoder="nvjpeg")  # refuses early
     settings = BuildSettings(teachers=Path("-"), out=Path("-"), device=args.device, workers=args.workers,
@@ -323,6 +326,5 @@ def run(args) -> int:
         out += projection(base[jpeg, mode])
     doc = "\n".join(out) + "\n"
     print(doc)
-    if args.out is not None:
-        atomic_write_bytes(args.out, doc.encode())
+    report.write(doc)
     return 0

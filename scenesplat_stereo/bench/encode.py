@@ -33,7 +33,8 @@ import numpy as np
 import OpenImageIO as oiio
 
 from scenesplat_stereo.build.protocol import NUM_TARGETS
-from scenesplat_stereo.common.commandline import Parser
+from scenesplat_stereo.common.commandline import Parser, run_command
+from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.text import parse_size
 from scenesplat_stereo.shards import encode
 from scenesplat_stereo.shards.encode import SampleImages
@@ -41,6 +42,7 @@ from scenesplat_stereo.shards.encode_pool import SampleEncoder
 from scenesplat_stereo.shards.webdataset import ShardWriter
 
 BENCH_MODES = ("threads", "processes", "threads-oiio1")
+OWNER = "scenesplat-stereo bench encode"  # recorded beside --out: a rerun may replace its own report
 
 
 def synthetic_image(w: int, h: int, seed: int) -> np.ndarray:
@@ -180,7 +182,8 @@ def add_arguments(p) -> None:
     p.add_argument("--samples", type=int, default=24, help="samples (pairs) per encoder run (default 24)")
     p.add_argument("--targets", type=int, default=NUM_TARGETS, help=f"targets per sample (default {NUM_TARGETS})")
     p.add_argument("--calls", type=int, default=20, help="calls per one-image timing (default 20)")
-    p.add_argument("--out", type=Path, help="also write the markdown to this file")
+    p.add_argument("--out", type=Path, help="also write the markdown to this file (a report of an earlier run of "
+                   "this bench is replaced, any other file refused)")
 
 
 def run(args) -> int:
@@ -190,6 +193,7 @@ def run(args) -> int:
     bad = [m for m in modes if m not in BENCH_MODES]
     if bad or args.repeats < 1 or args.samples < 1 or not workers or min(workers) < 1:
         raise SystemExit(f"bench encode: bad --modes {bad} or --repeats/--samples/--workers below 1")
+    out = OwnedFile(args.out, "--out", OWNER)  # before any work
     head = (f"bench encode: OpenImageIO {oiio.__version__} (threads attribute {oiio.get_int_attribute('threads')}), "
             f"{os.cpu_count()} CPU cores, scratch folder {encode.scratch_dir()}, {args.repeats} timed runs per row "
             f"after one untimed; samples of 2 + {args.targets} images and {args.targets} masks\n")
@@ -199,16 +203,14 @@ def run(args) -> int:
     t2 = encoder_table(sizes, modes, workers, args.repeats, args.samples, args.targets)
     doc = "\n".join([head, "One image, one call at a time:\n", *t1, "",
                      f"Whole SampleEncoder into tar shards, {args.samples} samples per run:\n", *t2, ""])
-    if args.out is not None:
-        from scenesplat_stereo.common.files import atomic_write_bytes
-
-        atomic_write_bytes(args.out, doc.encode())
+    out.write(doc)
     return 0
 
 
 if __name__ == "__main__":
     import argparse
 
-    parser = Parser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = Parser(prog="bench encode", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(parser)
-    raise SystemExit(run(parser.parse_args()))
+    parser.set_defaults(func=run)
+    raise SystemExit(run_command(parser))  # errors as the command's: one line, exit 2 for a refused --out

@@ -28,12 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.text import whole_number
 from scenesplat_stereo.scene.compressed_ply import morton_order
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS, load_scene, save_scene, scene_kind
 
+OWNER = "scenesplat-stereo bench formats"  # recorded beside --out: a rerun may replace its own report
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 SPLAT_TRANSFORM = (Path(__file__).resolve().parents[2] / "scripts" / "viewer" / "node_modules" / "@playcanvas"
                    / "splat-transform" / "bin" / "cli.mjs")
@@ -48,7 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", type=Path, action="append", default=None,
                    help="a scene to write in every format (repeatable; default the guitar .ply and skull.sog)")
     p.add_argument("--repeats", type=whole_number("--repeats"), default=3, help="reads timed per file (median)")
-    p.add_argument("--out", type=Path, default=None, help="also write the tables to this markdown file")
+    p.add_argument("--out", type=Path, default=None, help="also write the tables to this markdown file (a report of an earlier "
+                   "run of this bench is replaced, any other file refused)")
 
 
 def _median_time(fn, repeats: int) -> tuple[float, object]:
@@ -118,6 +120,7 @@ def writer_table(scenes: list[Path], repeats: int) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    out = OwnedFile(args.out, "--out", OWNER)  # before any work
     captures = sorted(p for p in args.captures.glob("*/*") if p.suffix in (".sog", ".splat")) \
         if args.captures.is_dir() else []
     captures += sorted(p for p in args.streamed.glob("*") if (p / "lod-meta.json").is_file()) \
@@ -131,6 +134,5 @@ def run(args: argparse.Namespace) -> int:
                         "Readers (real captures):", reader_table(captures, args.repeats),
                         "Writers (each format written and read back):", writer_table(scenes, args.repeats)])
     print(text)
-    if args.out:
-        atomic_write_bytes(args.out, (text + "\n").encode())
+    out.write(text + "\n")
     return 0

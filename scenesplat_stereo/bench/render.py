@@ -27,13 +27,14 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.bench.render_batch import batch_table
-from scenesplat_stereo.common.commandline import Parser
-from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.commandline import Parser, run_command
+from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import median_seconds, psnr_from_mse
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.raster.reference import as_renderer_sees, reference_rasterization
 from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
 
+OWNER = "scenesplat-stereo bench render"  # recorded beside --out (also as python -m): a rerun may replace it
 # The real guitar teacher beside a checkout (../shared/data), or where SCENESPLAT_GUITAR_PLY points.
 GUITAR = Path(os.environ.get("SCENESPLAT_GUITAR_PLY", Path(__file__).resolve().parents[2].parent
                              / "shared/data/teachers/playcanvas-guitar/point_cloud.ply"))
@@ -255,12 +256,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "batched vs looped calls, ours and gsplat, forward and forward+backward; default 20 "
                         "repeats (--quick: 3), interleaved")
     p.add_argument("--no-gsplat", action="store_true", help="do not compare with gsplat even if installed")
-    p.add_argument("--out", type=Path, default=None, help="also write the markdown tables to this file")
+    p.add_argument("--out", type=Path, default=None, help="also write the markdown tables to this file (a report of an earlier run of this bench is "
+                   "replaced, any other file refused)")
 
 
 def run(args: argparse.Namespace) -> int:
+    out = OwnedFile(args.out, "--out", OWNER)  # before any work
     if args.batch:
-        return run_batch(args)
+        return run_batch(args, out)
     quick = args.quick or args.device == "cpu"
     args.quick = quick
     args.repeats = args.repeats or (3 if quick else 10)
@@ -280,12 +283,11 @@ def run(args: argparse.Namespace) -> int:
         lines += backward_rows(args, gs)
     text = "\n".join(lines)
     print(text)
-    if args.out:
-        atomic_write_bytes(args.out, (text + "\n").encode())
+    out.write(text + "\n")
     return 0
 
 
-def run_batch(args: argparse.Namespace) -> int:
+def run_batch(args: argparse.Namespace, out: OwnedFile) -> int:
     """``--batch``: the model workload table only."""
     args.repeats = args.repeats or (3 if args.quick else 20)
     args.batch_scenes, args.batch_side = (2, 16) if args.quick else (32, 256)
@@ -295,8 +297,7 @@ def run_batch(args: argparse.Namespace) -> int:
              "### Model workload: batched against looped", ""] + batch_table(args, gs)
     text = "\n".join(lines)
     print(text)
-    if args.out:
-        atomic_write_bytes(args.out, (text + "\n").encode())
+    out.write(text + "\n")
     return 0
 
 
@@ -306,7 +307,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = Parser(prog="bench render", description=__doc__,
                     formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    parser.set_defaults(func=run)
+    return run_command(parser, argv)  # errors as the command's: one line, exit 2 for a refused --out
 
 
 if __name__ == "__main__":

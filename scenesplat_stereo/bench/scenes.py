@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.text import markdown_table
 from scenesplat_stereo.scene import row_tasks
 from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
@@ -36,6 +36,7 @@ from scenesplat_stereo.scene.ply import SH_C0
 from scenesplat_stereo.scene.scene_files import FORMATS, save_scene
 from scenesplat_stereo.scene.spz import GZIP_LEVEL, encode_spz
 
+OWNER = "scenesplat-stereo bench scenes"  # recorded beside --out: a rerun may replace its own report
 #: The Gaussians ``sgmodel predict`` makes from a 320x256 pair (two layers on the padded canvas).
 PREDICTION_GAUSSIANS = 202_752
 #: Columns of ``writer_rows``.
@@ -121,13 +122,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeats", type=int, default=11, help="timed writes (default 11)")
     p.add_argument("--folder", type=Path, help="write the files in a temporary folder inside this one "
                    "(default: the system's temporary folder)")
-    p.add_argument("--out", type=Path, help="also write the markdown here")
+    p.add_argument("--out", type=Path, help="also write the markdown here (a report of an earlier run of this bench "
+                   "is replaced, any other file refused)")
 
 
 def run(args: argparse.Namespace) -> int:
     if args.gaussians < 1 or args.warmup < 0 or args.repeats < 1:
         raise ValueError(f"--gaussians and --repeats must be at least 1 and --warmup at least 0, got "
                          f"{args.gaussians}, {args.repeats} and {args.warmup}")
+    out = OwnedFile(args.out, "--out", OWNER)  # before any work
     rows = []
     with tempfile.TemporaryDirectory(dir=args.folder) as tmp:
         for degree in args.sh_degrees:
@@ -138,6 +141,5 @@ def run(args: argparse.Namespace) -> int:
             f"the median CPU time (all threads).\n\n"
             f"{markdown_table(COLUMNS, rows)}\n")
     print(text)
-    if args.out:
-        atomic_write_bytes(args.out, text.encode())
+    out.write(text)
     return 0

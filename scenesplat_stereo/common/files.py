@@ -16,9 +16,12 @@
   sha256), and a command replaces a folder only when every file in it is one it wrote, unchanged; otherwise
   it refuses, naming a file that is not. ``StagedFolder``: a report or prediction folder is built beside its
   target and swapped in whole, so an earlier one never leaves stale files beside the new ones; staging
-  folders of dead processes are swept on the next run. ``OwnedFolder``: a folder written in place. A
-  single-file output (``inspect --contact-sheet``) has a manifest of its own beside it (``.written-by.<name>``):
-  ``check_replaceable_file`` before any work, ``write_owned_file`` to write it.
+  folders of dead processes are swept on the next run. ``OwnedFolder``: a folder written in place. A symbolic
+  link the command made (COLMAP's staged images) is recorded as a link to its target. A single-file output
+  (``inspect --contact-sheet``, the benches' ``--out``, ``pack --out``, ``irs-pose-recovery recover --out``) has a
+  manifest of its own beside it (``.written-by.<name>``): ``check_replaceable_file`` before any work,
+  ``write_owned_file`` to write it; ``OwnedFile`` holds the two for a command (checked when made, written once
+  the work is done).
 * ``FolderLock``: one process at a time writes a folder (``fcntl.flock`` on ``<folder>/.lock``, which
   holds the pid); the kernel drops the lock when its process dies, so a stale lock file is taken over.
 * ``check_writable`` / ``check_apart``: an output folder can be written (creating nothing) and is apart from
@@ -211,7 +214,10 @@ def check_apart(out: str | os.PathLike, flag: str, inputs: dict[str, Any], repla
 
 def file_record(path: Path) -> dict:
     """What an ownership manifest remembers of a file: its size, and its sha256 (up to ``HASH_LIMIT`` bytes)
-    or, for a larger one, its modification time in nanoseconds (hashing gigabytes on every run costs too much)."""
+    or, for a larger one, its modification time in nanoseconds (hashing gigabytes on every run costs too much);
+    of a symbolic link, where it points (a link put in place of a file, or pointed elsewhere, is a change)."""
+    if path.is_symlink():
+        return {"link": os.readlink(path)}
     st = path.stat()
     if st.st_size > HASH_LIMIT:
         return {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
@@ -240,7 +246,7 @@ def write_manifest(folder: str | os.PathLike, owner: str, open_: bool = False) -
     it wrote is then known to be its own). ``open_``: ``owner`` is writing the folder now; if it is killed
     before it closes the manifest, what it added is taken as its own by its rerun (which resumes)."""
     folder = Path(folder)
-    files = {str(p.relative_to(folder)): file_record(p) for p in _contents(folder) if p.is_file()}
+    files = {str(p.relative_to(folder)): file_record(p) for p in _contents(folder)}
     doc = {"owner": owner, "files": files} | ({"open": True} if open_ else {})
     return atomic_write_json(folder / OWNER_FILE, doc, indent=None, sort_keys=True)
 
@@ -282,7 +288,7 @@ def foreign_file(folder: str | os.PathLike, owner: str) -> str | None:
         return None
     for p in found:
         name = str(p.relative_to(folder))
-        if name not in manifest["files"] or p.is_symlink():
+        if name not in manifest["files"]:
             return f"holds files not written by `{owner}` (e.g. {name!r})"
         if file_record(p) != manifest["files"][name]:
             return f"holds {name!r}, changed since `{owner}` wrote it"
@@ -348,6 +354,23 @@ def write_owned_file(path: str | os.PathLike, data: bytes, owner: str) -> Path:
     atomic_write_bytes(path, data)
     atomic_write_json(manifest, {"owner": owner, "files": {path.name: file_record(path)}}, indent=None, sort_keys=True)
     return path
+
+
+class OwnedFile:
+    """A command's single-file output (a flag such as ``--out FILE``; None: none asked for), one object for its
+    check and its write: made before any work (``check_replaceable_file``: a file the command may not replace is
+    refused at once, naming ``flag``), written when the work is done (``write``: ``write_owned_file``)."""
+
+    def __init__(self, path: str | os.PathLike | None, flag: str, owner: str) -> None:
+        self.owner = owner
+        self.path = None if path is None else check_replaceable_file(path, flag, owner)
+
+    def write(self, data: bytes | str) -> Path | None:
+        """Write ``data`` (text as UTF-8) to the file atomically with its manifest; the path, or None when none
+        was asked for."""
+        if self.path is None:
+            return None
+        return write_owned_file(self.path, data.encode() if isinstance(data, str) else data, self.owner)
 
 
 class OwnedFolder:

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import torch
 
+from scenesplat_stereo.common.files import OwnedFile
 from sgmodel.bench import report
 
 REPO = Path(__file__).resolve().parents[2]
@@ -161,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, help="also write the markdown report here")
     p.add_argument("extra", nargs=argparse.REMAINDER, help="after --: more `sgmodel train` flags")
     args = p.parse_args(argv)
+    report_out = OwnedFile(args.out, "--out", "scripts/checks/ddp_check.py")  # before any run
     extra = args.extra[1:] if args.extra[:1] == ["--"] else args.extra
 
     def flags_at(batch: int) -> list[str]:
@@ -223,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
                   "|---|---:|" + "---:|" * (len(PHASES) + 2)]
         for run in [one, *many.values(), *weak.values()]:
             lines += profile_rows(run, args.skip)
-    report("\n".join(lines) + "\n", args.out)
+    report("\n".join(lines) + "\n", report_out)
     return 0
 
 

@@ -27,6 +27,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from scenesplat_stereo.common.files import OwnedFile
 from sgmodel.bench import report
 
 REPO = Path(__file__).resolve().parents[2]
@@ -68,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, help="also write the markdown report here")
     p.add_argument("extra", nargs=argparse.REMAINDER, help="after --: more `scenesplat-stereo build` flags")
     args = p.parse_args(argv)
+    report_out = OwnedFile(args.out, "--out", "scripts/checks/ray_build_scale.py")  # before any build
     extra = args.extra[1:] if args.extra[:1] == ["--"] else args.extra
     rows = {}
     for k in args.gpus:
@@ -90,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         lines += ["", f"The paper's training set ({sum(PAPER_TRAIN_PAIRS.values()):,} pairs x 12 images at "
                   f"{', '.join(f'{w}x{h}' for w, h in PAPER_TRAIN_PAIRS)}) on {k} GPUs of this host, from "
                   f"{rate:.1f} pairs/s at {size[0]}x{size[1]} scaled by pixel count: **{hours:.2f} h**."]
-    report("\n".join(lines) + "\n", args.out)
+    report("\n".join(lines) + "\n", report_out)
     return 0
 
 

@@ -6,22 +6,22 @@ scene in a warm process, split by stage; ``--video`` in ``predict_video``). Thei
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
 
-from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.files import OwnedFile
 
 if TYPE_CHECKING:
     from sgmodel.model.network import Predictor
 
 
-def report(text: str, out: Path | None) -> None:
-    """Print a benchmark's markdown and, with ``--out``, write it there too (atomically)."""
+def report(text: str, out: OwnedFile) -> None:
+    """Print a benchmark's markdown and, with ``--out``, write it there too: ``out`` is made by the benchmark
+    before any work (``OwnedFile(args.out, "--out", OWNER)``: a file it did not write is refused at once, its own
+    earlier report replaced) and writes atomically, with its manifest."""
     print(text)
-    if out:
-        atomic_write_bytes(Path(out), text.encode())
+    out.write(text)
 
 
 def synthetic_pair(width: int, height: int, device: torch.device, shift: int = 0) -> tuple[torch.Tensor, ...]:

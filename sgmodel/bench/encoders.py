@@ -16,6 +16,7 @@ from pathlib import Path
 
 import torch
 
+from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.text import markdown_table
 from sgmodel.args import add_device_argument, device_from_flag
@@ -24,6 +25,8 @@ from sgmodel.data.loader import make_loader, to_device
 from sgmodel.encoders import StereoEncoder
 from sgmodel.encoders.flags import build_encoder, encoder_label, parse_encoder_spec
 from sgmodel.model.geometry import depth_from_disparity
+
+OWNER = "sgmodel bench encoders"  # recorded beside --out: a later run may replace its own report
 
 
 def disparity_errors(disparity: torch.Tensor, depth: torch.Tensor, fx: torch.Tensor, baseline: torch.Tensor
@@ -61,6 +64,7 @@ def bench_encoder(label: str, encoder: StereoEncoder, loader, device: torch.devi
 
 
 def run(args: argparse.Namespace) -> int:
+    out = OwnedFile(args.out, "--out", OWNER)  # before any work
     device = torch.device(device_from_flag(args.device))
     specs = [parse_encoder_spec(text) for text in args.encoders]
     encoders = [build_encoder(spec, device) for spec in specs]  # all of them before any is measured
@@ -73,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
                            [[r["encoder"], f"{r['ms_per_pair']:.1f}", f"{r['epe']:.2f}", f"{r['d1']:.1f}",
                              f"{r['depth_rel']:.1f}"] for r in rows])
     report(f"Encoders on {args.data} ({args.split} split, {rows[0]['pairs']} pairs at {args.resolution}x"
-           f"{args.resolution}, batch {args.batch_size}) on {dev}.\n\n{table}\n", args.out)
+           f"{args.resolution}, batch {args.batch_size}) on {dev}.\n\n{table}\n", out)
     return 0
 
 
@@ -87,4 +91,5 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resolution", type=int, default=256, help="S (default 256)")
     p.add_argument("--batch-size", type=int, default=4, help="pairs per batch (default 4)")
     add_device_argument(p)
-    p.add_argument("--out", type=Path, help="also write the markdown table here")
+    p.add_argument("--out", type=Path, help="also write the markdown table here (a report of an earlier run of this "
+                   "bench is replaced, any other file refused)")

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.bench.scenes import COLUMNS, writer_rows
+from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
 from scenesplat_stereo.scene.gaussians import GaussianScene
@@ -39,6 +40,7 @@ from sgmodel.model.render import SH_DEGREE, render_views
 from sgmodel.predict import export
 from sgmodel.predict.video import SCENE_WRITERS
 
+OWNER = "sgmodel bench predict"  # recorded beside --out (a pair or --video): a later run may replace its own report
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
 
 
@@ -53,12 +55,13 @@ def bench_model(args: argparse.Namespace, device: torch.device) -> Predictor:
 
 
 def run(args: argparse.Namespace) -> int:
+    out = OwnedFile(args.out, "--out", OWNER)  # before any work
     device = torch.device(device_from_flag(args.device))
     predictor = bench_model(args, device)
     if args.video:
         from sgmodel.bench.predict_video import bench_video
 
-        return bench_video(args, predictor, device)
+        return bench_video(args, predictor, device, out)
     model = predictor.model
     width, height = args.size
     left, right, K, baseline = synthetic_pair(width, height, device)
@@ -98,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
            f"pairs after {args.warmup} warm-up.\n\n"
            f"{markdown_table(['stage', 'median ms'], rows)}\n\n"
            f"Writing that scene ({len(scene):,} Gaussians) in each format, median of {args.repeats}:\n\n"
-           f"{markdown_table(COLUMNS, formats)}\n", args.out)
+           f"{markdown_table(COLUMNS, formats)}\n", out)
     return 0
 
 
@@ -136,4 +139,5 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene-writers", type=int, default=SCENE_WRITERS,
                    help=f"video: threads writing those scenes (default as predict: the usable cores but 4, 2 to "
                    f"12; {SCENE_WRITERS} here)")
-    p.add_argument("--out", type=Path, help="also write the markdown table here")
+    p.add_argument("--out", type=Path, help="also write the markdown table here (a report of an earlier run of this "
+                   "bench is replaced, any other file refused)")

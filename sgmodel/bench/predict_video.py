@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import torch
 
+from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.text import markdown_table
 from scenesplat_stereo.scene.scene_files import FORMATS
@@ -62,7 +63,7 @@ def _stats(seconds: list[float], per_call: int) -> list[str]:
     return [_rate(per_call / np.median(seconds)), f"{np.median(ms):.1f}", f"{np.percentile(ms, 99):.1f}"]
 
 
-def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.device) -> int:
+def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.device, out: OwnedFile) -> int:
     width, height = args.size
     reconstructor, b = Reconstructor(predictor=predictor), args.batch_size
     prepare = prepare_pairs(min(width, height))
@@ -111,5 +112,5 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
            f"{markdown_table(['measure', 'batch', 'pairs/s', 'latency median ms', 'latency p99 ms'], rows)}\n\n"
            f"End to end per frame: decode {stages['decode']:.1f} ms (reader thread), model {stages['model']:.1f} ms, "
            f"render {stages['render']:.1f} ms (main thread); encode in the writer thread, and the scenes (copy to "
-           f"the host and write) in {args.scene_writers} scene writer threads.\n", args.out)
+           f"the host and write) in {args.scene_writers} scene writer threads.\n", out)
     return 0

@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
+from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.text import markdown_table
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
@@ -39,6 +40,7 @@ from sgmodel.model.render import render_views
 from sgmodel.train.loop import cached_encoding, create_optimizer, train_step
 from sgmodel.train.losses import Objective, create_objective
 
+OWNER = "sgmodel bench train"  # recorded beside --out: a later run may replace its own report
 STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation forward", "loss", "backward",
           "optimiser")
 #: dense bf16 tensor-core rate on the spec sheet, TFLOP/s, by a name fragment of the GPU.
@@ -163,6 +165,7 @@ def measure(model, objective: Objective, batches, args, device: torch.device, am
 
 def run(args: argparse.Namespace) -> int:
     model_params, _ = params_from_args(args)
+    out = OwnedFile(args.out, "--out", OWNER)  # before any work
     device = torch.device(device_from_flag(args.device))
     torch.backends.cudnn.benchmark = device.type == "cuda"  # as `sgmodel train` does
     model = create_model(model_params, device)
@@ -213,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
               else "") + ".\n\n"
            f"{markdown_table(header, rows)}\n\nGaussians per scene: {gaussians:,}.\n\n"
            + layer_rate(model, batches(0)[0], amp, device, results[0]["stages"]["decoder + predictor"], args.repeats),
-           args.out)
+           out)
     return 0
 
 
@@ -268,4 +271,5 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the LPIPS term's VGG16 eagerly (default on CUDA: torch.compile, as sgmodel train)")
     p.add_argument("--no-compile-composer", action="store_true",
                    help="the composer eagerly (default on CUDA: torch.compile, as sgmodel train)")
-    p.add_argument("--out", type=Path, help="also write the markdown table here")
+    p.add_argument("--out", type=Path, help="also write the markdown table here (a report of an earlier run of this "
+                   "bench is replaced, any other file refused)")

@@ -9,8 +9,8 @@ A checkpoint is a plain ``torch.save`` dict (PyTorch convention; load with ``wei
 - ``optimizer``, ``scheduler``: their ``state_dict``s; ``rng``: torch/CUDA generator states
   (so a resumed run continues exactly; the data order is a function of (seed, step)).
 
-A weights-only checkpoint (``pack_checkpoint``, the ``sgmodel pack`` command; the model shipped in the package
-is one) keeps ``format``, ``model_params``, ``model`` (optionally in bfloat16 or float16: loading casts it back
+A weights-only checkpoint (``pack_checkpoint``; the ``sgmodel pack`` command writes one, and the model shipped in
+the package is one) keeps ``format``, ``model_params``, ``model`` (optionally in bfloat16 or float16: loading casts it back
 to the model's float32), ``encoder``, ``step``, ``best_val_psnr``, ``best_step`` and ``train_params`` reduced to
 ``amp``; it has no optimiser, scheduler or RNG state, so a run cannot resume from it.
 
@@ -39,11 +39,16 @@ class CheckpointError(ValueError):
     """A checkpoint that is missing, unreadable or not ours; the message names the file."""
 
 
-def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Atomically write ``state`` (with ``format`` added) to ``path``."""
+def checkpoint_bytes(state: dict[str, Any]) -> bytes:
+    """The file of ``state`` (with ``format`` added): what ``save_checkpoint`` writes."""
     buf = io.BytesIO()
     torch.save({"format": CHECKPOINT_FORMAT, **state}, buf)
-    atomic_write_bytes(Path(path), buf.getvalue())
+    return buf.getvalue()
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Atomically write ``state`` (with ``format`` added) to ``path``."""
+    atomic_write_bytes(Path(path), checkpoint_bytes(state))
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
@@ -102,10 +107,11 @@ PACKED_FIELDS = ("model_params", "encoder", "step", "best_val_psnr", "best_step"
 PACK_DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
-def pack_checkpoint(src: str | Path, dst: str | Path, dtype: str = "fp32") -> dict[str, Any]:
-    """Write the weights-only checkpoint of ``src`` to ``dst`` (atomically), its floating-point weights in
-    ``dtype`` (a key of ``PACK_DTYPES``); returns it. CheckpointError naming the file for a bad ``src``; a
-    weight that does not fit ``dtype`` (beyond its range) is refused rather than written as infinity."""
+def pack_checkpoint(src: str | Path, dtype: str = "fp32") -> dict[str, Any]:
+    """The weights-only checkpoint of ``src``, its floating-point weights in ``dtype`` (a key of
+    ``PACK_DTYPES``), to write with ``checkpoint_bytes`` (``sgmodel pack``). CheckpointError naming the file for a
+    bad ``src``; a weight that does not fit ``dtype`` (beyond its range) is refused rather than written as
+    infinity."""
     ckpt = load_checkpoint(src)
     model_params_of(ckpt, src)  # a checkpoint this version can rebuild
     to = PACK_DTYPES[dtype]
@@ -115,5 +121,4 @@ def pack_checkpoint(src: str | Path, dst: str | Path, dtype: str = "fp32") -> di
         raise CheckpointError(f"{src}: {len(bad)} weight tensors do not fit {dtype} (e.g. {bad[0]}): pack as fp32")
     packed = {k: ckpt[k] for k in PACKED_FIELDS if k in ckpt}
     packed |= {"model": weights, "train_params": {"amp": bool(ckpt.get("train_params", {}).get("amp", True))}}
-    save_checkpoint(Path(dst), packed)
     return {"format": CHECKPOINT_FORMAT, **packed}

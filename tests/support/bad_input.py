@@ -86,6 +86,14 @@ def earlier_output(folder: Path, owner: str, names=("scene.ply",), user_file: st
     return folder
 
 
+def earlier_file(path: Path, owner: str, text: str = "an earlier report\n") -> Path:
+    """An earlier single-file output of ``owner``: ``text`` at ``path``, its manifest (``.written-by.<name>``) beside it,
+    as the command writes them (``scenesplat_stereo.common.files.write_owned_file``)."""
+    from scenesplat_stereo.common.files import write_owned_file
+
+    return write_owned_file(path, text.encode(), owner)
+
+
 def model_checkpoint(path: Path, params=None, nan: bool = False, **fields) -> Path:
     """A checkpoint of an untrained model (``sgmodel.model.checkpoint`` format) of ``params`` (default: the
     cpu-small preset at 32x32, padding 2); ``nan`` puts a NaN in one weight; ``fields`` override the
