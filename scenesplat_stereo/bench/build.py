@@ -264,7 +264,7 @@ def run(args) -> int:
     jpegs = [m.strip() for m in args.jpeg_encoders.split(",") if m.strip()]
     if (not modes or any(m not in ENCODER_MODES for m in modes) or not jpegs
             or any(j not in JPEG_ENCODERS for j in jpegs) or args.repeats < 1):
-        raise SystemExit(f"bench build: --encoder-modes from {','.join(ENCODER_MODES)}; --jpeg-encoders from "
+        raise ValueError(f"bench build: --encoder-modes from {','.join(ENCODER_MODES)}; --jpeg-encoders from "
                          f"{','.join(JPEG_ENCODERS)}; --repeats >= 1")
     report = OwnedFile(args.out, "--out", OWNER)  # before any work
     if "nvjpeg" in jpegs:

@@ -192,7 +192,7 @@ def run(args) -> int:
     workers = _ints(args.workers)
     bad = [m for m in modes if m not in BENCH_MODES]
     if bad or args.repeats < 1 or args.samples < 1 or not workers or min(workers) < 1:
-        raise SystemExit(f"bench encode: bad --modes {bad} or --repeats/--samples/--workers below 1")
+        raise ValueError(f"bench encode: bad --modes {bad} or --repeats/--samples/--workers below 1")
     out = OwnedFile(args.out, "--out", OWNER)  # before any work
     head = (f"bench encode: OpenImageIO {oiio.__version__} (threads attribute {oiio.get_int_attribute('threads')}), "
             f"{os.cpu_count()} CPU cores, scratch folder {encode.scratch_dir()}, {args.repeats} timed runs per row "

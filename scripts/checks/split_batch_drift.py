@@ -36,14 +36,15 @@ import torch
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from scripts.checks.ddp_check import weight_difference  # noqa: E402
-from sgmodel.args import preset_params  # noqa: E402
-from sgmodel.bench import report  # noqa: E402
-from sgmodel.data.loader import make_loader, to_device  # noqa: E402
-from sgmodel.model.network import create_model  # noqa: E402
-from sgmodel.train.loop import cached_encoding, create_optimizer  # noqa: E402
-from sgmodel.model.render import render_views  # noqa: E402
-from sgmodel.train.losses import create_objective  # noqa: E402
+from scenesplat_stereo.common.files import OwnedFile
+from scripts.checks.ddp_check import weight_difference
+from sgmodel.args import preset_params
+from sgmodel.bench import report
+from sgmodel.data.loader import make_loader, to_device
+from sgmodel.model.network import create_model
+from sgmodel.model.render import render_views
+from sgmodel.train.loop import cached_encoding, create_optimizer
+from sgmodel.train.losses import create_objective
 
 
 def share(batch: dict, index: int, shares: int) -> dict:
@@ -102,6 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if any(args.batch_size % s for s in args.shares):
         p.error(f"--batch-size {args.batch_size} is not divisible by every --shares {args.shares}")
+    out = OwnedFile(args.out, "--out", "scripts/checks/split_batch_drift.py")  # before any run
     device = torch.device(args.device)
     model_params, train_params = preset_params(args.preset)
     args.lr = args.lr or train_params.lr
@@ -125,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {name} | {label} | {weight_difference(whole[0], other[0]):.2e} | "
                          f"{weight_difference(whole[-1], other[-1]):.2e} |")
             print(lines[-1], flush=True)
-    report("\n".join(lines) + "\n", args.out)
+    report("\n".join(lines) + "\n", out)
     return 0
 
 

@@ -211,3 +211,16 @@ def test_recover_reruns_in_its_own_work_dir(tmp_path, capsys):
     (work / "notes.txt").write_text("the user's")
     refused(irs_pose_recovery.main, argv, capsys, "holds files not written by `irs-pose-recovery recover` (e.g. "
                                                   "'notes.txt')", tmp_path)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["bench", "build", "--encoder-modes", "threads,warp"], "--encoder-modes from"),
+    (["bench", "build", "--jpeg-encoders", "gif"], "--jpeg-encoders from"),
+    (["bench", "build", "--repeats", "0"], "--repeats >= 1"),
+    (["bench", "encode", "--modes", "warp"], "bad --modes ['warp']"),
+    (["bench", "encode", "--workers", "0"], "--workers below 1"),
+], ids=["build-mode", "build-jpeg", "build-repeats", "encode-mode", "encode-workers"])
+def test_a_bench_refuses_a_bad_flag_in_one_line_with_exit_2(argv, message, tmp_path, capsys):
+    """The benches' own flag checks are refusals like argparse's (exit 2, one line), not exit 1; nothing written."""
+    refused(toolkit, [*argv, "--out", tmp_path / "report.md"], capsys, message, tmp_path)
+    assert not (tmp_path / "report.md").exists()
