@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     model_params.resolution, model_params.padding = args.resolution, max(2, args.resolution // 16)
     torch.manual_seed(0)
     model0 = create_model(model_params, device)
-    loader = make_loader(args.data, "train", args.batch_size, args.resolution, 2, seed=0)
+    loader = make_loader(args.data, "train", args.batch_size, args.resolution, train_params.targets, seed=0)
     batches, stream = [], iter(loader)
     for _ in range(args.steps):
         batches.append(to_device(next(stream), device))
