@@ -179,3 +179,21 @@ def test_two_hosts_through_a_c10d_rendezvous(single, demo_dataset, tmp_path):
     assert sum(out.count("sgmodel train: new run") for out, _ in outs) == 1
     assert "2 rank(s)" in "".join(out for out, _ in outs)
     assert final_difference(single, run) < SAME_MODEL
+
+
+def test_a_batch_in_shares_trains_the_whole_batchs_weights_in_float32_not_under_bf16(demo_dataset, tmp_path):
+    """``scripts/checks/split_batch_drift.py``: shares of a batch, averaged, give the whole batch's weights in
+    float32 (to float summation order; the CPU run-to-run floor is 0), and measurably others once each share's
+    gradient is rounded to bf16: the part of DDP's weight difference that is arithmetic, not a bug."""
+    from scripts.checks.split_batch_drift import main
+
+    out = tmp_path / "drift.md"
+    assert main(["--data", str(demo_dataset), "--steps", "2", "--batch-size", "4", "--shares", "2",
+                 "--out", str(out)]) == 0
+    rows = {tuple(c.strip() for c in line.split("|")[1:3]): float(line.split("|")[-2])
+            for line in out.read_text().splitlines() if line.startswith(("| float32", "| bf16"))}
+    assert rows[("float32", "whole again (run-to-run floor)")] == 0.0
+    assert rows[("bf16 gradients", "whole again (run-to-run floor)")] == 0.0
+    split = "2 shares (what 2 ranks compute)"
+    assert rows[("float32", split)] < 1e-6
+    assert rows[("bf16 gradients", split)] > max(100 * rows[("float32", split)], 1e-7)
