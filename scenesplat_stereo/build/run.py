@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import socket
 import time
 import warnings
 from collections import defaultdict
@@ -82,6 +83,7 @@ class TeacherResult:
     path: str = ""
     started: float = 0.0  # when its task began and ended (time.time(), s: one host's clock; not in any file)
     finished: float = 0.0
+    worker: str = ""  # host:pid of the process that built it (not in any file)
 
 
 @dataclass
@@ -121,7 +123,8 @@ def build_teacher(job: TeacherJob, settings: BuildSettings, on_pairs=None) -> Te
     """Render, encode and write the missing shards of one teacher. Never raises for a bad teacher: the
     error is returned in the result, and no unfinished shard is left behind."""
     t = job.teacher
-    result = TeacherResult(t.scene_id, t.subset, job.split, path=str(t.ply_path), started=time.time())
+    result = TeacherResult(t.scene_id, t.subset, job.split, path=str(t.ply_path), started=time.time(),
+                           worker=f"{socket.gethostname()}:{os.getpid()}")
     sink = shards.PlannedShards(settings.out, job.split, job.chunks)
     encoder = jpeg = None
     try:
@@ -175,8 +178,10 @@ def _run_ray(jobs: list[TeacherJob], settings: BuildSettings, bar: tqdm) -> list
         raise NotAvailable("--backend ray needs Ray: pip install 'stereogaussians[ray]'") from None
     if not ray.is_initialized():
         ray.init(address=settings.ray_address)
-    gpus = 1 if str(settings.device).startswith("cuda") else 0
-    task = ray.remote(num_cpus=1, num_gpus=gpus)(build_teacher)
+    # max_calls=0: a worker process builds teacher after teacher. Ray's default for a task that asks for a GPU
+    # is one call a process, and a fresh process pays Python, torch, Warp's kernels, CUDA and nvJPEG again for
+    # every teacher (seconds each)
+    task = ray.remote(num_cpus=1, num_gpus=_ray_gpus(settings), max_calls=0)(build_teacher)
     if settings.encoder_mode == "auto":  # Ray's workers encode in threads: spawning from them is untested
         settings = replace(settings, encoder_mode="threads")
     pending = {task.remote(job, settings): job for job in jobs}
@@ -193,6 +198,11 @@ def _run_ray(jobs: list[TeacherJob], settings: BuildSettings, bar: tqdm) -> list
         _advance(bar, job.pairs, results[-1].renders)
     order = {(j.split, j.teacher.scene_id): i for i, j in enumerate(jobs)}
     return sorted(results, key=lambda r: order[(r.split, r.scene_id)])
+
+
+def _ray_gpus(settings: BuildSettings) -> int:
+    """GPUs a teacher's Ray task asks for: one on CUDA (Ray sets its CUDA_VISIBLE_DEVICES), none on the CPU."""
+    return 1 if str(settings.device).startswith("cuda") else 0
 
 
 def _advance(bar: tqdm, pairs: int, renders: int) -> None:
@@ -388,7 +398,8 @@ def summary(report: BuildReport) -> str:
         f"time: render {render_s:.1f} s, encode {sum(r.encode_s for r in report.results):.1f} worker-s, "
         f"write {sum(r.write_s for r in report.results):.1f} s, wall {report.wall_s:.1f} s ({rate})"
         + (f"; first teacher's start to last one's end {window:.1f} s ({pairs / window:.2f} pairs/s)"
-           if window > 0 else ""),
+           if window > 0 else "")
+        + (f"; {len(ran)} teachers in {len({r.worker for r in ran})} processes" if ran else ""),
     ]
     return "\n".join(lines)
 

@@ -31,12 +31,13 @@ from scenesplat_stereo.common.files import OwnedFile
 from sgmodel.bench import report
 
 REPO = Path(__file__).resolve().parents[2]
-RATE = re.compile(r"wall ([0-9.]+) s \(([0-9.]+) pairs/s.*start to last one's end ([0-9.]+) s \(([0-9.]+) pairs/s")
+RATE = re.compile(r"wall ([0-9.]+) s \(([0-9.]+) pairs/s.*start to last one's end ([0-9.]+) s \(([0-9.]+) pairs/s\)"
+                  r"; [0-9]+ teachers in ([0-9]+) processes")
 
 
 def build_once(gpus: int, teachers: Path, out: Path, device: str, extra: list[str]) -> tuple[float, ...]:
-    """(wall s, pairs/s, teachers' window s, pairs/s in it) of one Ray build on the first ``gpus`` GPUs;
-    RuntimeError with its output if it fails."""
+    """(wall s, pairs/s, teachers' window s, pairs/s in it, worker processes) of one Ray build on the first
+    ``gpus`` GPUs; RuntimeError with its output if it fails."""
     env = dict(os.environ, RAY_USAGE_STATS_ENABLED="0")
     if device.startswith("cuda"):
         env["CUDA_VISIBLE_DEVICES"] = ",".join(str(i) for i in range(gpus))
@@ -80,10 +81,10 @@ def main(argv: list[str] | None = None) -> int:
     base = rows[args.gpus[0]][3] / args.gpus[0]  # pairs/s per GPU of the first count (1 GPU: measured)
     lines = [f"`scenesplat-stereo build --backend ray` on {args.device}, flags `{' '.join(extra)}`; wall: the "
              f"command (Ray's start-up included); window: the first teacher's start to the last one's end:", "",
-             "| GPUs | wall (s) | pairs/s (wall) | window (s) | pairs/s (window) | speed-up (window) |",
-             "|---:|---:|---:|---:|---:|---:|"]
-    lines += [f"| {k} | {wall:.1f} | {pps:.1f} | {span:.1f} | {rate:.1f} | {rate / base:.2f} |"
-              for k, (wall, pps, span, rate) in rows.items()]
+             "| GPUs | wall (s) | pairs/s (wall) | window (s) | pairs/s (window) | speed-up (window) | processes |",
+             "|---:|---:|---:|---:|---:|---:|---:|"]
+    lines += [f"| {k} | {wall:.1f} | {pps:.1f} | {span:.1f} | {rate:.1f} | {rate / base:.2f} | {procs:.0f} |"
+              for k, (wall, pps, span, rate, procs) in rows.items()]
     size = resolution(extra)
     if size is not None:
         k = args.gpus[-1]

@@ -347,6 +347,23 @@ def test_ray_backend_gives_the_same_bytes(built, teachers, tmp_path):
     assert tree(tmp_path / "ray") == tree(out)
 
 
+def test_ray_builds_teacher_after_teacher_in_one_gpu_worker(teachers, tmp_path, monkeypatch):
+    """A teacher's Ray task that asks for a GPU runs in a worker that stays for the next teacher (Ray's default
+    for GPU tasks is a fresh process each time: Python, torch, Warp, CUDA and nvJPEG paid per teacher). The GPU
+    is a declared resource here; the teachers render on the CPU."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed (optional extra [ray])")
+    from scenesplat_stereo.build import run
+
+    monkeypatch.setattr(run, "_ray_gpus", lambda settings: 1)
+    ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        report = build(settings(teachers, tmp_path / "ray", backend="ray", workers=1))
+    finally:
+        ray.shutdown()
+    assert not report.failed and len(report.results) == 3
+    assert len({r.worker for r in report.results}) == 1, [r.worker for r in report.results]
+
+
 @pytest.mark.real_data
 def test_real_guitar_teacher_builds_at_tiny_size(guitar_ply, tmp_path):
     orbit = OrbitSpec(radius=6.0, n_frames=3, width=32, height=24)
