@@ -43,7 +43,7 @@ from pipelines.irs import (IRS_CAMERA, IRS_FOCAL_BASELINE, MAX_MEAN_REPROJECTION
 from scenesplat_stereo.captured.colmap import (EXHAUSTIVE_MAX_FRAMES, MATCHING_MODES, PinholeCamera, RecoveryOptions,
                                                image_size, recover_poses, recovery_json)
 from scenesplat_stereo.common.commandline import Parser, run_command
-from scenesplat_stereo.common.files import OwnedFile, OwnedFolder, check_apart, check_replaceable
+from scenesplat_stereo.common.ownership import OwnedFile, OwnedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import argtype, parse_size, positive_number, whole_number
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")

@@ -303,7 +303,8 @@ def write_irs_shards(poses_dir: Path, out: Path, val_variants: int = VAL_VARIANT
 
     from scenesplat_stereo.build.protocol import split_scenes
     from scenesplat_stereo.common.commandline import quiet_worker_interrupts
-    from scenesplat_stereo.common.files import OwnedFolder, atomic_write_json, check_apart, check_replaceable
+    from scenesplat_stereo.common.files import atomic_write_json
+    from scenesplat_stereo.common.ownership import OwnedFolder, check_apart, check_replaceable
     from scenesplat_stereo.shards.encode_pool import SampleEncoder
     from scenesplat_stereo.shards.webdataset import (ShardWriter, collect_stats, finished_shards, remove_shard,
                                                      write_index, write_stats)

@@ -43,8 +43,8 @@ from scenesplat_stereo.build.effects import CameraEffects
 from scenesplat_stereo.build.protocol import SamplePlan, plan_scene
 from scenesplat_stereo.build.render_pairs import start_render, stream_samples
 from scenesplat_stereo.build.settings import BuildSettings
-from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import psnr_from_mse, synced_clock
+from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.scene.cameras import intrinsics_matrix
 from scenesplat_stereo.scene.teachers import Teacher

@@ -34,7 +34,7 @@ import OpenImageIO as oiio
 
 from scenesplat_stereo.build.protocol import NUM_TARGETS
 from scenesplat_stereo.common.commandline import Parser, run_command
-from scenesplat_stereo.common.files import OwnedFile
+from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import parse_size
 from scenesplat_stereo.shards import encode
 from scenesplat_stereo.shards.encode import SampleImages

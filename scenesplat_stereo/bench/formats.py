@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesplat_stereo.common.files import OwnedFile
+from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import whole_number
 from scenesplat_stereo.scene.compressed_ply import morton_order
 from scenesplat_stereo.scene.gaussians import GaussianScene
@@ -49,8 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", type=Path, action="append", default=None,
                    help="a scene to write in every format (repeatable; default the guitar .ply and skull.sog)")
     p.add_argument("--repeats", type=whole_number("--repeats"), default=3, help="reads timed per file (median)")
-    p.add_argument("--out", type=Path, default=None, help="also write the tables to this markdown file (a report of an earlier "
-                   "run of this bench is replaced, any other file refused)")
+    p.add_argument("--out", type=Path, default=None, help="also write the tables to this markdown file (a report "
+                   "of an earlier run of this bench is replaced, any other file refused)")
 
 
 def _median_time(fn, repeats: int) -> tuple[float, object]:

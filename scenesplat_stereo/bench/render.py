@@ -28,8 +28,8 @@ import torch
 
 from scenesplat_stereo.bench.render_batch import batch_table
 from scenesplat_stereo.common.commandline import Parser, run_command
-from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import median_seconds, psnr_from_mse
+from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.raster import rasterization
 from scenesplat_stereo.raster.reference import as_renderer_sees, reference_rasterization
 from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
@@ -256,8 +256,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "batched vs looped calls, ours and gsplat, forward and forward+backward; default 20 "
                         "repeats (--quick: 3), interleaved")
     p.add_argument("--no-gsplat", action="store_true", help="do not compare with gsplat even if installed")
-    p.add_argument("--out", type=Path, default=None, help="also write the markdown tables to this file (a report of an earlier run of this bench is "
-                   "replaced, any other file refused)")
+    p.add_argument("--out", type=Path, default=None, help="also write the markdown tables to this file (a report "
+                   "of an earlier run of this bench is replaced, any other file refused)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenesplat_stereo.common.files import OwnedFile
+from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import markdown_table
 from scenesplat_stereo.scene import row_tasks
 from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply

@@ -28,7 +28,7 @@ and the cameras circle it at the distances of one scale family (``FAMILIES``):
   before the tier's), and where it came from.
 
 Everything is deterministic for a seed. Every capture is read and measured before anything is written; OUT is
-replaced as a whole (``common.files.StagedFolder``).
+replaced as a whole (``common.ownership.StagedFolder``).
 """
 
 from __future__ import annotations
@@ -48,12 +48,8 @@ from scenesplat_stereo.build.demo import (
     make_room,
     make_table,
 )
-from scenesplat_stereo.common.files import (
-    StagedFolder,
-    atomic_write_json,
-    check_apart,
-    check_replaceable,
-)
+from scenesplat_stereo.common.files import atomic_write_json
+from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import (
     argtype,
     key_safe_name,

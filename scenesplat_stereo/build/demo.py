@@ -24,7 +24,8 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo.build.protocol import TIERS
-from scenesplat_stereo.common.files import StagedFolder, atomic_write_json, check_replaceable
+from scenesplat_stereo.common.files import atomic_write_json
+from scenesplat_stereo.common.ownership import StagedFolder, check_replaceable
 from scenesplat_stereo.common.text import argtype, parse_size, whole_number
 from scenesplat_stereo.scene.cameras import OPENGL_TO_OPENCV, intrinsics_matrix, look_at
 from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
@@ -324,7 +325,7 @@ def write_demo_teachers(out: Path, n_scenes: int = 4, seed: int = 0, num_gaussia
     view ``fov_x_deg``, principal point at the centre), in OpenGL axes for even i and OpenCV for odd i;
     ``scene.json`` states the convention (for i % 4 == 3 the transforms file states it too). Each scene
     is written in a hidden temporary folder and moved into place, replacing an older one (only one this command
-    wrote: ``common.files.check_replaceable``, for every room before the first is written).
+    wrote: ``common.ownership.check_replaceable``, for every room before the first is written).
     """
     out = Path(out)
     for i in range(n_scenes):  # every folder it replaces holds only an earlier run's files, checked before writing

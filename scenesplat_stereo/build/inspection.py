@@ -13,7 +13,7 @@ first sample of each shard only. Baselines and radii that differ from the teache
 not failed (``--baseline``/``--rho`` and a teacher's ``scene.json`` ``baseline``/``rho`` override them on purpose).
 
 The contact sheet (``--contact-sheet FILE``, default ``OUT/contact_sheet.png``) replaces only a sheet that inspect
-wrote, unchanged (``common.files.check_replaceable_file``, checked before the dataset is read), and is written
+wrote, unchanged (``common.ownership.check_replaceable_file``, checked before the dataset is read), and is written
 atomically with its own manifest beside it (``.written-by.<name>``).
 """
 
@@ -30,7 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from scenesplat_stereo.build.protocol import NUM_TARGETS, tier_for_psnr
-from scenesplat_stereo.common.files import check_replaceable_file, write_owned_file
+from scenesplat_stereo.common.ownership import check_replaceable_file, write_owned_file
 from scenesplat_stereo.common.text import whole_number
 from scenesplat_stereo.scene.cameras import fibonacci_directions, right_camera, rigid_error, translation
 from scenesplat_stereo.shards import webdataset as shards

@@ -20,7 +20,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from scenesplat_stereo.common.files import StagedFolder, atomic_write_bytes, check_apart, check_replaceable
+from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import argtype, parse_size, whole_number
 from scenesplat_stereo.raster import check_device, rasterization, tile_size_for
 from scenesplat_stereo.scene.cameras import scale_intrinsics, viewmats_from_c2w

@@ -36,7 +36,8 @@ from scenesplat_stereo.build.protocol import (MASK_ALPHA_THRESHOLD, TEST_PAIRS_P
 from scenesplat_stereo.build.render_pairs import start_render, stream_samples
 from scenesplat_stereo.build.settings import SPLITS_OF_MODE, BuildSettings, add_arguments, settings_from_args
 from scenesplat_stereo.common.commandline import Interrupted, NotAvailable
-from scenesplat_stereo.common.files import check_apart, check_replaceable, read_json
+from scenesplat_stereo.common.files import read_json
+from scenesplat_stereo.common.ownership import check_apart, check_replaceable
 from scenesplat_stereo.common.text import format_table
 from scenesplat_stereo.scene.cameras import baseline_doubt
 from scenesplat_stereo.scene.scene_files import load_scene

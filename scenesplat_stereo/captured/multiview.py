@@ -38,7 +38,7 @@ Images. A 3-channel JPEG is stored byte for byte, anything else (PNG, PPM) decod
 92 (``stereonvs.image_as_jpeg``). Output: ``OUT/test/shard-*.tar``, ``index.json``, ``OUT/stats.json``,
 ``OUT/benchmark.json`` and ``OUT/multiview.json`` (per set: size, K, baseline, positions, groups, valid
 fractions). OUT must be new, empty or an earlier import holding only this command's files
-(``common.files.check_replaceable``).
+(``common.ownership.check_replaceable``).
 """
 
 from __future__ import annotations
@@ -53,7 +53,8 @@ import numpy as np
 
 from scenesplat_stereo.captured.colmap import image_size
 from scenesplat_stereo.captured.stereonvs import image_as_jpeg
-from scenesplat_stereo.common.files import OwnedFolder, atomic_write_json, check_apart, check_replaceable
+from scenesplat_stereo.common.files import atomic_write_json
+from scenesplat_stereo.common.ownership import OwnedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import argtype, format_table, key_safe_name, parse_number, positive_number
 from scenesplat_stereo.scene.cameras import LONG_BASELINE, intrinsics_matrix, translation
 from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark

@@ -38,7 +38,7 @@ of a photograph is real, so the benchmark is measured over the full image (``OUT
 Output: ``OUT/test/shard-*.tar`` and ``index.json``, ``OUT/stats.json``, ``OUT/benchmark.json`` and
 ``OUT/stereonvs.json`` (per scene: sizes, K, scale, the pairs' spread, rectification angles, counts).
 Everything is read and checked (every image decoded) before the old test shards of OUT are removed; OUT
-must be new, empty or an earlier import holding only files it wrote (``common.files.check_replaceable``: a
+must be new, empty or an earlier import holding only files it wrote (``common.ownership.check_replaceable``: a
 build's folder, or a file of the user's added to an import, is refused), apart from ROOT.
 """
 
@@ -54,7 +54,8 @@ from tqdm import tqdm
 
 from scenesplat_stereo.captured.colmap import image_size
 from scenesplat_stereo.captured.llff import read_poses_bounds
-from scenesplat_stereo.common.files import OwnedFolder, atomic_write_json, check_apart, check_replaceable
+from scenesplat_stereo.common.files import atomic_write_json
+from scenesplat_stereo.common.ownership import OwnedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import format_table, key_safe_name, positive_number, whole_number
 from scenesplat_stereo.scene.cameras import baseline_doubt, right_camera, rotation_angle_deg
 from scenesplat_stereo.shards.benchmark_file import Benchmark, write_benchmark

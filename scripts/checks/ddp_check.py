@@ -22,7 +22,8 @@ Runs, each with the same flags and seed (``--val-every`` a quarter of ``--steps`
 
 Throughput is pairs per second from the median ``step_ms`` of ``metrics.jsonl`` (the first ``--skip`` steps
 left out: cuDNN autotuning, Triton compilation, loader start-up), ``--batch-size`` pairs a step over all
-ranks (``--weak-ranks``: RANKS x ``--batch-size``). Weights are compared as ||difference|| / ||weights|| over all parameters (``weight_difference``):
+ranks (``--weak-ranks``: RANKS x ``--batch-size``). Weights are compared as ||difference|| / ||weights|| over all
+parameters (``weight_difference``):
 DDP averages the ranks' gradients, which equals one process's mean up to float summation order
 (``tests/sgmodel/train/test_distributed.py`` holds the gradients of one step to that on the CPU). With ``--profile`` the
 runs record each rank's step phases (``sgmodel.train.step_profile``) and the report adds their medians.
@@ -42,7 +43,7 @@ from pathlib import Path
 
 import torch
 
-from scenesplat_stereo.common.files import OwnedFile
+from scenesplat_stereo.common.ownership import OwnedFile
 from sgmodel.bench import report
 
 REPO = Path(__file__).resolve().parents[2]
@@ -194,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     one_pps, one_ms = pairs_per_second(one, args.batch_size, args.skip)
     reference = last_weights(one)[1]
     lines = [f"`sgmodel train` on {args.device}{', ' + args.label if args.label else ''}, {args.steps} steps, batch "
-             f"{args.batch_size} over all ranks{' (and, in the rows of --weak-ranks, per rank)' if weak else ''}, flags "
+             f"{args.batch_size} over all ranks{' (and, in the rows of --weak-ranks, per rank)' if weak else ''}, "
+             "flags "
              f"`{' '.join(extra)}`; throughput from the median step after step {args.skip}.", "",
              "| processes | pairs a step | median step (ms) | pairs/s | speed-up |", "|---:|---:|---:|---:|---:|",
              f"| 1 | {args.batch_size} | {one_ms:.1f} | {one_pps:.1f} | 1.00 |"]

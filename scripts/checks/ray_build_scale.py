@@ -27,7 +27,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from scenesplat_stereo.common.files import OwnedFile
+from scenesplat_stereo.common.ownership import OwnedFile
 from sgmodel.bench import report
 
 REPO = Path(__file__).resolve().parents[2]

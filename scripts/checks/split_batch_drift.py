@@ -36,7 +36,7 @@ import torch
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from scenesplat_stereo.common.files import OwnedFile
+from scenesplat_stereo.common.ownership import OwnedFile
 from scripts.checks.ddp_check import weight_difference
 from sgmodel.args import preset_params
 from sgmodel.bench import report

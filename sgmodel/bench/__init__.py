@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from scenesplat_stereo.common.files import OwnedFile
+from scenesplat_stereo.common.ownership import OwnedFile
 
 if TYPE_CHECKING:
     from sgmodel.model.network import Predictor

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import torch
 
-from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import markdown_table
 from sgmodel.args import add_device_argument, device_from_flag
 from sgmodel.bench import report

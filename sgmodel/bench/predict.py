@@ -26,8 +26,8 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.bench.scenes import COLUMNS, writer_rows
-from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS

@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import markdown_table
 from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.shards.encode import to_uint8

@@ -25,8 +25,8 @@ from pathlib import Path
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-from scenesplat_stereo.common.files import OwnedFile
 from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import markdown_table
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from sgmodel.bench import report

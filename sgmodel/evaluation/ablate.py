@@ -13,7 +13,7 @@ Before anything is written: the flags, every ``--only`` word (each must match a 
 the data (both splits' first samples at the run's size), ``--encoder-cache`` (it must fit the encoder, the
 resolution and the precision; every variant's run reads it, Table 4's blocks A, C and D keep the encoder),
 and OUT (a folder that can be written, not inside the data, and new, empty or an earlier ablation: every file
-in it one an ablation wrote, unchanged; ``scenesplat_stereo.common.files.check_replaceable``, the one owner of "may
+in it one an ablation wrote, unchanged; ``scenesplat_stereo.common.ownership.check_replaceable``, the one owner of "may
 this command replace what is there"). One ablation at a time writes OUT (``OUT/.lock``); its files are recorded
 as the ablation's when it ends, however it ends (``OwnedFolder``: a killed ablation's rerun resumes).
 """
@@ -25,8 +25,8 @@ import copy
 import time
 from pathlib import Path
 
-from scenesplat_stereo.common.files import (FolderLock, OwnedFolder, atomic_write_bytes, check_apart, check_replaceable,
-                                            read_json)
+from scenesplat_stereo.common.files import atomic_write_bytes, read_json
+from scenesplat_stereo.common.ownership import FolderLock, OwnedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import markdown_table
 from sgmodel.args import (add_device_argument, add_model_arguments, add_train_arguments, device_from_flag,
                           params_from_args)
@@ -35,7 +35,7 @@ from sgmodel.encoders.flags import build_encoder
 from sgmodel.evaluation import evaluate
 from sgmodel.train.loop import open_run_cache, read_split_checked, train
 
-OWNER = "sgmodel ablate"  # recorded in OUT's manifest (files.OWNER_FILE): a later ablation may resume or replace it
+OWNER = "sgmodel ablate"  # recorded in OUT's manifest (ownership.OWNER_FILE): a later ablation may resume or replace it
 
 
 def variants(base: ModelParams) -> list[tuple[str, str, ModelParams]]:

@@ -15,7 +15,7 @@ target group too when the samples label their targets, as ``scenesplat-stereo im
 ``targets_without_valid_pixels``, and a mean over no target is null), ``targets.csv`` (one row per target),
 ``scenes.md`` (a table per scene), and ``sheet.png`` (the worst and the best targets by PSNR: target |
 render). The report is built in a staging folder that replaces REPORT as a whole
-(``scenesplat_stereo.common.files.StagedFolder``); Ctrl-C leaves REPORT as it was (a table keeps the reports
+(``scenesplat_stereo.common.ownership.StagedFolder``); Ctrl-C leaves REPORT as it was (a table keeps the reports
 it finished), with one line saying so (exit 130).
 """
 

@@ -15,7 +15,7 @@ import torch
 from tqdm import tqdm
 
 from scenesplat_stereo.common.commandline import Interrupted
-from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
+from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import markdown_table, whole_number
 from sgmodel.config import EncoderParams
 from sgmodel.data.loader import check_valid_pixels, eval_batches, to_device
@@ -33,7 +33,7 @@ METHODS = ("naive-gs", "forward-splat")
 METRICS = ("psnr", "ssim", "lpips")
 LABELS = ("key", "scene", "target", "group")  # the columns of a target's row that are not numbers
 SHEET_TARGETS = 4  # worst and best targets shown in sheet.png
-OWNER = "sgmodel eval"  # recorded in REPORT (files.OWNER_FILE): a later evaluation may replace it
+OWNER = "sgmodel eval"  # recorded in REPORT (ownership.OWNER_FILE): a later evaluation may replace it
 
 
 @dataclass

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from scenesplat_stereo.common.commandline import Interrupted
-from scenesplat_stereo.common.files import OwnedFolder, atomic_write_bytes, check_apart, check_replaceable
+from scenesplat_stereo.common.files import atomic_write_bytes
+from scenesplat_stereo.common.ownership import OwnedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import key_safe_name, markdown_table
 from scenesplat_stereo.shards.benchmark_file import read_benchmark
 from sgmodel.data.loader import read_split

@@ -27,8 +27,8 @@ import cv2
 import numpy as np
 import torch
 
-from scenesplat_stereo.common.files import (StagedFolder, atomic_write_bytes, atomic_write_json, check_apart,
-                                            check_replaceable)
+from scenesplat_stereo.common.files import atomic_write_bytes, atomic_write_json
+from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene.cameras import baseline_doubt, rotation_angle_deg
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from sgmodel.pairs import rig as rig_mod
@@ -200,7 +200,7 @@ def predict_from_rig(predictor, left, right, rig: StereoRig, short_side: int | N
 
 
 # -------------------------------------------------------------------------------------- sgmodel rectify
-RECTIFY_OWNER = "sgmodel rectify"  # recorded in OUT (files.OWNER_FILE): a later run may replace OUT
+RECTIFY_OWNER = "sgmodel rectify"  # recorded in OUT (ownership.OWNER_FILE): a later run may replace OUT
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

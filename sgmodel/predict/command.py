@@ -24,7 +24,7 @@ side), the calibration against them (principal point inside the image; a warning
 centre, as with a K of another resolution), a pair's depth against the calibration (refused when ``doffs``
 or the baseline puts 99% of the pixels at the depth clamp), and OUT (absent, empty, or an earlier output of
 ``sgmodel predict``; apart from the inputs). The outputs are written to a staging folder beside OUT that
-replaces OUT as a whole at the end (``scenesplat_stereo.common.files.StagedFolder``): no file of an earlier
+replaces OUT as a whole at the end (``scenesplat_stereo.common.ownership.StagedFolder``): no file of an earlier
 prediction is left beside new ones, and Ctrl-C leaves OUT as it was (one line, exit 130). Errors in the inputs
 raise ``PredictError`` (or ``CalibError``, a ``StereoCheckError``), which the command line turns into one line
 and exit status 2.
@@ -48,8 +48,8 @@ import numpy as np
 import torch
 
 from scenesplat_stereo.common.commandline import Interrupted
-from scenesplat_stereo.common.files import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.measure import synced_clock
+from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from sgmodel.args import add_device_argument, device_from_flag
@@ -81,7 +81,7 @@ DEFAULT_CODEC = "mp4v"  # the novel-view video of --video
 #: Fraction of a pair's pixels at the depth clamp from which its depth is refused (doffs or baseline wrong);
 #: from half of them on, a warning.
 CLAMPED_REFUSED, CLAMPED_WARNED = 0.99, 0.5
-OWNER = "sgmodel predict"  # recorded in OUT (files.OWNER_FILE): a later prediction may replace OUT
+OWNER = "sgmodel predict"  # recorded in OUT (ownership.OWNER_FILE): a later prediction may replace OUT
 logger = logging.getLogger(__name__)
 
 

@@ -31,7 +31,8 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
 from scenesplat_stereo.common.commandline import Interrupted
-from scenesplat_stereo.common.files import FolderLock, atomic_write_json, check_apart, check_replaceable
+from scenesplat_stereo.common.files import atomic_write_json
+from scenesplat_stereo.common.ownership import FolderLock, check_apart, check_replaceable
 from scenesplat_stereo.common.text import format_table, whole_number
 from scenesplat_stereo.shards.webdataset import (PlannedShards, iter_shard, read_done, remove_unplanned, shard_number,
                                                  write_index)

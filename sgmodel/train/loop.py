@@ -14,8 +14,9 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from scenesplat_stereo.common.commandline import Interrupted
-from scenesplat_stereo.common.files import (FolderLock, append_line, atomic_write_bytes, check_apart, check_replaceable,
-                                            read_json, read_json_lines, remove_temp_files)
+from scenesplat_stereo.common.files import (append_line, atomic_write_bytes, read_json, read_json_lines,
+                                            remove_temp_files)
+from scenesplat_stereo.common.ownership import FolderLock, check_apart, check_replaceable
 from scenesplat_stereo.common.text import format_table
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
@@ -205,7 +206,7 @@ def open_run_cache(path: Path, data: Path, encoder, resolution: int, device: str
 
 def check_run_folder(paths: RunPaths, data: Path) -> None:
     """``--out`` can hold a run: a folder (or creatable), writable, not inside ``--data``, and either free
-    of other files or a run (config.json; ``common.files.check_replaceable``, the one owner). Reads only."""
+    of other files or a run (config.json; ``common.ownership.check_replaceable``, the one owner). Reads only."""
     check_replaceable(paths.root, "--out", OWNER, marker=paths.config.name)
     check_apart(paths.root, "--out", {"--data": data})
 

@@ -6,7 +6,7 @@ RNG state; the floating-point weights in float32, bfloat16 or float16).
 The file loads wherever a checkpoint is taken (``sgmodel predict``/``eval --checkpoint model.pt``); a run
 cannot resume from it. OUT is written atomically, with a manifest beside it (``.written-by.<name>``): a model
 file an earlier ``sgmodel pack`` wrote, unchanged, is replaced; any other file at OUT is refused before the
-checkpoint is read (``scenesplat_stereo.common.files.OwnedFile``), as is OUT naming the checkpoint itself. The
+checkpoint is read (``scenesplat_stereo.common.ownership.OwnedFile``), as is OUT naming the checkpoint itself. The
 model shipped in the package (``sgmodel weights list``) was made this way; docs/model_card.md says which dtype
 and why.
 """
@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from scenesplat_stereo.common.files import OwnedFile, check_apart
+from scenesplat_stereo.common.ownership import OwnedFile, check_apart
 from sgmodel.model.checkpoint import PACK_DTYPES, checkpoint_bytes, pack_checkpoint
 from sgmodel.weights import sha256_file
 

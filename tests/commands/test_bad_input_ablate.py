@@ -1,4 +1,4 @@
-"""``sgmodel ablate``'s OUT through the one owner (``scenesplat_stereo.common.files.check_replaceable``), as every
+"""``sgmodel ablate``'s OUT through the one owner (``scenesplat_stereo.common.ownership.check_replaceable``), as every
 other command's: new, empty, or an earlier ablation whose every file is unchanged; a killed ablation's OUT (its
 manifest still open) resumes; anything else is refused with exit 2, one line naming a file, and every folder as
 it was (docs/bad_input.md)."""
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from scenesplat_stereo.common.files import OwnedFolder, write_manifest
+from scenesplat_stereo.common.ownership import OwnedFolder, write_manifest
 from sgmodel.cli import main
 from sgmodel.config import PRESETS, ModelParams, TrainParams
 from sgmodel.evaluation.ablate import OWNER, check_ablation

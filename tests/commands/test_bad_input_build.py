@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from scenesplat_stereo.cli import main
-from scenesplat_stereo.common.files import StagedFolder
+from scenesplat_stereo.common.ownership import StagedFolder
 from tests.support.bad_input import run_cli, snapshot, tiny_teacher
 
 

@@ -3,7 +3,7 @@
 The benches' ``--out`` reports (``scenesplat-stereo bench render|build|encode|scenes|formats``, ``sgmodel bench
 train|predict|encoders``), ``sgmodel pack --out`` and ``irs-pose-recovery recover --out`` (and its ``--work-dir``)
 used to overwrite whatever was at their path. Now each asks the one owner
-(``scenesplat_stereo.common.files.OwnedFile``: ``check_replaceable_file`` before any work, ``write_owned_file``
+(``scenesplat_stereo.common.ownership.OwnedFile``: ``check_replaceable_file`` before any work, ``write_owned_file``
 at the end, a ``.written-by.<name>`` manifest beside the file): a file the command did not write, or one changed
 since, is refused at once (exit 2, one line naming the flag and the file, every file as it was); the command's own
 earlier output is replaced, atomically. Each refusal is also shown to come before the work: the function the
@@ -22,7 +22,7 @@ import pytest
 
 from pipelines import irs_pose_recovery
 from scenesplat_stereo.cli import main as toolkit
-from scenesplat_stereo.common.files import OWNER_FILE, check_replaceable_file
+from scenesplat_stereo.common.ownership import OWNER_FILE, check_replaceable_file
 from scenesplat_stereo.shards.encode import encode_png
 from sgmodel.cli import main as sgmodel
 from tests.support.bad_input import earlier_file, model_checkpoint, refusal, refused, snapshot, tiny_teacher
@@ -84,8 +84,8 @@ OUTPUTS = [
            # its deterministic backward takes 8 s on a CPU; tests/scenesplat_stereo/raster/test_raster_batch.py runs it
            stand_in=("scenesplat_stereo.bench.render:batch_table", lambda args, gs: ["| ours batched | (stand-in) |"])),
     Output("bench build", toolkit, lambda i, o, r: [
-        "bench", "build", "--gaussians", "2000", "--sh-degree", "0", "--sizes", "32x24", "--pairs", "1", "--frames", "2",
-        "--workers", "1", "--batch-pairs", "1", "--qualities", "75", "--device", "cpu", "--repeats", "1",
+        "bench", "build", "--gaussians", "2000", "--sh-degree", "0", "--sizes", "32x24", "--pairs", "1",
+        "--frames", "2", "--workers", "1", "--batch-pairs", "1", "--qualities", "75", "--device", "cpu", "--repeats", "1",
         "--encoder-modes", "threads", "--out", o],
            "scenesplat-stereo bench build", ("scenesplat_stereo.bench.build:synthetic_teacher",), b"| **total** |"),
     Output("bench encode", toolkit, lambda i, o, r: [

@@ -15,8 +15,8 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from scenesplat_stereo.common import files
-from scenesplat_stereo.common.files import FolderLock, StagedFolder
+from scenesplat_stereo.common import ownership
+from scenesplat_stereo.common.ownership import FolderLock, StagedFolder
 from scenesplat_stereo.shards.encode import decode_image, encode_png
 from sgmodel.cli import main
 from sgmodel.config import PRESETS, ModelParams
@@ -171,7 +171,7 @@ def test_train_out_not_writable(demo_dataset, tmp_path, capsys, monkeypatch):
     def denied(*a, **k):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(files.tempfile, "mkstemp", denied)  # the root user cannot be refused by chmod
+    monkeypatch.setattr(ownership.tempfile, "mkstemp", denied)  # the root user cannot be refused by chmod
     rc, err = refusal(main, ["train", "--data", demo_dataset, "--out", tmp_path / "run", *TINY], capsys)
     assert rc == 2 and "--out" in err and "not writable" in err and "Permission denied" in err
     assert not (tmp_path / "run").exists()
@@ -392,7 +392,7 @@ def earlier_ablation(tmp_path) -> Path:
     (out / "shared-default" / "eval").mkdir(parents=True)
     (out / "shared-default" / "eval" / "metrics.json").write_text('{"mean": {}}\n')
     (out / "table.md").write_text("| earlier |\n")
-    files.write_manifest(out, "sgmodel ablate")
+    ownership.write_manifest(out, "sgmodel ablate")
     return out
 
 

@@ -1,6 +1,6 @@
 """Issue 36, classes 1 and 2: outputs never replace what they did not write, and stay apart from the inputs.
 
-Every command that writes a folder asks one owner (``scenesplat_stereo.common.files.check_replaceable``) whether it
+Every command that writes a folder asks one owner (``scenesplat_stereo.common.ownership.check_replaceable``) whether it
 may: the folder is new, empty, or every file in it is one the command wrote (its manifest, ``.written-by``, lists
 each file with its size and sha256), unchanged. Each test gives a command an output folder it must not write (a
 user's file added to an earlier output, a file changed since, another tool's dataset, an output inside an input
@@ -22,8 +22,8 @@ import pytest
 
 from pipelines import irs_pose_recovery, irs_targets
 from scenesplat_stereo.cli import main as toolkit
-from scenesplat_stereo.common import files
-from scenesplat_stereo.common.files import OWNER_FILE, OwnedFolder, StagedFolder, check_replaceable, write_manifest
+from scenesplat_stereo.common import ownership
+from scenesplat_stereo.common.ownership import OWNER_FILE, OwnedFolder, StagedFolder, check_replaceable, write_manifest
 from scenesplat_stereo.shards.encode import encode_png
 from sgmodel.cli import main as sgmodel
 from tests.support.bad_input import earlier_output, refusal, refused, tiny_teacher
@@ -438,7 +438,7 @@ def test_a_killed_in_place_writer_resumes_and_no_one_else_takes_over(tmp_path):
 
 
 def test_large_files_are_remembered_by_size_and_time(tmp_path, monkeypatch):
-    monkeypatch.setattr(files, "HASH_LIMIT", 4)
+    monkeypatch.setattr(ownership, "HASH_LIMIT", 4)
     out = earlier_output(tmp_path / "out", "tool do", user_file=None)
     assert set(json.loads((out / OWNER_FILE).read_text())["files"]["scene.ply"]) == {"size", "mtime_ns"}
     check_replaceable(out, "--out", "tool do")

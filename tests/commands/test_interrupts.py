@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from scenesplat_stereo.cli import main as toolkit
-from scenesplat_stereo.common.files import OWNER_FILE
+from scenesplat_stereo.common.ownership import OWNER_FILE
 from scenesplat_stereo.shards import webdataset as shards
 from sgmodel.cli import main as sgmodel
 from tests.support.bad_input import snapshot

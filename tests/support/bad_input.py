@@ -75,7 +75,7 @@ def refused(main, argv: list, capsys, message: str, *folders: Path) -> None:
 
 def earlier_output(folder: Path, owner: str, names=("scene.ply",), user_file: str | None = "notes.txt") -> Path:
     """An earlier output of ``owner`` (its manifest lists ``names``), and a file of the user's added to it since."""
-    from scenesplat_stereo.common.files import StagedFolder
+    from scenesplat_stereo.common.ownership import StagedFolder
 
     with StagedFolder(folder, owner) as tmp:
         for name in names:
@@ -87,9 +87,9 @@ def earlier_output(folder: Path, owner: str, names=("scene.ply",), user_file: st
 
 
 def earlier_file(path: Path, owner: str, text: str = "an earlier report\n") -> Path:
-    """An earlier single-file output of ``owner``: ``text`` at ``path``, its manifest (``.written-by.<name>``) beside it,
-    as the command writes them (``scenesplat_stereo.common.files.write_owned_file``)."""
-    from scenesplat_stereo.common.files import write_owned_file
+    """An earlier single-file output of ``owner``: ``text`` at ``path``, its manifest (``.written-by.<name>``)
+    beside it, as the command writes them (``scenesplat_stereo.common.ownership.write_owned_file``)."""
+    from scenesplat_stereo.common.ownership import write_owned_file
 
     return write_owned_file(path, text.encode(), owner)
 

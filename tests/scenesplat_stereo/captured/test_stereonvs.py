@@ -15,7 +15,7 @@ from scenesplat_stereo.build.inspection import inspect_dataset
 from scenesplat_stereo.captured import stereonvs as S
 from scenesplat_stereo.captured.llff import LlffError, llff_to_opencv, opencv_to_llff, read_poses_bounds
 from scenesplat_stereo.cli import main as cli_main
-from scenesplat_stereo.common.files import write_manifest
+from scenesplat_stereo.common.ownership import write_manifest
 from scenesplat_stereo.scene.cameras import translation
 from scenesplat_stereo.shards.encode import decode_image, encode_jpeg
 from scenesplat_stereo.shards.sample import SampleMeta

@@ -18,8 +18,9 @@ import pytest
 
 from scenesplat_stereo.common.commandline import (DEBUG_ENV, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE, Interrupted,
                                                   NotAvailable, Parser, one_line, run_command)
-from scenesplat_stereo.common.files import (LOCK_FILE, OWNER_FILE, FileFormatError, FolderBusy, FolderLock,
-                                            StagedFolder, append_line, check_replaceable, read_json, read_json_lines)
+from scenesplat_stereo.common.files import FileFormatError, append_line, read_json, read_json_lines
+from scenesplat_stereo.common.ownership import (LOCK_FILE, OWNER_FILE, FolderBusy, FolderLock, StagedFolder,
+                                                check_replaceable)
 from scenesplat_stereo.shards.webdataset import ShardError, ShardWriter, iter_shard
 from tests.support.paths import REPO
 

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from scenesplat_stereo.common.files import OWNER_FILE
+from scenesplat_stereo.common.ownership import OWNER_FILE
 from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
 from sgmodel.evaluation import evaluate as evaluate_mod

@@ -66,7 +66,8 @@ def test_the_recipe_reports_throughput_and_resumes(demo_dataset, tmp_path):
 
     out = tmp_path / "report.md"
     assert main(["--data", str(demo_dataset), "--work", str(tmp_path / "w"), "--ranks", "2", "--device", "cpu",
-                 "--weak-ranks", "2", "--steps", "8", "--batch-size", "4", "--skip", "2", "--noise-floor", "--profile", "--out", str(out),
+                 "--weak-ranks", "2", "--steps", "8", "--batch-size", "4", "--skip", "2", "--noise-floor", "--profile",
+                 "--out", str(out),
                  "--", "--preset", "cpu-small", "--resolution", "32", "--padding", "2", "--targets", "2",
                  "--workers", "0"]) == 0
     text = out.read_text()
@@ -75,7 +76,8 @@ def test_the_recipe_reports_throughput_and_resumes(demo_dataset, tmp_path):
     rows = [line for line in text.splitlines() if "resumed" in line or "uninterrupted" in line or "noise" in line]
     diffs = [float(line.rsplit("|", 2)[-2]) for line in rows]
     assert len(diffs) == 4 and max(diffs) < SAME_MODEL
-    profiled = [line.split("|")[1:3] for line in text.splitlines() if line.startswith(("| one |", "| ranks2 |", "| weak2 |"))]
+    runs = ("| one |", "| ranks2 |", "| weak2 |")
+    profiled = [line.split("|")[1:3] for line in text.splitlines() if line.startswith(runs)]
     assert [[c.strip() for c in row] for row in profiled] == [["one", "0"], ["ranks2", "0"], ["ranks2", "1"],
                                                              ["weak2", "0"], ["weak2", "1"]]
 

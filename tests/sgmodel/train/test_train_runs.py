@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from scenesplat_stereo.common.files import LOCK_FILE, read_json_lines
+from scenesplat_stereo.common.files import read_json_lines
+from scenesplat_stereo.common.ownership import LOCK_FILE
 from sgmodel.cli import main
 from sgmodel.train import loop as train_mod
 from tests.support.bad_input import refusal

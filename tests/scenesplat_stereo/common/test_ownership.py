@@ -1,6 +1,6 @@
 """The one owner of "may this command replace what is there" for a single-file output
-(``scenesplat_stereo.common.files.check_replaceable_file`` and ``write_owned_file``, both held by ``OwnedFile``): its
-own manifest beside it, in the format of a folder's; the folder checks do not count that manifest as a file. And
+(``scenesplat_stereo.common.ownership.check_replaceable_file`` and ``write_owned_file``, both held by
+``OwnedFile``): its own manifest beside it, in the format of a folder's; the folder checks do not count that manifest as a file. And
 the symbolic links a command makes in its folder (COLMAP's staged images), recorded as links."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import json
 
 import pytest
 
-from scenesplat_stereo.common.files import (OWNER_FILE, OwnedFile, OwnedFolder, check_replaceable_file, foreign_file,
-                                            write_manifest, write_owned_file)
+from scenesplat_stereo.common.ownership import (OWNER_FILE, OwnedFile, OwnedFolder, check_replaceable_file,
+                                                foreign_file, write_manifest, write_owned_file)
 
 
 def test_a_single_file_output_is_replaced_only_while_its_owner_wrote_it(tmp_path):
