@@ -1,5 +1,5 @@
 """Real captures as they are published (../shared/data/captures: PlayCanvas .sog, antimatter15 .splat; a
-streamed SOG when STREAMED_SCENES holds ``playbot/``): each renders through ``scenesplat-stereo render`` and
+streamed SOG when STREAMED_SCENES holds ``playbot/`` or ``flowers/``): each renders through ``scenesplat-stereo render`` and
 builds as a teacher from a folder holding only that file, and the built dataset passes ``inspect``; at tiny
 size on the CPU."""
 
@@ -18,7 +18,7 @@ from scenesplat_stereo.shards.encode import decode_image
 from tests.support.paths import CAPTURES, STREAMED
 
 SOURCES = {"sog": CAPTURES / "statue-massa" / "massa.sog", "splat": CAPTURES / "plant" / "plant.splat",
-           "streamed": STREAMED / "playbot"}
+           "streamed": STREAMED / "playbot", "streamed-flowers": STREAMED / "flowers"}
 
 
 @pytest.mark.real_data
@@ -26,7 +26,7 @@ SOURCES = {"sog": CAPTURES / "statue-massa" / "massa.sog", "splat": CAPTURES / "
 def test_capture_renders_and_builds_as_a_teacher(tmp_path: Path, kind: str) -> None:
     source = SOURCES[kind]
     if not source.exists():
-        pytest.skip(f"real data not available: {source} is absent (shared data, or STREAMED_SCENES for playbot)")
+        pytest.skip(f"real data not available: {source} is absent (shared data, or STREAMED_SCENES for playbot and flowers)")
     assert main(["render", str(source), "--out", str(tmp_path / "frames"), "--device", "cpu",
                  "--orbit", "radius=2.5,frames=1,size=48x32"]) == 0
     frame = decode_image((tmp_path / "frames" / "frame_0000.png").read_bytes(), "png")
@@ -34,7 +34,7 @@ def test_capture_renders_and_builds_as_a_teacher(tmp_path: Path, kind: str) -> N
     teacher = tmp_path / "teachers" / kind
     teacher.mkdir(parents=True)
     (teacher / source.name).symlink_to(source)  # the folder holds only the capture (or the streamed folder)
-    if kind == "streamed":
+    if kind.startswith("streamed"):
         (teacher / source.name).unlink()
         teacher.rmdir()
         teacher.symlink_to(source, target_is_directory=True)

@@ -1,7 +1,7 @@
 """scenesplat_stereo.scene.lod: streamed SOG scenes (lod-meta.json + SOG units) read at one level, on a synthetic scene
-built here from the format description, and on a real one (playcanvas/engine's examples/assets/splats/playbot,
-not kept in the repository: set STREAMED_SCENES to a folder holding ``playbot/``, or put it in
-../shared/data/streamed; skipped otherwise) against splat-transform 3.7.0's decode (tests/data/captures)."""
+built here from the format description, and on the two real ones PROVENANCE names (playcanvas/engine's
+examples/assets/splats/playbot and flowers, not kept in the repository: set STREAMED_SCENES to a folder holding
+``playbot/`` and ``flowers/``, or put them in ../shared/data/streamed; skipped otherwise) against splat-transform 3.7.0's decode (tests/data/captures)."""
 
 from __future__ import annotations
 
@@ -51,9 +51,11 @@ def test_counts_that_do_not_match_the_tree_are_refused(tmp_path: Path) -> None:
 
 
 @pytest.mark.real_data
+@pytest.mark.parametrize("scene", ["playbot", "flowers"])
 @pytest.mark.parametrize("level", [0, 3])
-def test_real_streamed_scene_matches_splat_transform(level: int) -> None:
-    if not (STREAMED / "playbot" / "lod-meta.json").is_file():
-        pytest.skip(f"streamed scene not available: {STREAMED / 'playbot'} is absent (fetch playcanvas/engine's "
-                    "examples/assets/splats/playbot and set STREAMED_SCENES to its parent folder)")
-    check_against_sample(load_lod(STREAMED / "playbot", level), DATA / f"playbot-lod{level}.npz")
+def test_real_streamed_scene_matches_splat_transform(scene: str, level: int) -> None:
+    if not (STREAMED / scene / "lod-meta.json").is_file():
+        pytest.skip(f"streamed scene not available: {STREAMED / scene} is absent (fetch playcanvas/engine's "
+                    f"examples/assets/splats/{scene}, named in ../shared/data/PROVENANCE.md, and set STREAMED_SCENES "
+                    "to its parent folder)")
+    check_against_sample(load_lod(STREAMED / scene, level), DATA / f"{scene}-lod{level}.npz")
