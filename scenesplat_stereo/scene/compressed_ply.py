@@ -206,19 +206,24 @@ def _pack_111011(t: np.ndarray, m: int) -> np.ndarray:
     return (x << np.uint32(21)) | (y << np.uint32(11)) | z
 
 
+def largest_component(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index uint8 [m], value [m]) of each column's largest |component| of q [4, m], the first of equals (as
+    ``np.argmax``): a tournament of the pairs (0, 1) and (2, 3), several times faster than argmax along rows of
+    4 or masked updates."""
+    a = np.abs(q)
+    first, second = (a[1] > a[0]).view(np.uint8), (a[3] > a[2]).view(np.uint8) + np.uint8(2)
+    index = np.where(np.maximum(a[2], a[3]) > np.maximum(a[0], a[1]), second, first)
+    return index, q[index, np.arange(q.shape[1])]
+
+
 def _pack_rotation(q: np.ndarray) -> np.ndarray:
     """wxyz quaternions as columns q [4, m] (float64, normalised and changed in place) -> uint32 [m]: the index
     of the largest |component| (the first of equals) in bits 30-31, then the three others in wxyz order as
     10-bit unorm(c / sqrt(2) + 1/2), the quaternion negated first where the largest is negative."""
     q /= np.linalg.norm(q, axis=0)  # ((w^2 + x^2) + y^2) + z^2, as numpy's row norm of the [m, 4] rows
-    a = np.abs(q)
-    largest, best, value = np.zeros(q.shape[1], np.uint32), a[0].copy(), q[0].copy()
-    for i in range(1, 4):
-        above = a[i] > best  # strictly: the first of equal magnitudes stays
-        largest[above], value[above] = i, q[i][above]
-        np.maximum(best, a[i], out=best)
+    largest, value = largest_component(q)
     q *= np.where(value < 0, -1.0, 1.0)
-    word = largest << np.uint32(30)
+    word = largest.astype(np.uint32) << np.uint32(30)
     for j, shift in enumerate((20, 10, 0)):  # the j-th component other than the largest
         c = np.where(largest <= j, q[j + 1], q[j])
         c *= np.sqrt(0.5)
@@ -251,7 +256,7 @@ def _fill_rows(scene: GaussianScene, index: np.ndarray, chunks: np.ndarray, vert
     vertex[:, 0] = _pack_111011(_unit_interval(means, chunks[:, 0:6]), m)
     vertex[:, 1] = _pack_rotation(_columns(scene.quats, index).astype(np.float64))
     vertex[:, 2] = _pack_111011(_unit_interval(log_scales, chunks[:, 6:12], LOG_SCALE_CLAMP), m)
-    rgb = _unit_interval(colour.astype(np.float32), chunks[:, 12:18])
+    rgb = _unit_interval(colour.astype(np.float32, order="C"), chunks[:, 12:18])  # C: rows reduce fast
     r, g, b = (_to_unorm(rgb[i, :m], 8) for i in range(3))
     alpha = _to_unorm(np.take(scene.opacities, index).astype(np.float64), 8)
     vertex[:, 3] = (r << np.uint32(24)) | (g << np.uint32(16)) | (b << np.uint32(8)) | alpha

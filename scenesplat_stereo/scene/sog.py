@@ -29,9 +29,11 @@ without alpha reads as A = 255).
 The writer (``save_sog``) writes version 2 as splat-transform does: Morton order, 16-bit positions, 256-entry
 codebooks for log-scales and colours (density-weighted 1-D k-means over all values), and for SH a k-means palette of
 min(64 Ki, 2^floor(log2(N / 1024)) Ki) centroids, capped at ``SH_PALETTE_MAX``, with a 256-entry codebook of
-their values. It rounds to nearest where splat-transform truncates. OpenImageIO writes lossless WebP exactly,
-except that libwebp drops the colour of texels whose alpha is 0: a Gaussian whose opacity byte is 0 (opacity
-< 1/510, invisible) reads back with another colour. Errors of a round trip: docs/formats.md.
+their values (``palettes``). It rounds to nearest where splat-transform truncates. OpenImageIO writes lossless
+WebP exactly, at libwebp's fastest method for the per-Gaussian images (``WEBP_METHOD``), except that libwebp
+drops the colour of texels whose alpha is 0: a Gaussian whose opacity byte is 0 (opacity < 1/510, invisible)
+reads back with another colour (which one depends on the method). The images are encoded side by side in
+threads. Sizes, times and errors of a round trip: docs/formats.md.
 """
 
 from __future__ import annotations
@@ -42,12 +44,15 @@ import math
 import os
 import tempfile
 import zipfile
+from collections.abc import Callable
+from concurrent.futures import Future, wait
 from pathlib import Path
 
 import numpy as np
 
 from scenesplat_stereo.common.files import atomic_write_bytes
-from scenesplat_stereo.scene.compressed_ply import morton_order
+from scenesplat_stereo.scene import palettes, row_tasks
+from scenesplat_stereo.scene.compressed_ply import largest_component, morton_order
 from scenesplat_stereo.scene.gaussians import GaussianScene, decoded_scene
 
 #: Coefficients above the DC term per SH degree (bands).
@@ -59,6 +64,11 @@ SH_PALETTE_MAX = 4096
 #: Opacity clamp of splat-transform's reader (its logit is clamped to logit(1e-6)).
 OPACITY_EPS = 1e-6
 WEBP_MAX_SIDE = 16383
+#: libwebp's lossless effort (OpenImageIO's ``compression=lossless:<effort>``, 0..100, default 70) and method (0
+#: fastest .. 6, OpenImageIO's default) of the per-Gaussian images, and the method of the SH palette's two images.
+#: Method 0 encodes a 452x452 image in about 20 ms of one core (6: 1-2.5 s) into 4-20% more bytes; the labels
+#: shrink most from method 1 on, for little time (docs/formats.md "The SOG writer": each image by method).
+WEBP_EFFORT, WEBP_METHOD, WEBP_PALETTE_METHOD = 0, 0, 1
 
 
 class SogError(ValueError):
@@ -87,21 +97,24 @@ def read_webp(path: Path, source: str) -> tuple[np.ndarray, int, int]:
     return rgba, spec.width, spec.height
 
 
-def write_webp(rgba: np.ndarray, width: int, height: int) -> bytes:
-    """Lossless WebP bytes of uint8 RGBA texels [width * height, 4] (fewer are padded with zeros)."""
+def write_webp(rgba: np.ndarray, width: int, height: int, method: int = WEBP_METHOD) -> bytes:
+    """Lossless WebP bytes of uint8 RGBA texels [width * height, 4] (fewer are padded with zeros), alpha
+    unassociated, at libwebp's ``method`` and ``WEBP_EFFORT``. Through ``ImageBuf.write``, which releases
+    the GIL while libwebp encodes (``ImageOutput.close``, where OpenImageIO 3.1+ encodes, holds it), so that
+    images in threads are encoded side by side."""
     import OpenImageIO as oiio
 
-    img = np.zeros((height * width, 4), np.uint8)
-    img[:len(rgba)] = rgba
+    img = np.zeros((height, width, 4), np.uint8)
+    img.reshape(-1, 4)[:len(rgba)] = rgba
     spec = oiio.ImageSpec(width, height, 4, "uint8")
-    spec.attribute("compression", "lossless")
+    spec.attribute("compression", f"lossless:{WEBP_EFFORT}")
+    spec.attribute("webp:method", method)
     spec.attribute("oiio:UnassociatedAlpha", 1)
+    buf = oiio.ImageBuf(spec)
     with tempfile.TemporaryDirectory(prefix="sog-") as tmp:
         name = os.path.join(tmp, "image.webp")
-        out = oiio.ImageOutput.create(name)
-        if out is None or not out.open(name, spec) or not out.write_image(img.reshape(height, width, 4)):
-            raise SogError(f"OpenImageIO cannot write WebP: {oiio.geterror()}")
-        out.close()
+        if not buf.set_pixels(oiio.ROI(), img) or not buf.write(name):
+            raise SogError(f"OpenImageIO cannot write WebP: {buf.geterror() or oiio.geterror()}")
         return Path(name).read_bytes()
 
 
@@ -283,74 +296,56 @@ def load_sog(path: str | os.PathLike) -> GaussianScene:
 
 
 # ----------------------------------------------------------------------------------------------- writing
-def _codebook(values: np.ndarray, k: int = 256, alpha: float = 0.2, bins: int = 1 << 14,
-              iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
-    """A 1-D codebook of ``values``: (k ascending float32 entries, uint8 nearest-entry labels shaped like values).
-
-    Density-weighted k-means, as splat-transform's ``quantize1d`` (which takes alpha 0.5 and an exact dynamic
-    programme): the values are binned into a ``bins``-bin histogram over their range, each bin weighs
-    count^alpha (so sparse tails get entries that plain k-means would give the dense middle), and Lloyd's
-    iterations start from weighted quantiles. alpha 0.2 gave the smallest RMS and largest errors of 0.5, 0.3,
-    0.2, 0.1 on the guitar's log-scales and colours."""
-    flat = values.reshape(-1).astype(np.float64)
-    lo, hi = float(flat.min()), float(flat.max())
-    if hi - lo < 1e-20:
-        return np.full(k, lo, np.float32), np.zeros(values.shape, np.uint8)
-    counts, edges = np.histogram(flat, bins, (lo, hi))
-    x = 0.5 * (edges[1:] + edges[:-1])[counts > 0]
-    w = counts[counts > 0].astype(np.float64) ** alpha
-    cw, cwx = np.concatenate([[0.0], np.cumsum(w)]), np.concatenate([[0.0], np.cumsum(w * x)])
-    centres = np.unique(np.interp((np.arange(k) + 0.5) / k * cw[-1], cw[1:], x))
-    for _ in range(iterations):
-        cut = np.searchsorted(x, 0.5 * (centres[1:] + centres[:-1]))
-        start, end = np.concatenate([[0], cut]), np.concatenate([cut, [len(x)]])
-        weight = cw[end] - cw[start]
-        centres = np.unique(np.where(weight > 0, (cwx[end] - cwx[start]) / np.where(weight > 0, weight, 1), centres))
-    centres = np.concatenate([centres, np.full(k - len(centres), centres[-1])]).astype(np.float32)
-    labels = np.searchsorted(0.5 * (centres[1:].astype(np.float64) + centres[:-1]), values)
-    return centres, np.minimum(labels, k - 1).astype(np.uint8)
-
-
-def _kmeans(x: np.ndarray, k: int, iterations: int = 10, fit_rows: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """k-means of rows x [N, D] (torch; CUDA when there): (centroids [k, D] float32, labels [N] int64 of every
-    row's nearest centroid). Lloyd's iterations run on a random ``fit_rows`` k of the rows (all when fewer),
-    starting from k of them."""
-    import torch
-
-    dev = "cuda" if torch.cuda.is_available() else "cpu"
-    X = torch.from_numpy(np.ascontiguousarray(x, np.float32)).to(dev)
-    rows = torch.randperm(len(X), generator=torch.Generator().manual_seed(0)).to(dev)
-    fit = X[rows[:fit_rows * k]]
-    C = fit[:k].clone()
-
-    def assign(points: torch.Tensor) -> torch.Tensor:
-        c2 = (C * C).sum(1)
-        step = max(1, (1 << 22) // k)  # rows a block: a [step, k] distance block of 16 MiB
-        return torch.cat([(c2[None] - 2.0 * points[i:i + step] @ C.T).argmin(1)
-                          for i in range(0, len(points), step)])
-
-    for _ in range(iterations):
-        labels = assign(fit)
-        count = torch.zeros(k, device=dev).index_add_(0, labels, torch.ones(len(fit), device=dev))
-        total = torch.zeros_like(C).index_add_(0, labels, fit)
-        C = torch.where(count[:, None] > 0, total / count.clamp(min=1)[:, None], C)
-    return C.cpu().numpy(), assign(X).cpu().numpy()
+#: The per-Gaussian images, in the zip's order (``shN_labels.webp`` with SH only; ``shN_centroids.webp`` before it).
+IMAGES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp", "shN_labels.webp")
 
 
 def _pack_quats(quats: np.ndarray) -> np.ndarray:
-    q = quats.astype(np.float64) / np.linalg.norm(quats, axis=1, keepdims=True)
-    largest = np.abs(q).argmax(1)
-    q *= np.where(np.take_along_axis(q, largest[:, None], 1) < 0, -1.0, 1.0) * math.sqrt(2.0)
-    others = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])[largest]
-    out = np.empty((len(q), 4), np.uint8)
-    out[:, :3] = np.clip(np.rint(255.0 * (np.take_along_axis(q, others, 1) * 0.5 + 0.5)), 0, 255)
+    """uint8 [m, 4] "smallest three" texels of unit wxyz quaternions [m, 4] float32 (module docstring): q / |q|
+    (the norm in float32, as ``np.linalg.norm`` of the rows) negated where its largest |component| (the first of
+    equals) is negative; RGB the other three as rint(255 (sqrt(2) c / 2 + 1/2)), A = 252 + the largest's index.
+    Computed on columns (one row per component): numpy's reductions and argmax along short rows are slow."""
+    q32 = np.ascontiguousarray(quats.T)  # [4, m]
+    square = q32 * q32
+    norm = np.sqrt(((square[0] + square[1]) + square[2]) + square[3])  # float32, the order of np.add.reduce
+    q = q32.astype(np.float64)
+    q /= norm
+    largest, value = largest_component(q)
+    q *= np.where(value < 0, -math.sqrt(2.0), math.sqrt(2.0))
+    out = np.empty((q.shape[1], 4), np.uint8)
+    for j in range(3):  # the j-th component other than the largest
+        c = np.where(largest <= j, q[j + 1], q[j])
+        c *= 0.5
+        c += 0.5
+        c *= 255.0
+        out[:, j] = np.clip(np.rint(c), 0, 255)
     out[:, 3] = 252 + largest
     return out
 
 
+def _sh_palette(sh: np.ndarray, degree: int, palette: int) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """The SH palette of ``sh`` [N, K, 3] (module docstring): (its 256-entry codebook, the centroid image's texels,
+    its rows, the label texels [N, 4] in the scene's order)."""
+    coeffs, n = SH_COEFFS[degree], len(sh)
+    rest = sh[:, 1:].transpose(0, 2, 1).reshape(n, 3 * coeffs)  # channel-major, as f_rest
+    centroids, labels = palettes.kmeans(rest, palette)
+    book = palettes.codebook(centroids)
+    cells = palettes.Nearest(book)(centroids).reshape(palette, 3, coeffs).transpose(0, 2, 1).reshape(-1, 3)
+    rows = math.ceil(palette / 64)
+    px = np.zeros((rows * 64 * coeffs, 4), np.uint8)
+    px[:len(cells), :3], px[:, 3] = cells, 255
+    return book, px, rows, np.stack([labels & 255, labels >> 8, 0 * labels, 255 + 0 * labels], 1).astype(np.uint8)
+
+
 def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
                sh_palette_max: int = SH_PALETTE_MAX) -> bytes:
-    """The bundled ``.sog`` (zip) bytes of ``scene`` (module docstring)."""
+    """The bundled ``.sog`` (zip) bytes of ``scene`` (module docstring).
+
+    All but the order is computed in the scene's order, side by side on the shared pool of ``row_tasks`` while
+    this thread finds the Morton order: the two codebooks and the SH palette one task each, the texels in
+    slices of rows. Each image is then gathered into Morton order and encoded in a task of its own
+    (``write_webp`` runs without the GIL). The bytes depend neither on the slices nor on the threads. Not to be
+    called from a task of that pool (``morton_order`` waits for tasks of it)."""
     n = len(scene)
     if n == 0:
         raise SogError(f"{path}: an empty scene has no SOG (images of at least one texel)")
@@ -358,46 +353,75 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
     height = math.ceil(n / width / 4) * 4
     if max(width, height) > WEBP_MAX_SIDE:
         raise SogError(f"{path}: {n} Gaussians need {width}x{height} texels, beyond WebP's {WEBP_MAX_SIDE}")
-    order = morton_order(scene.means)
-    s = scene.subset(order)
-    files: dict[str, bytes] = {}
+    degree, pool, futures = scene.sh_degree, row_tasks.pool(), []
 
-    def image(name: str, texels: np.ndarray) -> None:  # one texel a Gaussian, in Morton order
-        files[name] = write_webp(texels, width, height)
+    def submit(fn: Callable[..., object], *args: object) -> Future:
+        futures.append(pool.submit(fn, *args))
+        return futures[-1]
 
-    t = np.sign(s.means.astype(np.float64)) * np.log1p(np.abs(s.means.astype(np.float64)))
-    mins, maxs = t.min(0), t.max(0)
-    q = np.rint(65535.0 * (t - mins) / np.where(maxs > mins, maxs - mins, 1.0)).astype(np.uint16)
-    alpha = np.full((n, 1), 255, np.uint8)
-    image("means_l.webp", np.hstack([(q & 255).astype(np.uint8), alpha]))
-    image("means_u.webp", np.hstack([(q >> 8).astype(np.uint8), alpha]))
-    image("quats.webp", _pack_quats(s.quats))
-    scale_book, scale_labels = _codebook(np.log(s.scales.astype(np.float64)))
-    image("scales.webp", np.hstack([scale_labels, alpha]))
-    colour_book, colour_labels = _codebook(s.sh[:, 0].astype(np.float64))
-    opacity = np.clip(np.rint(s.opacities.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
-    image("sh0.webp", np.hstack([colour_labels, opacity[:, None]]))
-    meta = {"version": 2, "asset": {"generator": "scenesplat_stereo.scene.sog"}, "count": n,
-            "means": {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": ["means_l.webp", "means_u.webp"]},
-            "scales": {"codebook": scale_book.tolist(), "files": ["scales.webp"]},
-            "quats": {"files": ["quats.webp"]},
-            "sh0": {"codebook": colour_book.tolist(), "files": ["sh0.webp"]}}
-    if s.sh_degree:
-        coeffs = SH_COEFFS[s.sh_degree]
-        palette = min(64, 2 ** math.floor(math.log2(n / 1024))) * 1024 if n >= 1024 else n
-        palette = max(1, min(palette, sh_palette_max, n))
-        rest = s.sh[:, 1:].transpose(0, 2, 1).reshape(n, 3 * coeffs)  # channel-major, as f_rest
-        centroids, labels = _kmeans(rest, palette)
-        book, cells = _codebook(centroids)
-        cells = cells.reshape(palette, 3, coeffs).transpose(0, 2, 1).reshape(-1, 3)  # [palette * C, RGB]
-        rows = math.ceil(palette / 64)
-        px = np.zeros((rows * 64 * coeffs, 4), np.uint8)
-        px[:len(cells), :3], px[:, 3] = cells, 255
-        files["shN_centroids.webp"] = write_webp(px, 64 * coeffs, rows)
-        image("shN_labels.webp", np.stack([labels & 255, labels >> 8, 0 * labels, 255 + 0 * labels], 1)
-              .astype(np.uint8))
-        meta["shN"] = {"count": palette, "bands": s.sh_degree, "codebook": book.tolist(),
-                       "files": ["shN_centroids.webp", "shN_labels.webp"]}
+    def rows(fn: Callable[[int, int], None]) -> None:  # fn over slices of rows on the pool, waited for
+        futures.extend(row_tasks.submit_rows(fn, n))
+        row_tasks.wait_all(futures[-len(slices):])
+
+    slices = row_tasks.row_ranges(n)
+    tex = np.empty((len(IMAGES) - (degree == 0), n, 4), np.uint8)  # IMAGES' texels in the scene's order
+    t, log_scales = np.empty((n, 3)), np.empty((n, 3))  # t = sign(x) ln(|x| + 1) of the positions
+    bounds = np.empty((len(slices), 2, 3))  # each slice's mins and maxs of t
+
+    def logs_quats_opacities(i: int, a: int, b: int) -> None:
+        m = scene.means[a:b].astype(np.float64)
+        t[a:b] = np.sign(m) * np.log1p(np.abs(m))
+        bounds[i] = t[a:b].min(0), t[a:b].max(0)
+        np.log(scene.scales[a:b], out=log_scales[a:b], dtype=np.float64)
+        tex[2, a:b] = _pack_quats(scene.quats[a:b])
+        tex[[0, 1, 3], a:b, 3] = 255
+        tex[4, a:b, 3] = np.clip(np.rint(scene.opacities[a:b].astype(np.float64) * 255.0), 0, 255)
+
+    def positions(a: int, b: int) -> None:
+        q = np.rint(65535.0 * (t[a:b] - mins) / np.where(maxs > mins, maxs - mins, 1.0)).astype(np.uint16)
+        tex[0, a:b, :3], tex[1, a:b, :3] = q & 255, q >> 8
+
+    def labels(a: int, b: int) -> None:
+        tex[3, a:b, :3] = scale_book(log_scales[a:b])
+        tex[4, a:b, :3] = colour_book(scene.sh[a:b, 0])
+
+    def encode(i: int, method: int = WEBP_METHOD) -> Future:  # image i in Morton order
+        return submit(lambda: write_webp(np.take(tex[i], order, axis=0), width, height, method))
+
+    try:
+        colour_codebook = submit(lambda: palettes.Nearest(palettes.codebook(scene.sh[:, 0].astype(np.float64))))
+        if degree:
+            palette = min(64, 2 ** math.floor(math.log2(n / 1024))) * 1024 if n >= 1024 else n
+            palette = max(1, min(palette, sh_palette_max, n))
+            shn = submit(_sh_palette, scene.sh, degree, palette)
+        futures += [pool.submit(logs_quats_opacities, i, a, b) for i, (a, b) in enumerate(slices)]
+        order = morton_order(scene.means)
+        row_tasks.wait_all(futures[-len(slices):])
+        scale_codebook = submit(lambda: palettes.Nearest(palettes.codebook(log_scales)))
+        mins, maxs = bounds[:, 0].min(0), bounds[:, 1].max(0)
+        rows(positions)
+        images = {name: encode(i) for i, name in enumerate(IMAGES[:3])}
+        scale_book, colour_book = scale_codebook.result(), colour_codebook.result()
+        rows(labels)
+        images.update((name, encode(i)) for i, name in enumerate(IMAGES[3:5], 3))
+        meta = {"version": 2, "asset": {"generator": "scenesplat_stereo.scene.sog"}, "count": n,
+                "means": {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": ["means_l.webp", "means_u.webp"]},
+                "scales": {"codebook": scale_book.book.tolist(), "files": ["scales.webp"]},
+                "quats": {"files": ["quats.webp"]},
+                "sh0": {"codebook": colour_book.book.tolist(), "files": ["sh0.webp"]}}
+        if degree:
+            book, px, centroid_rows, tex[5] = shn.result()
+            images["shN_centroids.webp"] = submit(write_webp, px, 64 * SH_COEFFS[degree], centroid_rows,
+                                                  WEBP_PALETTE_METHOD)
+            images["shN_labels.webp"] = encode(5, WEBP_PALETTE_METHOD)
+            meta["shN"] = {"count": palette, "bands": degree, "codebook": book.tolist(),
+                           "files": ["shN_centroids.webp", "shN_labels.webp"]}
+        names = [*IMAGES[:5], *(["shN_centroids.webp", IMAGES[5]] if degree else [])]
+        files = {name: images[name].result() for name in names}
+    finally:  # after an error, no task is left writing into the arrays above
+        for f in futures:
+            f.cancel()
+        wait(futures)
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
         for name, data in files.items():

@@ -1,23 +1,27 @@
 """scenesplat_stereo.scene.sog: the reader against a float64 decode written from the format description
 (tests/support/sog_helpers.py) for versions 1 and 2, bundled and not, SH degrees 0-3; against PlayCanvas
 splat-transform 3.7.0's decode of the real captures (tests/data/captures, made by scripts/inputs/capture_samples.py);
-the writer's round trip and splat-transform reading our files."""
+the writer's round trip and splat-transform reading our files; the writer's quantisers (``palettes``, the quaternion
+texels) against plain float64 / row-by-row versions, and its bytes against a run on one thread in small slices."""
 
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import subprocess
 import zipfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from scenesplat_stereo.scene import palettes, row_tasks
 from scenesplat_stereo.scene.compressed_ply import morton_order
 from scenesplat_stereo.scene.gaussians import GaussianScene, load_ply
 from scenesplat_stereo.scene.scene_files import load_scene, scene_info
-from scenesplat_stereo.scene.sog import load_sog, save_sog
+from scenesplat_stereo.scene.sog import _pack_quats, encode_sog, load_sog, save_sog
 from tests.support.paths import CAPTURES, SPLAT_TRANSFORM, TEST_DATA
 from tests.support.ply_helpers import random_scene
 from tests.support.sog_helpers import make_sog, reference_decode
@@ -117,3 +121,81 @@ def test_splat_transform_reads_our_sog(tmp_path: Path, degree: int) -> None:
     assert theirs.sh_degree == degree
     assert_matches(theirs, ours.means, ours.quats.astype(np.float64), np.log(ours.scales.astype(np.float64)),
                    ours.opacities, ours.sh, atol=2e-6)
+
+
+def test_nearest_entry_is_the_binary_search() -> None:
+    """``palettes.Nearest`` against ``np.searchsorted`` of the float64 midpoints (its definition) on books that are
+    spread, rounded (duplicate entries), padded with their last entry, flat, of one entry, or narrow at a large
+    magnitude (the exact fallback), with values on every midpoint and entry, one float step either side, and
+    beyond the ends; and against the nearest entry by brute force in float64 away from midpoints."""
+    rng = np.random.default_rng(4)
+    books = [rng.normal(0, 1, 256), np.round(rng.normal(0, 1, 256), 1), np.r_[rng.normal(0, 1, 100), [3.0] * 156],
+             np.full(256, 1.5), [0.25], 1e6 + rng.normal(0, 1e-9, 256), 1e3 + rng.normal(0, 1e-7, 256), 1.0 + rng.normal(0, 1e-5, 256),
+             np.r_[rng.normal(-8, 0.01, 128), rng.normal(2, 3, 128)]]
+    for raw in books:
+        book = np.sort(np.asarray(raw, np.float64)).astype(np.float32)
+        b = book.astype(np.float64)
+        mids = 0.5 * (b[1:] + b[:-1])
+        values = np.concatenate([mids, np.nextafter(mids, np.inf), np.nextafter(mids, -np.inf), b,
+                                 np.nextafter(b, np.inf), b[0] + (b[-1] - b[0]) * rng.random(5000),
+                                 rng.normal(0, 20, 500), [-1e300, 1e300]])
+        for shaped in (values, values[:len(values) // 3 * 3].reshape(-1, 3)):
+            labels = palettes.Nearest(book)(shaped)
+            assert labels.shape == shaped.shape and labels.dtype == np.uint8
+            np.testing.assert_array_equal(labels, np.minimum(np.searchsorted(mids, shaped), len(b) - 1))
+        finite = values[np.abs(values) < 1e100]  # |1e300 - entry| is 1e300 for every entry
+        away = finite[np.abs(finite[:, None] - mids[None]).min(1, initial=np.inf) > 1e-9 * (1 + np.abs(finite))]
+        brute = np.abs(away[:, None] - b[None]).argmin(1)  # the first of equal entries
+        np.testing.assert_array_equal(b[palettes.Nearest(book)(away)], b[brute])
+
+
+def test_kmeans_labels_are_each_rows_nearest_centroid() -> None:
+    """Every row's label is its nearest centroid by float64 brute force (up to float32 ties), and the palette
+    is closer to the rows than one of k rows picked at random is."""
+    rng = np.random.default_rng(6)
+    x = (rng.normal(0, 0.1, (40, 24))[rng.integers(0, 40, 3000)] + rng.normal(0, 0.01, (3000, 24))).astype(np.float32)
+    centroids, labels = palettes.kmeans(x, 256)
+    assert centroids.shape == (256, 24) and labels.shape == (3000,)
+    d = ((x.astype(np.float64)[:, None] - centroids.astype(np.float64)[None]) ** 2).sum(-1)
+    assert (d[np.arange(3000), labels] <= d.min(1) * (1 + 1e-4) + 1e-9).all()
+    picked = x[rng.choice(3000, 256, replace=False)].astype(np.float64)
+    random_error = ((x[:, None] - picked[None]) ** 2).sum(-1).min(1).mean()
+    assert d[np.arange(3000), labels].mean() < random_error
+
+
+def reference_pack_quats(quats: np.ndarray) -> np.ndarray:
+    """The quaternion texels row by row (the writer's earlier numpy version): normalised by the float32 row norm,
+    negated when the largest |component| (np.argmax: the first of equals) is negative, the other three as
+    rint(255 (sqrt(2) c / 2 + 1/2)) clipped, A = 252 + the largest's index."""
+    q = quats.astype(np.float64) / np.linalg.norm(quats, axis=1, keepdims=True)
+    largest = np.abs(q).argmax(1)
+    q *= np.where(np.take_along_axis(q, largest[:, None], 1) < 0, -1.0, 1.0) * math.sqrt(2.0)
+    others = np.array([[j for j in range(4) if j != i] for i in range(4)])[largest]
+    out = np.empty((len(q), 4), np.uint8)
+    out[:, :3] = np.clip(np.rint(255.0 * (np.take_along_axis(q, others, 1) * 0.5 + 0.5)), 0, 255)
+    out[:, 3] = 252 + largest
+    return out
+
+
+def test_quaternion_texels_match_a_row_by_row_version() -> None:
+    rng = np.random.default_rng(8)
+    q = rng.normal(size=(5000, 4))
+    q[:400] = rng.choice([-0.5, 0.5], (400, 4))  # four equal magnitudes
+    q[400:800] = rng.choice([-1.0, 0.0, 1.0], (400, 4))  # two or three equal, zeros
+    q[800:1200] = np.round(q[800:1200] * 4) / 4  # components near rounding half-steps
+    q[np.abs(q).sum(1) == 0] = [1.0, 0.0, 0.0, 0.0]
+    q = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    np.testing.assert_array_equal(_pack_quats(q), reference_pack_quats(q))
+
+
+def test_writer_bytes_do_not_depend_on_slices_or_threads() -> None:
+    """The same bytes from the shared pool in its usual slices as from one thread in slices of 512 rows."""
+    scene = random_scene(np.random.default_rng(9), 3000, 2)
+    usual = encode_sog(scene)
+    pool, step = row_tasks._pool, row_tasks.ROWS_PER_TASK
+    try:
+        row_tasks._pool, row_tasks.ROWS_PER_TASK = ThreadPoolExecutor(1), 512
+        assert encode_sog(scene) == usual
+    finally:
+        row_tasks._pool.shutdown()
+        row_tasks._pool, row_tasks.ROWS_PER_TASK = pool, step
