@@ -36,8 +36,8 @@ from scenesplat_stereo.scene.scene_files import FORMATS, load_scene, save_scene,
 
 OWNER = "scenesplat-stereo bench formats"  # recorded beside --out: a rerun may replace its own report
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-SPLAT_TRANSFORM = (Path(__file__).resolve().parents[2] / "scripts" / "viewer" / "node_modules" / "@playcanvas"
-                   / "splat-transform" / "bin" / "cli.mjs")
+SPLAT_TRANSFORM = (Path(__file__).resolve().parents[2] / "scripts" / "checks" / "viewer" / "node_modules"
+                   / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
