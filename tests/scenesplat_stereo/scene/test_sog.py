@@ -130,8 +130,8 @@ def test_nearest_entry_is_the_binary_search() -> None:
     beyond the ends; and against the nearest entry by brute force in float64 away from midpoints."""
     rng = np.random.default_rng(4)
     books = [rng.normal(0, 1, 256), np.round(rng.normal(0, 1, 256), 1), np.r_[rng.normal(0, 1, 100), [3.0] * 156],
-             np.full(256, 1.5), [0.25], 1e6 + rng.normal(0, 1e-9, 256), 1e3 + rng.normal(0, 1e-7, 256), 1.0 + rng.normal(0, 1e-5, 256),
-             np.r_[rng.normal(-8, 0.01, 128), rng.normal(2, 3, 128)]]
+             np.full(256, 1.5), [0.25], 1e6 + rng.normal(0, 1e-9, 256), 1e3 + rng.normal(0, 1e-7, 256),
+             1.0 + rng.normal(0, 1e-5, 256), np.r_[rng.normal(-8, 0.01, 128), rng.normal(2, 3, 128)]]
     for raw in books:
         book = np.sort(np.asarray(raw, np.float64)).astype(np.float32)
         b = book.astype(np.float64)
