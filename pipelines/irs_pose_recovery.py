@@ -22,7 +22,7 @@ writes ``{"frames": [{"image": name, "c2w": 4x4}], "registered": n, "mean_reproj
 (frame_2 before frame_10), which sequential matching relies on. The poses file gets a manifest beside it
 (``.written-by.<name>``) and ``--work-dir`` one inside: a rerun replaces what an earlier ``recover`` wrote there;
 a file it did not write, or one changed since, is refused before COLMAP runs
-(``scenesplat_stereo.common.files``).
+(``scenesplat_stereo.common.ownership``).
 
 Exit status (``scenesplat_stereo.common.commandline``): 0 done, 2 bad arguments or input (one line naming the flag or
 file), 130 interrupted, 1 internal error; ``recover`` exits 1 when no image registers.

@@ -13,8 +13,8 @@ Before anything is written: the flags, every ``--only`` word (each must match a 
 the data (both splits' first samples at the run's size), ``--encoder-cache`` (it must fit the encoder, the
 resolution and the precision; every variant's run reads it, Table 4's blocks A, C and D keep the encoder),
 and OUT (a folder that can be written, not inside the data, and new, empty or an earlier ablation: every file
-in it one an ablation wrote, unchanged; ``scenesplat_stereo.common.ownership.check_replaceable``, the one owner of "may
-this command replace what is there"). One ablation at a time writes OUT (``OUT/.lock``); its files are recorded
+in it one an ablation wrote, unchanged; ``scenesplat_stereo.common.ownership.check_replaceable``, the one owner
+of "may this command replace what is there"). One ablation at a time writes OUT (``OUT/.lock``); its files are recorded
 as the ablation's when it ends, however it ends (``OwnedFolder``: a killed ablation's rerun resumes).
 """
 

@@ -85,7 +85,8 @@ OUTPUTS = [
            stand_in=("scenesplat_stereo.bench.render:batch_table", lambda args, gs: ["| ours batched | (stand-in) |"])),
     Output("bench build", toolkit, lambda i, o, r: [
         "bench", "build", "--gaussians", "2000", "--sh-degree", "0", "--sizes", "32x24", "--pairs", "1",
-        "--frames", "2", "--workers", "1", "--batch-pairs", "1", "--qualities", "75", "--device", "cpu", "--repeats", "1",
+        "--frames", "2", "--workers", "1", "--batch-pairs", "1", "--qualities", "75", "--device", "cpu",
+        "--repeats", "1",
         "--encoder-modes", "threads", "--out", o],
            "scenesplat-stereo bench build", ("scenesplat_stereo.bench.build:synthetic_teacher",), b"| **total** |"),
     Output("bench encode", toolkit, lambda i, o, r: [

@@ -1,6 +1,6 @@
 """Real captures as they are published (../shared/data/captures: PlayCanvas .sog, antimatter15 .splat; a
-streamed SOG when STREAMED_SCENES holds ``playbot/`` or ``flowers/``): each renders through ``scenesplat-stereo render`` and
-builds as a teacher from a folder holding only that file, and the built dataset passes ``inspect``; at tiny
+streamed SOG when STREAMED_SCENES holds ``playbot/`` or ``flowers/``): each renders through ``scenesplat-stereo
+render`` and builds as a teacher from a folder holding only that file, and the built dataset passes ``inspect``; at tiny
 size on the CPU."""
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ SOURCES = {"sog": CAPTURES / "statue-massa" / "massa.sog", "splat": CAPTURES / "
 def test_capture_renders_and_builds_as_a_teacher(tmp_path: Path, kind: str) -> None:
     source = SOURCES[kind]
     if not source.exists():
-        pytest.skip(f"real data not available: {source} is absent (shared data, or STREAMED_SCENES for playbot and flowers)")
+        pytest.skip(f"real data not available: {source} is absent (shared data, or STREAMED_SCENES for playbot and "
+                    "flowers)")
     assert main(["render", str(source), "--out", str(tmp_path / "frames"), "--device", "cpu",
                  "--orbit", "radius=2.5,frames=1,size=48x32"]) == 0
     frame = decode_image((tmp_path / "frames" / "frame_0000.png").read_bytes(), "png")

@@ -1,7 +1,7 @@
 """The one owner of "may this command replace what is there" for a single-file output
 (``scenesplat_stereo.common.ownership.check_replaceable_file`` and ``write_owned_file``, both held by
-``OwnedFile``): its own manifest beside it, in the format of a folder's; the folder checks do not count that manifest as a file. And
-the symbolic links a command makes in its folder (COLMAP's staged images), recorded as links."""
+``OwnedFile``): its own manifest beside it, in the format of a folder's; the folder checks do not count that
+manifest as a file. And the symbolic links a command makes in its folder (COLMAP's staged images), recorded as links."""
 
 from __future__ import annotations
 

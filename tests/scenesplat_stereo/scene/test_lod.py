@@ -1,7 +1,8 @@
 """scenesplat_stereo.scene.lod: streamed SOG scenes (lod-meta.json + SOG units) read at one level, on a synthetic scene
 built here from the format description, and on the two real ones PROVENANCE names (playcanvas/engine's
 examples/assets/splats/playbot and flowers, not kept in the repository: set STREAMED_SCENES to a folder holding
-``playbot/`` and ``flowers/``, or put them in ../shared/data/streamed; skipped otherwise) against splat-transform 3.7.0's decode (tests/data/captures)."""
+``playbot/`` and ``flowers/``, or put them in ../shared/data/streamed; skipped otherwise) against
+splat-transform 3.7.0's decode (tests/data/captures)."""
 
 from __future__ import annotations
 
