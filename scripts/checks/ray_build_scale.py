@@ -28,6 +28,7 @@ import sys
 from pathlib import Path
 
 from scenesplat_stereo.common.ownership import OwnedFile
+from scenesplat_stereo.common.text import parse_size
 from sgmodel.bench import report
 
 REPO = Path(__file__).resolve().parents[2]
@@ -51,11 +52,8 @@ def build_once(gpus: int, teachers: Path, out: Path, device: str, extra: list[st
 
 
 def resolution(extra: list[str]) -> tuple[int, int] | None:
-    """The ``--resolution WxH`` among the build flags, or None."""
-    if "--resolution" in extra:
-        w, h = extra[extra.index("--resolution") + 1].lower().split("x")
-        return int(w), int(h)
-    return None
+    """The ``--resolution WxH`` among the build flags (``common.text.parse_size``), or None."""
+    return parse_size(extra[extra.index("--resolution") + 1], "--resolution") if "--resolution" in extra else None
 
 
 def main(argv: list[str] | None = None) -> int:
