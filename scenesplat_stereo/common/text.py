@@ -111,6 +111,12 @@ def format_table(rows: Sequence[Sequence[str]], align: str = "", rule: bool = Fa
     return "\n".join(lines)
 
 
+def value_cell(value: float | None, digits: int) -> str:
+    """A table cell of a measured value with ``digits`` decimals; "n/a" for None (not computed, or undefined:
+    a mean over no target)."""
+    return "n/a" if value is None else f"{value:.{digits}f}"
+
+
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
     """A GitHub-flavoured markdown table (for docs/ and reports): one header row, a rule, the rows."""
     lines = ["| " + " | ".join(str(c) for c in header) + " |", "|" + "---|" * len(header)]

@@ -42,8 +42,7 @@ from sgmodel.args import preset_params
 from sgmodel.bench import report
 from sgmodel.data.loader import make_loader, to_device
 from sgmodel.model.network import create_model
-from sgmodel.model.render import render_views
-from sgmodel.train.loop import cached_encoding, create_optimizer
+from sgmodel.train.loop import create_optimizer, render_targets
 from sgmodel.train.losses import create_objective
 
 
@@ -60,12 +59,8 @@ PRECISIONS = {"float32": (False, False), "bf16 gradients": (False, True), "bf16 
 
 
 def loss_of(model, batch: dict, objective, autocast: bool) -> torch.Tensor:
-    """The training loss of ``batch`` (``sgmodel.train.loop.render_targets``, with autocast on any device)."""
-    left = batch["left"]
-    with torch.autocast(left.device.type, dtype=torch.bfloat16, enabled=autocast):
-        pred = model(left, batch["right"], batch["K"], batch["baseline"], encoded=cached_encoding(batch))
-    S = batch["targets"].shape[-1]
-    rgb, _ = render_views(pred.gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)
+    """The training loss of ``batch`` (``render_targets``: bf16 autocast on CUDA when ``autocast``)."""
+    rgb, _, _ = render_targets(model, batch, autocast)
     return objective(rgb.flatten(0, 1), batch["targets"].flatten(0, 1))[0]
 
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from scenesplat_stereo.common.files import atomic_write_bytes, read_json
 from scenesplat_stereo.common.ownership import FolderLock, OwnedFolder, check_apart, check_replaceable
-from scenesplat_stereo.common.text import markdown_table
+from scenesplat_stereo.common.text import markdown_table, value_cell
 from sgmodel.args import (add_device_argument, add_model_arguments, add_train_arguments, device_from_flag,
                           params_from_args)
 from sgmodel.config import ConfigurationError, ModelParams, TrainParams
@@ -146,16 +146,11 @@ def table(rows: list[tuple[str, str, dict]], schedule: TrainParams, base: ModelP
             body.append([name, "n/a", "", "", "", result["not_applicable"]])
             continue
         m = result["mean"]
-        body.append([f"**{name}**" if not block else name, _cell(m, "psnr", 3), _cell(m, "ssim", 4),
-                     _cell(m, "lpips", 4), _cell(m, "psnr_masked", 3), _cell(m, "ssim_masked", 4)])
+        # a mean that was not computed (LPIPS without weights) or is undefined (no target with a valid pixel): n/a
+        body.append([f"**{name}**" if not block else name, *(value_cell(m.get(k), d) for k, d in (
+            ("psnr", 3), ("ssim", 4), ("lpips", 4), ("psnr_masked", 3), ("ssim_masked", 4)))])
     header = ["Variant", "PSNR ↑", "SSIM ↑", "LPIPS ↓", "PSNR (valid) ↑", "SSIM (valid) ↑"]
     return "\n".join(lines) + "\n" + markdown_table(header, body) + "\n"
-
-
-def _cell(mean: dict, key: str, digits: int) -> str:
-    """A mean of metrics.json as text; "n/a" when it was not computed (LPIPS without weights) or is undefined (no
-    target with a valid pixel: None)."""
-    return "n/a" if mean.get(key) is None else f"{mean[key]:.{digits}f}"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

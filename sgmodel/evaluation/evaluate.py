@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
-from scenesplat_stereo.common.text import markdown_table, whole_number
+from scenesplat_stereo.common.text import markdown_table, value_cell, whole_number
 from sgmodel.config import EncoderParams
 from sgmodel.data.loader import check_valid_pixels, eval_batches, to_device
 from sgmodel.encoders import DEFAULT_ENCODER
@@ -140,8 +140,7 @@ def scene_table(rows: list[dict]) -> str:
                 continue
             mean = summarise(sel)
             body.append([s if g is None else f"{s} ({g})", len(sel)]
-                        + ["n/a" if mean[c] is None else f"{mean[c]:.4f}" if "psnr" not in c else f"{mean[c]:.2f}"
-                           for c in cols])
+                        + [value_cell(mean[c], 2 if "psnr" in c else 4) for c in cols])
     return markdown_table(["scene", "targets"] + cols, body)
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.common.ownership import OwnedFolder, check_apart, check_replaceable
-from scenesplat_stereo.common.text import key_safe_name, markdown_table
+from scenesplat_stereo.common.text import key_safe_name, markdown_table, value_cell
 from scenesplat_stereo.shards.benchmark_file import read_benchmark
 from sgmodel.data.loader import read_split
 from sgmodel.evaluation.evaluate import OWNER, eval_inputs, evaluate, method_of
@@ -109,7 +109,7 @@ def table_markdown(cols: list[Column], rows: list[Row]) -> str:
         for c in cols:
             for m, _, digits, _ in COLUMNS:
                 v = values[(r.method, c.name, m)]
-                text = "n/a" if v is None else f"{v:.{digits}f}"
+                text = value_cell(v, digits)
                 line.append(f"**{text}**" if v is not None and v == best[(c.name, m)] else text)
         body.append(line)
     return markdown_table(header, body)

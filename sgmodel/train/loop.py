@@ -17,7 +17,7 @@ from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.files import (append_line, atomic_write_bytes, read_json, read_json_lines,
                                             remove_temp_files)
 from scenesplat_stereo.common.ownership import FolderLock, check_apart, check_replaceable
-from scenesplat_stereo.common.text import format_table
+from scenesplat_stereo.common.text import format_table, value_cell
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
 from sgmodel.data.loader import (RUN_SPLITS, check_first_sample, check_valid_pixels, load_sample, loader_workers,
@@ -471,7 +471,7 @@ def valid_pixel_psnr(record: dict, left_out: bool = False) -> str:
     """A validation record's valid-pixel PSNR as text, in dB ("n/a" when no target had a valid pixel);
     ``left_out``: and how many targets it leaves out (those without a valid pixel), if any."""
     value, without = record["val_psnr_masked"], record.get("val_targets_without_valid_pixels", 0)
-    text = "n/a" if value is None else f"{value:.2f}"
+    text = value_cell(value, 2)
     return f"{text}; {without} of {record['val_targets']} targets without any, left out" if left_out and without \
         else text
 
