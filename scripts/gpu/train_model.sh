@@ -7,7 +7,7 @@
 #           the held-out captures (never trained on) composed and built as a test split
 #   train   `sgmodel train` under torchrun on every GPU from the encoder cache, started in the background (it
 #           outlives the call; a later `wait` phase or a rerun of `train` resumes it from last.pt)
-#   wait    waits for the run (at most WAIT seconds, default 540), printing its validation records
+#   wait    waits for the run (at most WAIT seconds, default 540), printing its new output
 #   finish  packs best.pt (fp32 and bf16, `sgmodel pack`), evaluates the model, naive-GS and forward-splat on the
 #           real photographs (Middlebury 2001 nine-view sets) and on the held-out captures, predicts the real
 #           pairs of .devdata/pairs, and leaves it all in $OUT (model.pt, results.tgz)
@@ -96,19 +96,15 @@ for phase in $phases; do
       $launch -m sgmodel.cli encode --data "$root"/dataset --out "$root"/cache --encoder $ENC --resolution $S \
         --device $dev --no-progress $( [[ $dev == cpu ]] && echo --preset cpu-small --workers 0 ) | tail -6
       set +e ;;
-    train)  # in its own session: it outlives this call (the machine is held while calls follow)
-      # its own output too: a background job holding this call's stdout would keep the call open until it ends
-      setsid bash -c "$train_cmd > $root/train.log 2>&1; echo \$? > $root/train.rc" < /dev/null > /dev/null 2>&1 &
-      sleep 5; echo "training started ($STEPS steps, global batch $BATCH, $gpus ranks); log $root/train.log" ;;
-    wait)
-      deadline=$((SECONDS + ${WAIT:-540}))
-      while [[ ! -f $root/train.rc ]] && ((SECONDS < deadline)); do sleep 10; done
-      grep -h '"val_psnr"' "$run"/metrics.jsonl 2>/dev/null | tail -20
-      tail -3 "$root"/train.log
-      if [[ -f $root/train.rc ]]; then echo "training ended: exit $(cat "$root"/train.rc)"; else
-        echo "training still running (step $(tail -1 "$run"/metrics.jsonl | $py -c 'import json,sys; print(json.load(sys.stdin)["step"])'))"; fi ;;
+    train)  # a job of its own (scripts/gpu/background.sh): it outlives this call (the machine stays while calls follow)
+      bash scripts/gpu/background.sh start train bash -c "$train_cmd"
+      echo "training started ($STEPS steps, global batch $BATCH, $gpus ranks)" ;;
+    wait)  # the run's new output lines; exit 0 once it has ended, 3 while it runs
+      bash scripts/gpu/background.sh wait train "${WAIT:-540}" || \
+        echo "training still running (step $(tail -1 "$run"/metrics.jsonl | $py -c 'import json,sys; print(json.load(sys.stdin)["step"])'))" ;;
     finish)
-      [[ -f $root/train.rc ]] || { echo "training is still running: run the wait phase first" >&2; exit 2; }
+      bash scripts/gpu/background.sh wait train 0 >/dev/null ||
+        { echo "training has not ended (or was not started here): run the wait phase first" >&2; exit 2; }
       rm -rf "$root"/results && mkdir -p "$root"/results && res=$root/results
       $py -m sgmodel.cli pack "$run"/checkpoints/best.pt --out "$res"/model-fp32.pt --dtype fp32
       $py -m sgmodel.cli pack "$run"/checkpoints/best.pt --out "$res"/model-bf16.pt --dtype bf16
@@ -118,6 +114,7 @@ for phase in $phases; do
       done
       $py -m sgmodel.cli eval --data "held-out=$root/held-out" --split test --checkpoint "$res"/model-bf16.pt \
         --method naive-gs --method forward-splat --out "$res"/held-out --device $dev --no-progress | tail -12
+      mkdir -p "$res"/predict  # predict creates its OUT, not OUT's parent
       for pair in "$data"/pairs/*/; do
         [[ -f $pair/left.png ]] || continue
         for m in "--checkpoint $res/model-bf16.pt" "--method naive-gs"; do
