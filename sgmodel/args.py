@@ -24,6 +24,19 @@ from sgmodel.encoders.flags import add_encoder_arguments, encoder_params
 log = logging.getLogger(__name__)
 
 
+def add_precision_argument(p: argparse.ArgumentParser) -> None:
+    """``--no-amp`` of the commands that run a trained model (predict, eval, bench predict): float32 on CUDA
+    instead of the training run's bf16 autocast (docs/benchmarks.md "bf16 or float32 at inference")."""
+    p.add_argument("--no-amp", action="store_true",
+                   help="float32 on CUDA instead of the checkpoint's bf16 autocast (slower; see docs/benchmarks.md)")
+
+
+def amp_of(args: argparse.Namespace) -> bool | None:
+    """``add_precision_argument``'s choice for ``load_predictor``: False with ``--no-amp``, else None (the
+    training run's setting)."""
+    return False if args.no_amp else None
+
+
 def add_model_arguments(p: argparse.ArgumentParser) -> None:
     """Flags of ModelParams (defaults: the paper's, or the --preset's). Shared by train, ablate, bench."""
     g = p.add_argument_group("model (defaults: the paper's values, or the preset's)")

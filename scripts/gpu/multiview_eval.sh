@@ -10,7 +10,7 @@
 #   mkdir -p .devdata/sgcache && cp ~/.cache/sgmodel/* .devdata/sgcache/
 # One device call (carry .gpukit/b and .devdata; the checkpoint is a path on the device machine, e.g. the
 # best.pt a training run there just wrote, or a file inside .devdata):
-#   bash scripts/gpu/multiview_eval.sh /tmp/sgrun/run/checkpoints/best.pt
+#   bash scripts/gpu/multiview_eval.sh /tmp/sgrun/run/checkpoints/best.pt [more `sgmodel eval` flags, e.g. --no-amp]
 # Without a checkpoint it measures the baselines only. ENCODER=<name> gives the baselines (and the checkpoint) that
 # encoder instead of their defaults (the checkpoint's own; psmnet-kitti for the baselines); LPIPS_VGG=<vgg16 .pth>
 # adds LPIPS; DEVICE=cpu runs it on a CPU (how docs/results.md's baseline table was made). Results: $OUT/multiview/
@@ -33,7 +33,7 @@ fi
 export PYTHONUNBUFFERED=1
 args=(--data "Middlebury2001=$data" --split test --method forward-splat --method naive-gs --resolution 256
       --out "$OUT/multiview" --device "$dev" --no-progress)
-[[ -n $checkpoint ]] && args+=(--checkpoint "$checkpoint")
+[[ -n $checkpoint ]] && args+=(--checkpoint "$checkpoint" "${@:2}")
 [[ -n ${ENCODER:-} ]] && args+=(--encoder "$ENCODER")
 [[ -n ${LPIPS_VGG:-} ]] && args+=(--lpips-vgg "$LPIPS_VGG")
 python3 -m sgmodel.cli eval "${args[@]}"

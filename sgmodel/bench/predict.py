@@ -31,7 +31,8 @@ from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS
-from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
+from sgmodel.args import (add_device_argument, add_model_arguments, add_precision_argument, amp_of, device_from_flag,
+                          params_from_args)
 from sgmodel.bench import describe, report, synthetic_pair
 from sgmodel.model.geometry import depth_from_disparity
 from sgmodel.model.layers import amp_autocast
@@ -39,6 +40,7 @@ from sgmodel.model.network import Predictor, create_model, load_predictor
 from sgmodel.model.render import SH_DEGREE, render_views
 from sgmodel.predict import export
 from sgmodel.predict.video import SCENE_WRITERS
+from sgmodel.weights import SHIPPED, checkpoint_path
 
 OWNER = "sgmodel bench predict"  # recorded beside --out (a pair or --video): a later run may replace its own report
 STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write .ply", "render one view")
@@ -47,11 +49,9 @@ STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write 
 def bench_model(args: argparse.Namespace, device: torch.device) -> Predictor:
     """The trained model of ``--checkpoint`` or a fresh one of the model flags, ready for inference."""
     if args.checkpoint:
-        predictor = load_predictor(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
-    else:
-        predictor = Predictor(create_model(params_from_args(args)[0], device))
-    predictor.amp = not args.no_amp
-    return predictor
+        return load_predictor(checkpoint_path(args.checkpoint), device, args.encoder_weights, args.encoder_repo, args.encoder,
+                              amp_of(args))
+    return Predictor(create_model(params_from_args(args)[0], device), amp=not args.no_amp)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -122,13 +122,14 @@ def export_times(scene: GaussianScene, folder: Path, warmup: int, repeats: int) 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model_arguments(p)
-    p.add_argument("--checkpoint", help="a trained model (default: a fresh one of the model flags)")
+    p.add_argument("--checkpoint", help=f"a trained model, or {SHIPPED.name!r}: the shipped one (default: a fresh "
+                   "model of the model flags)")
     add_device_argument(p)
     p.add_argument("--size", type=argtype(parse_size, "--size"), default=(320, 256),
                    help="input pair (video: one eye's frame) size WxH, multiples of 16 (default 320x256)")
     p.add_argument("--warmup", type=int, default=3, help="untimed pairs (video: batches) first (default 3)")
     p.add_argument("--repeats", type=int, default=10, help="timed pairs (video: model-alone batches) (default 10)")
-    p.add_argument("--no-amp", action="store_true", help="float32 on CUDA instead of bf16 autocast")
+    add_precision_argument(p)
     p.add_argument("--video", action="store_true", help="a synthetic side-by-side video instead: pairs/s and "
                    "latency of the model alone and end to end (decode, model, one novel view, encode)")
     p.add_argument("--batch-size", type=int, default=1, help="video: pairs per model call (default 1)")

@@ -17,6 +17,7 @@ from tqdm import tqdm
 from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import markdown_table, value_cell, whole_number
+from sgmodel.args import add_precision_argument, amp_of
 from sgmodel.config import EncoderParams
 from sgmodel.data.loader import check_valid_pixels, eval_batches, to_device
 from sgmodel.encoders import DEFAULT_ENCODER
@@ -38,26 +39,30 @@ OWNER = "sgmodel eval"  # recorded in REPORT (ownership.OWNER_FILE): a later eva
 
 @dataclass
 class Method:
-    """What renders a batch's targets: name, encoder name, resolution S, and ``render(batch) -> [B,T,3,S,S]``."""
+    """What renders a batch's targets: name, encoder name, resolution S, ``render(batch) -> [B,T,3,S,S]``, and
+    what the trained model's convolutions compute in ("bf16 autocast" or "float32"; the baselines: float32)."""
 
     name: str
     encoder: str
     resolution: int
     render: object
+    precision: str = "float32"
 
 
 def checkpoint_method(checkpoint: str | Path | None, device: str, encoder_weights: str | None = None,
-                      encoder_repo: str | None = None, encoder: str | None = None) -> Method:
+                      encoder_repo: str | None = None, encoder: str | None = None, amp: bool | None = None
+                      ) -> Method:
     """The trained model (``--checkpoint``; the shipped one for None or its name), its encoder rebuilt as
-    ``load_predictor`` does (the flags over the checkpoint's)."""
-    predictor = load_predictor(checkpoint_path(checkpoint), device, encoder_weights, encoder_repo, encoder)
+    ``load_predictor`` does (the flags over the checkpoint's; ``amp`` None: the training run's precision)."""
+    predictor = load_predictor(checkpoint_path(checkpoint), device, encoder_weights, encoder_repo, encoder, amp)
 
     def render(batch: dict) -> torch.Tensor:
         gaussians = predictor.predict(batch["left"], batch["right"], batch["K"], batch["baseline"]).gaussians
         S = batch["targets"].shape[-1]
         return render_views(gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)[0]
 
-    return Method(describe_checkpoint(checkpoint), predictor.model.encoder.name, predictor.resolution, render)
+    return Method(describe_checkpoint(checkpoint), predictor.model.encoder.name, predictor.resolution, render,
+                  predictor.precision(device))
 
 
 def baseline_method(name: str, encoder_params: EncoderParams, resolution: int, device: str) -> Method:
@@ -159,7 +164,7 @@ def evaluate(method: Method, data: Path, split: str, out: Path, device: str, lpi
     lpips_net = create_lpips(lpips_vgg, device=device)
     rows, kept = measure(method, loader, device, lpips_net, progress)
     result = {"method": method.name, "encoder": method.encoder, "split": split, "data": str(Path(data).resolve()),
-              "resolution": method.resolution, "targets": len(rows),
+              "resolution": method.resolution, "precision": method.precision, "targets": len(rows),
               "lpips": "LPIPS-VGG v0.1" if lpips_net is not None else "not computed (no VGG16 ImageNet weights)",
               "mean": summarise(rows), "targets_without_valid_pixels": without_valid_pixels(rows)}
     if group_means(rows):
@@ -198,6 +203,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="report folder")
     p.add_argument("--batch-size", type=whole_number("--batch-size"), default=4, help="pairs per batch (default 4)")
     p.add_argument("--lpips-vgg", help="VGG16 ImageNet weights for LPIPS (default: torch's hub cache)")
+    add_precision_argument(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -216,7 +222,6 @@ def methods_of(args: argparse.Namespace) -> list[str]:
     return methods
 
 
-
 def eval_inputs(args: argparse.Namespace) -> dict[str, Path | None]:
     """The inputs a report must stay apart from, by flag: each ``--data`` folder (its split checked to exist
     and to have a valid pixel in some target: ``check_valid_pixels``) and ``--checkpoint``."""
@@ -229,7 +234,8 @@ def eval_inputs(args: argparse.Namespace) -> dict[str, Path | None]:
 def method_of(name: str, args: argparse.Namespace, device: str) -> Method:
     """The Method an ``eval_methods`` name stands for: the ``--checkpoint`` or a baseline with the encoder flags."""
     if name == "checkpoint":
-        return checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder)
+        return checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder,
+                                 amp_of(args))
     return baseline_method(name, encoder_params(args), args.resolution, device)
 
 

@@ -54,14 +54,15 @@ class Column:
 
 @dataclass(frozen=True)
 class Row:
-    """One method of the table: ``method`` ("checkpoint", "naive-gs", "forward-splat"), its label, and the
-    per-benchmark means (``metrics.json``'s ``mean``) keyed by column name."""
+    """One method of the table: ``method`` ("checkpoint", "naive-gs", "forward-splat"), its label, encoder, size,
+    the per-benchmark means (``metrics.json``'s ``mean``) keyed by column name, and its precision."""
 
     method: str
     label: str
     encoder: str
     resolution: int
     means: dict[str, dict]
+    precision: str = "float32"
 
 
 def columns(data: list[tuple[str, Path]], split: str) -> list[Column]:
@@ -123,7 +124,7 @@ def notes(cols: list[Column], rows: list[Row], split: str, targets: dict[str, in
     lines = [f"- {c.name}: `{c.data}`, split {split}, {targets[c.name]} targets"
              f"{f' ({left_out[c.name]} without a valid pixel)' if left_out.get(c.name) else ''}; {c.region}"
              for c in cols]
-    lines += [f"- {r.label}: encoder {r.encoder}, {r.resolution}x{r.resolution}" for r in rows]
+    lines += [f"- {r.label}: encoder {r.encoder}, {r.resolution}x{r.resolution}, {r.precision}" for r in rows]
     if not lpips.startswith("LPIPS"):
         lines.append(f"- LPIPS {lpips}: give `--lpips-vgg` (torchvision's vgg16-397923af.pth)")
     return "\n".join(lines)
@@ -160,13 +161,14 @@ def run_table(args: argparse.Namespace, methods: list[str], device: str) -> int:
                     name = f"{c.name} {g}"
                     shown.setdefault(name, dataclasses.replace(c, name=name))
                     means[name], targets[name] = group_mean, result["group_targets"][g]
-            rows.append(Row(m, labels[m], built[m].encoder, built[m].resolution, means))
+            rows.append(Row(m, labels[m], built[m].encoder, built[m].resolution, means, built[m].precision))
         cols = sorted(shown.values(), key=lambda c: [k.name for k in cols].index(c.name.split(" ")[0]))
         text = table_markdown(cols, rows) + "\n\n" + notes(cols, rows, args.split, targets, lpips, left_out) + "\n"
         doc = {"split": args.split, "lpips": lpips,
                "benchmarks": [{"name": c.name, "data": str(c.data.resolve()), "masked": c.masked, "region": c.region,
                                "targets": targets[c.name]} for c in cols],
                "rows": [{"method": r.method, "label": r.label, "encoder": r.encoder, "resolution": r.resolution,
+                         "precision": r.precision,
                          "cells": {c.name: {m: cell(r.means[c.name], m, c.masked) for m, _, _, _ in COLUMNS}
                                    for c in cols}} for r in rows]}
         atomic_write_bytes(Path(args.out) / TABLE_MD, text.encode())

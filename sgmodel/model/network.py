@@ -182,6 +182,10 @@ class Predictor:
     def resolution(self) -> int:
         return self.model.params.resolution
 
+    def precision(self, device: str | torch.device) -> str:
+        """What the convolutions compute in on ``device``: "bf16 autocast" (amp on CUDA) or "float32"."""
+        return "bf16 autocast" if self.amp and torch.device(device).type == "cuda" else "float32"
+
     @torch.no_grad()
     def predict(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor,
                 doffs: float = 0.0) -> Prediction:
@@ -193,11 +197,13 @@ class Predictor:
 
 
 def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", encoder_weights: str | None = None,
-                   encoder_repo: str | None = None, encoder: str | None = None) -> Predictor:
+                   encoder_repo: str | None = None, encoder: str | None = None, amp: bool | None = None
+                   ) -> Predictor:
     """Rebuild a model from a checkpoint written by ``sgmodel train`` (its ModelParams travel inside it);
     the frozen encoder is rebuilt from the registry with the checkpoint's settings, ``encoder_weights`` and
     ``encoder_repo`` over them (``--encoder-weights``, ``--encoder-repo``; ``encoder``, the ``--encoder`` flag,
-    may only repeat the checkpoint's). A checkpoint that is not ours, of another version, of weights that do
+    may only repeat the checkpoint's). ``amp``: bf16 autocast on CUDA or not (``--no-amp``: False); None
+    takes the training run's setting. A checkpoint that is not ours, of another version, of weights that do
     not fit its model or that hold NaN raises ``CheckpointError`` naming the file."""
     from sgmodel.model.checkpoint import load_checkpoint, load_weights, model_params_of
 
@@ -206,4 +212,4 @@ def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", e
     params.encoder = merge_encoder(params.encoder, encoder, encoder_weights, encoder_repo, checkpoint)
     model = create_model(params, device)
     load_weights(model, ckpt, checkpoint)
-    return Predictor(model, amp=bool(ckpt.get("train_params", {}).get("amp", True)))
+    return Predictor(model, amp=bool(ckpt.get("train_params", {}).get("amp", True)) if amp is None else amp)

@@ -52,7 +52,7 @@ from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
-from sgmodel.args import add_device_argument, device_from_flag
+from sgmodel.args import add_device_argument, add_precision_argument, amp_of, device_from_flag
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
 from sgmodel.metrics.sheets import depth_png
@@ -103,6 +103,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "package (the default when neither --checkpoint nor --method is given)")
     parser.add_argument("--method", choices=baselines.METHODS,
                         help="a baseline without learned prediction instead of the model")
+    add_precision_argument(parser)
     parser.add_argument("--out", required=True, help="output folder (created; existing files replaced)")
     parser.add_argument("--format", choices=sorted(FORMATS),
                         help=f"scene file format (default {DEFAULT_FORMAT} for a pair, {DEFAULT_FRAME_FORMAT} for "
@@ -136,7 +137,7 @@ def make_reconstructor(args: argparse.Namespace, device: torch.device) -> tuple[
         from sgmodel.model.network import load_predictor
 
         predictor = load_predictor(checkpoint_path(args.checkpoint), device, args.encoder_weights, args.encoder_repo,
-                                   args.encoder)
+                                   args.encoder, amp_of(args))
         return Reconstructor(predictor=predictor), args.resolution or predictor.resolution
     encoder = make_encoder(args.encoder, args.encoder_weights, args.encoder_repo, device)
     return Reconstructor(method=args.method, encoder=encoder), args.resolution or DEFAULT_RESOLUTION
@@ -239,7 +240,8 @@ def predict(args: argparse.Namespace, log=print) -> None:
             timer.lap("read and rectify")
             first.rectification.report(log)
         reconstructor, short = make_reconstructor(args, device)
-        log(f"model: {describe_checkpoint(args.checkpoint)}" if not args.method else f"method: {args.method}")
+        log(f"model: {describe_checkpoint(args.checkpoint)}, {reconstructor.predictor.precision(device)}"
+            if not args.method else f"method: {args.method}")
         timer.lap("load")
         check = stereo_check.run_check(first.left, first.right, args.strict, first.calib.doffs,
                                        first.rectification is not None, log)

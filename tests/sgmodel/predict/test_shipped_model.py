@@ -37,6 +37,10 @@ def test_the_shipped_model_loads_with_its_encoder():
         pytest.skip(f"PSMNet weights not fetched ({e})")
     assert predictor.model.encoder.name == "psmnet-kitti" and predictor.resolution == 256
     assert sum(p.numel() for p in predictor.model.parameters() if p.requires_grad) == 2_643_403
+    # trained under bf16 autocast: that on CUDA unless --no-amp (amp=False); the CPU always float32
+    assert predictor.amp and predictor.precision("cuda") == "bf16 autocast" and predictor.precision("cpu") == "float32"
+    fp32 = load_predictor(weights.checkpoint_path("default"), "cpu", amp=False)
+    assert not fp32.amp and fp32.precision("cuda") == "float32"
 
 
 def test_predict_runs_the_shipped_model_without_a_checkpoint(tmp_path, capsys):
@@ -51,7 +55,7 @@ def test_predict_runs_the_shipped_model_without_a_checkpoint(tmp_path, capsys):
                        str(meta["baseline"]), "--resolution", "64", "--out", out, "--device", "cpu"])
     printed = capsys.readouterr().out
     assert rc == 0, printed
-    assert "model: the shipped model 'default'" in printed
+    assert "model: the shipped model 'default'" in printed and ", float32" in printed
     assert (out / "scene.ply").is_file() and (out / "views" / "center.png").is_file()
 
 
@@ -66,4 +70,4 @@ def test_eval_measures_the_shipped_model_without_a_checkpoint_and_names_it():
     if not weights.cached_path("psmnet-kitti").is_file():
         pytest.skip("PSMNet weights not fetched: `sgmodel weights fetch psmnet-kitti`")
     method = evaluate.checkpoint_method(None, "cpu")
-    assert method.name.startswith("the shipped model 'default' (sha256 61a57c55")
+    assert method.name.startswith("the shipped model 'default' (sha256 61a57c55") and method.precision == "float32"
