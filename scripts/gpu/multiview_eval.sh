@@ -10,7 +10,7 @@
 #   mkdir -p .devdata/sgcache && cp ~/.cache/sgmodel/* .devdata/sgcache/
 # One device call (carry .gpukit/b and .devdata; the checkpoint is a path on the device machine, e.g. the
 # best.pt a training run there just wrote, or a file inside .devdata):
-#   bash scripts/gpu/multiview_eval.sh /tmp/sgrun/run/checkpoints/best.pt [more `sgmodel eval` flags, e.g. --no-amp]
+#   bash scripts/gpu/multiview_eval.sh /tmp/sgrun/run/checkpoints/best.pt [more `sgmodel eval` flags, e.g. --amp]
 # Without a checkpoint it measures the baselines only. ENCODER=<name> gives the baselines (and the checkpoint) that
 # encoder instead of their defaults (the checkpoint's own; psmnet-kitti for the baselines); LPIPS_VGG=<vgg16 .pth>
 # adds LPIPS; DEVICE=cpu runs it on a CPU (how docs/results.md's baseline table was made). Results: $OUT/multiview/

@@ -2,7 +2,7 @@
 # Issue 21's measurements on the lent GPU (docs/benchmarks.md "Prediction and stereo video"): one pair by stage
 # with every scene format's write time and size at 202,752 Gaussians (320x256, the issue's count), then a stereo
 # video's pairs/s and latency at 448x256, model alone and end to end (decode, model, one novel view, encode), in
-# batches of 1, 4 and 8, bf16 autocast and float32; last, `sgmodel predict --video` on a rendered demo clip.
+# batches of 1, 4 and 8, float32 and bf16 autocast; last, `sgmodel predict --video` on a rendered demo clip.
 #
 # Here, in /work/main (git-ignored folders; the code of the branch, the PSMNet weights):
 #   rsync -a --delete --exclude .git --exclude .venv --exclude __pycache__ --exclude scripts/checks/viewer/node_modules \
@@ -36,13 +36,13 @@ main() {
   # 1. one pair by stage, and the write time and size of every scene format (with the fsync'd .ply)
   run python3 -m sgmodel.cli bench predict "${MODEL[@]}" --device $dev --size $PAIR --warmup $WARMUP \
     --repeats $REPEATS --out $out/bench_predict_pair.md
-  # 2. a stereo video, model alone and end to end, by batch size; then float32 (--no-amp)
+  # 2. a stereo video, model alone and end to end, by batch size; then bf16 autocast (--amp)
   for b in $BATCHES; do
     run python3 -m sgmodel.cli bench predict --video "${MODEL[@]}" --device $dev --size $VIDEO --frames $FRAMES \
       --batch-size $b --warmup $WARMUP --repeats $REPEATS --out $out/bench_video_b$b.md
   done
   run python3 -m sgmodel.cli bench predict --video "${MODEL[@]}" --device $dev --size $VIDEO --frames $FRAMES \
-    --batch-size 1 --warmup $WARMUP --repeats $REPEATS --no-amp --out $out/bench_video_b1_fp32.md
+    --batch-size 1 --warmup $WARMUP --repeats $REPEATS --amp --out $out/bench_video_b1_bf16.md
   # 3. the command itself on a rendered stereo clip (naive-GS: no checkpoint here), with one scene per frame
   run python3 -c "from pathlib import Path; from scripts.figures.video_demo import render_clip; \
 render_clip(Path('$out/clip'), $CLIP_FRAMES, *map(int, '$CLIP'.split('x')))"

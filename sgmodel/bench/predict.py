@@ -11,8 +11,8 @@ with fsync, and the ``.spz``'s deflate alone) with its size (``scenesplat_stereo
 A cold ``sgmodel predict`` adds the process start, the model load and the first launches (its own table says
 how long each took). The pair is synthetic (smooth random texture shifted by a few pixels) at ``--size``;
 with ``--checkpoint`` the trained model runs, else a fresh one of the given flags (the time does not depend
-on the weights). On CUDA the model runs under bf16 autocast (``--no-amp``:
-float32), as trained.
+on the weights). The model runs in float32, as ``sgmodel predict`` does (``--amp``: bf16 autocast on CUDA,
+as trained).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS
-from sgmodel.args import (add_device_argument, add_model_arguments, add_precision_argument, amp_of, device_from_flag,
+from sgmodel.args import (add_device_argument, add_model_arguments, add_precision_argument, device_from_flag,
                           params_from_args)
 from sgmodel.bench import describe, report, synthetic_pair
 from sgmodel.model.geometry import depth_from_disparity
@@ -50,8 +50,8 @@ def bench_model(args: argparse.Namespace, device: torch.device) -> Predictor:
     """The trained model of ``--checkpoint`` or a fresh one of the model flags, ready for inference."""
     if args.checkpoint:
         return load_predictor(checkpoint_path(args.checkpoint), device, args.encoder_weights, args.encoder_repo, args.encoder,
-                              amp_of(args))
-    return Predictor(create_model(params_from_args(args)[0], device), amp=not args.no_amp)
+                              args.amp)
+    return Predictor(create_model(params_from_args(args)[0], device), amp=args.amp)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,7 +17,7 @@ from tqdm import tqdm
 from scenesplat_stereo.common.commandline import Interrupted
 from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.common.text import markdown_table, value_cell, whole_number
-from sgmodel.args import add_precision_argument, amp_of
+from sgmodel.args import add_precision_argument
 from sgmodel.config import EncoderParams
 from sgmodel.data.loader import check_valid_pixels, eval_batches, to_device
 from sgmodel.encoders import DEFAULT_ENCODER
@@ -50,10 +50,10 @@ class Method:
 
 
 def checkpoint_method(checkpoint: str | Path | None, device: str, encoder_weights: str | None = None,
-                      encoder_repo: str | None = None, encoder: str | None = None, amp: bool | None = None
+                      encoder_repo: str | None = None, encoder: str | None = None, amp: bool = False
                       ) -> Method:
     """The trained model (``--checkpoint``; the shipped one for None or its name), its encoder rebuilt as
-    ``load_predictor`` does (the flags over the checkpoint's; ``amp`` None: the training run's precision)."""
+    ``load_predictor`` does (the flags over the checkpoint's; ``amp``: bf16 autocast on CUDA)."""
     predictor = load_predictor(checkpoint_path(checkpoint), device, encoder_weights, encoder_repo, encoder, amp)
 
     def render(batch: dict) -> torch.Tensor:
@@ -235,7 +235,7 @@ def method_of(name: str, args: argparse.Namespace, device: str) -> Method:
     """The Method an ``eval_methods`` name stands for: the ``--checkpoint`` or a baseline with the encoder flags."""
     if name == "checkpoint":
         return checkpoint_method(args.checkpoint, device, args.encoder_weights, args.encoder_repo, args.encoder,
-                                 amp_of(args))
+                                 args.amp)
     return baseline_method(name, encoder_params(args), args.resolution, device)
 
 

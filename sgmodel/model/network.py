@@ -171,10 +171,11 @@ def create_model(params: ModelParams, device: str | torch.device = "cpu", encode
 
 
 class Predictor:
-    """A trained model ready for inference: ``predict(left, right, K, baseline) -> Prediction``. With ``amp``
-    (the training run's setting) the model runs under bf16 autocast on CUDA, as ``train.render_targets``."""
+    """A trained model ready for inference: ``predict(left, right, K, baseline) -> Prediction``. In float32 by
+    default; with ``amp`` under bf16 autocast on CUDA, as ``train.render_targets`` trains it (measured on real
+    photographs: float32 is the better of the two, and no slower for one pair; docs/benchmarks.md)."""
 
-    def __init__(self, model: StereoGaussians, amp: bool = True) -> None:
+    def __init__(self, model: StereoGaussians, amp: bool = False) -> None:
         self.model = model.eval()
         self.amp = amp
 
@@ -197,13 +198,13 @@ class Predictor:
 
 
 def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", encoder_weights: str | None = None,
-                   encoder_repo: str | None = None, encoder: str | None = None, amp: bool | None = None
+                   encoder_repo: str | None = None, encoder: str | None = None, amp: bool = False
                    ) -> Predictor:
     """Rebuild a model from a checkpoint written by ``sgmodel train`` (its ModelParams travel inside it);
     the frozen encoder is rebuilt from the registry with the checkpoint's settings, ``encoder_weights`` and
     ``encoder_repo`` over them (``--encoder-weights``, ``--encoder-repo``; ``encoder``, the ``--encoder`` flag,
-    may only repeat the checkpoint's). ``amp``: bf16 autocast on CUDA or not (``--no-amp``: False); None
-    takes the training run's setting. A checkpoint that is not ours, of another version, of weights that do
+    may only repeat the checkpoint's). ``amp``: bf16 autocast on CUDA (``--amp``) instead of float32,
+    whatever precision the model was trained in. A checkpoint that is not ours, of another version, of weights that do
     not fit its model or that hold NaN raises ``CheckpointError`` naming the file."""
     from sgmodel.model.checkpoint import load_checkpoint, load_weights, model_params_of
 
@@ -212,4 +213,4 @@ def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", e
     params.encoder = merge_encoder(params.encoder, encoder, encoder_weights, encoder_repo, checkpoint)
     model = create_model(params, device)
     load_weights(model, ckpt, checkpoint)
-    return Predictor(model, amp=bool(ckpt.get("train_params", {}).get("amp", True)) if amp is None else amp)
+    return Predictor(model, amp=amp)

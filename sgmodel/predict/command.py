@@ -52,7 +52,7 @@ from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.ownership import StagedFolder, check_apart, check_replaceable
 from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
-from sgmodel.args import add_device_argument, add_precision_argument, amp_of, device_from_flag
+from sgmodel.args import add_device_argument, add_precision_argument, device_from_flag
 from sgmodel.encoders import DEFAULT_ENCODER
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, merge_encoder
 from sgmodel.metrics.sheets import depth_png
@@ -137,7 +137,7 @@ def make_reconstructor(args: argparse.Namespace, device: torch.device) -> tuple[
         from sgmodel.model.network import load_predictor
 
         predictor = load_predictor(checkpoint_path(args.checkpoint), device, args.encoder_weights, args.encoder_repo,
-                                   args.encoder, amp_of(args))
+                                   args.encoder, args.amp)
         return Reconstructor(predictor=predictor), args.resolution or predictor.resolution
     encoder = make_encoder(args.encoder, args.encoder_weights, args.encoder_repo, device)
     return Reconstructor(method=args.method, encoder=encoder), args.resolution or DEFAULT_RESOLUTION

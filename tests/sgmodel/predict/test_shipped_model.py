@@ -37,10 +37,10 @@ def test_the_shipped_model_loads_with_its_encoder():
         pytest.skip(f"PSMNet weights not fetched ({e})")
     assert predictor.model.encoder.name == "psmnet-kitti" and predictor.resolution == 256
     assert sum(p.numel() for p in predictor.model.parameters() if p.requires_grad) == 2_643_403
-    # trained under bf16 autocast: that on CUDA unless --no-amp (amp=False); the CPU always float32
-    assert predictor.amp and predictor.precision("cuda") == "bf16 autocast" and predictor.precision("cpu") == "float32"
-    fp32 = load_predictor(weights.checkpoint_path("default"), "cpu", amp=False)
-    assert not fp32.amp and fp32.precision("cuda") == "float32"
+    # float32 by default, though trained under bf16 autocast; bf16 autocast only on CUDA and only with --amp
+    assert not predictor.amp and predictor.precision("cuda") == "float32"
+    bf16 = load_predictor(weights.checkpoint_path("default"), "cpu", amp=True)
+    assert bf16.precision("cuda") == "bf16 autocast" and bf16.precision("cpu") == "float32"
 
 
 def test_predict_runs_the_shipped_model_without_a_checkpoint(tmp_path, capsys):
@@ -71,3 +71,20 @@ def test_eval_measures_the_shipped_model_without_a_checkpoint_and_names_it():
         pytest.skip("PSMNet weights not fetched: `sgmodel weights fetch psmnet-kitti`")
     method = evaluate.checkpoint_method(None, "cpu")
     assert method.name.startswith("the shipped model 'default' (sha256 61a57c55") and method.precision == "float32"
+
+
+def test_weight_rounding_moves_each_weight_within_half_a_bf16_ulp():
+    """scripts/checks/weight_rounding.py: the ulp is bf16's spacing (against nextafter in bf16), and a moved
+    weight stays within half of it, so it rounds back to the stored bf16 value."""
+    import torch
+
+    from scripts.checks.weight_rounding import bf16_ulp, moved
+
+    scale = torch.logspace(-6, 3, 10_000, dtype=torch.float64)
+    w = (torch.randn(10_000, dtype=torch.float64) * scale).to(torch.bfloat16)
+    up = torch.nextafter(w.abs(), torch.tensor(float("inf"), dtype=torch.bfloat16))
+    assert torch.equal(bf16_ulp(w), (up.float() - w.abs().float()))
+    out = moved({"model": {"w": w, "step": 3}}, seed=0)["model"]
+    assert out["step"] == 3 and out["w"].dtype == torch.float32
+    assert ((out["w"] - w.float()).abs() <= bf16_ulp(w) / 2).all()
+    assert (out["w"] != w.float()).float().mean() > 0.99
