@@ -2,7 +2,7 @@
 bf16 autocast: the part of the several-GPU weight difference that is not a bug (issue 34).
 
     python scripts/checks/split_batch_drift.py --data DATASET [--steps 40] [--batch-size 8] [--shares 2 4]
-                                               [--device cpu] [--out report.md] [-- `sgmodel train` model flags]
+                                               [--device cpu] [--cudnn-benchmark] [--out report.md]
 
 DDP on R ranks computes each step's gradient as the mean of R shares' gradients; one process computes it
 over the whole batch at once. In exact arithmetic they are equal (the CPU test of
@@ -94,12 +94,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--preset", default="cpu-small")
     p.add_argument("--lr", type=float, help="AdamW's learning rate, constant (default: the preset's peak)")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--cudnn-benchmark", action="store_true",
+                   help="let cuDNN time its algorithms per shape, as `sgmodel train` does on CUDA (default: its "
+                        "heuristics; a share's batch shape may then get another algorithm family)")
     p.add_argument("--out", type=Path, help="also write the markdown report here")
     args = p.parse_args(argv)
     if any(args.batch_size % s for s in args.shares):
         p.error(f"--batch-size {args.batch_size} is not divisible by every --shares {args.shares}")
     out = OwnedFile(args.out, "--out", "scripts/checks/split_batch_drift.py")  # before any run
     device = torch.device(args.device)
+    torch.backends.cudnn.benchmark = args.cudnn_benchmark
     model_params, train_params = preset_params(args.preset)
     args.lr = args.lr or train_params.lr
     model_params.resolution, model_params.padding = args.resolution, max(2, args.resolution // 16)
@@ -111,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
         batches.append(to_device(next(stream), device))
     objective = create_objective(None)
     lines = [f"Whole batch against shares, {args.steps} AdamW steps (lr {args.lr:g}) of the `{args.preset}` model at "
-             f"{args.resolution}x{args.resolution}, batch {args.batch_size}, on {device}: relative L2 distance of all "
+             f"{args.resolution}x{args.resolution}, batch {args.batch_size}, on {device}"
+             f"{' (cuDNN autotuned)' if args.cudnn_benchmark else ''}: relative L2 distance of all "
              "weights from the whole batch's run of the same precision.", "",
              "| precision | run | after step 1 | after the last step |", "|---|---|---:|---:|"]
     for name in [n for n in PRECISIONS if device.type == "cuda" or not PRECISIONS[n][0]]:

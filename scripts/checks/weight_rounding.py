@@ -23,11 +23,11 @@ import torch
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from scenesplat_stereo.common.ownership import OwnedFile  # noqa: E402
-from scenesplat_stereo.common.text import markdown_table  # noqa: E402
-from sgmodel.bench import report  # noqa: E402
-from sgmodel.model.checkpoint import checkpoint_bytes, load_checkpoint  # noqa: E402
-from sgmodel.weights import checkpoint_path  # noqa: E402
+from scenesplat_stereo.common.ownership import OwnedFile
+from scenesplat_stereo.common.text import markdown_table
+from sgmodel.bench import report
+from sgmodel.model.checkpoint import checkpoint_bytes, load_checkpoint
+from sgmodel.weights import checkpoint_path
 
 
 def bf16_ulp(w: torch.Tensor) -> torch.Tensor:
