@@ -10,7 +10,11 @@
 #   cache  the same with --encoder-cache (each rank reads its share of the cache), without the noise floor
 #   build  scripts/checks/ray_build_scale.py: `scenesplat-stereo build --backend ray` on 1, 2, 4 GPUs (16 demo
 #          teachers at 616x456; nvJPEG when the machine has it), and the paper's build projected for 4 GPUs
-# Each phase writes its markdown table to $OUT (data.md, live.md, cache.md, build.md) for docs/benchmarks.md.
+#   weights  where DDP's weights part from one process's (not in the default list): the batch split in one
+#          process with cuDNN autotuned as training runs it (split_batch_drift.py --cudnn-benchmark), then DDP
+#          on 2 GPUs against one process in float32 with TF32 off, WEIGHT_STEPS (5) steps
+# Each phase writes its markdown table to $OUT (data.md, live.md, cache.md, build.md, drift.md and weights.md)
+# for docs/benchmarks.md.
 # Here, once (git-ignored folders):
 #   bash ../shared/tools/warp-gpu-kit .gpukit
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_28_x86_64 -d .whl OpenImageIO
@@ -34,7 +38,8 @@ set -uo pipefail
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
 phases=${*:-data live cache build}
 for phase in $phases; do
-  [[ " data live cache build " == *" $phase "* ]] || { echo "gpu_scale.sh: unknown phase $phase (data, live, cache, build)" >&2; exit 2; }
+  [[ " data live cache build weights " == *" $phase "* ]] || {
+    echo "gpu_scale.sh: unknown phase $phase (data, live, cache, build, weights)" >&2; exit 2; }
 done
 dev=${DEVICE:-cuda}
 work=/tmp/sgscale; mkdir -p $work
@@ -86,6 +91,17 @@ for x in read_split(sys.argv[1], s))}' for s in ('train', 'val')))" $work/datase
         --device $dev \
         --steps $STEPS --batch-size $BATCH --skip $SKIP --profile $extra $( [[ $phase == live ]] && echo --no-resume ) \
         --out "$OUT/$phase.md" -- $train_flags $cache ;;
+    weights)
+      [[ $ranks == 1 ]] && { echo "scale.sh weights: needs 2 GPUs or more" >&2; exit 2; }
+      [[ $dev == cuda ]] && autotune=--cudnn-benchmark || autotune=""
+      $py scripts/checks/split_batch_drift.py --data $work/dataset --device $dev --resolution $S \
+        --preset $( [[ $dev == cuda ]] && echo paper || echo cpu-small ) --batch-size $BATCH --shares $ranks \
+        --steps $STEPS $autotune --out "$OUT/drift.md"
+      rm -rf $work/runs-weights
+      NVIDIA_TF32_OVERRIDE=0 $py scripts/checks/ddp_check.py --data $work/dataset --work $work/runs-weights \
+        --ranks $(echo $ranks | awk '{print $1}') --device $dev --steps ${WEIGHT_STEPS:-5} --batch-size $BATCH \
+        --skip 1 --noise-floor --no-resume --label "float32, TF32 off" --out "$OUT/weights.md" \
+        -- $train_flags --no-amp ;;
     build)
       rm -rf $work/build-teachers
       $py -m scenesplat_stereo.cli demo-teachers $work/build-teachers --scenes $teachers --frames $BUILD_FRAMES \

@@ -49,8 +49,8 @@ STAGES = ("encoder", "decoder + predictor", "composer", "scene to host", "write 
 def bench_model(args: argparse.Namespace, device: torch.device) -> Predictor:
     """The trained model of ``--checkpoint`` or a fresh one of the model flags, ready for inference."""
     if args.checkpoint:
-        return load_predictor(checkpoint_path(args.checkpoint), device, args.encoder_weights, args.encoder_repo, args.encoder,
-                              args.amp)
+        return load_predictor(checkpoint_path(args.checkpoint), device, args.encoder_weights, args.encoder_repo,
+                              args.encoder, args.amp)
     return Predictor(create_model(params_from_args(args)[0], device), amp=args.amp)
 
 

@@ -12,7 +12,8 @@ A checkpoint is a plain ``torch.save`` dict (PyTorch convention; load with ``wei
 A weights-only checkpoint (``pack_checkpoint``; the ``sgmodel pack`` command writes one, and the model shipped in
 the package is one) keeps ``format``, ``model_params``, ``model`` (optionally in bfloat16 or float16: loading casts it
 back to the model's float32), ``encoder``, ``step``, ``best_val_psnr``, ``best_step`` and ``train_params`` reduced to
-``amp``; it has no optimiser, scheduler or RNG state, so a run cannot resume from it.
+``amp`` (the training run's precision, for the record: inference runs in float32 unless asked for bf16); it has no
+optimiser, scheduler or RNG state, so a run cannot resume from it.
 
 Writes are atomic (a temporary file renamed over the old one), so an interrupted save never leaves a
 half-written ``last.pt``. Reading refuses (``CheckpointError``, naming the file) a file that is not a

@@ -203,9 +203,9 @@ def load_predictor(checkpoint: str | Path, device: str | torch.device = "cpu", e
     """Rebuild a model from a checkpoint written by ``sgmodel train`` (its ModelParams travel inside it);
     the frozen encoder is rebuilt from the registry with the checkpoint's settings, ``encoder_weights`` and
     ``encoder_repo`` over them (``--encoder-weights``, ``--encoder-repo``; ``encoder``, the ``--encoder`` flag,
-    may only repeat the checkpoint's). ``amp``: bf16 autocast on CUDA (``--amp``) instead of float32,
-    whatever precision the model was trained in. A checkpoint that is not ours, of another version, of weights that do
-    not fit its model or that hold NaN raises ``CheckpointError`` naming the file."""
+    may only repeat the checkpoint's). ``amp``: bf16 autocast on CUDA (``--amp``) instead of float32, whatever
+    precision the model was trained in. A checkpoint that is not ours, of another version, of weights that do not
+    fit its model or that hold NaN raises ``CheckpointError`` naming the file."""
     from sgmodel.model.checkpoint import load_checkpoint, load_weights, model_params_of
 
     ckpt = load_checkpoint(checkpoint)
