@@ -4,9 +4,11 @@
 A writer splits its N rows into slices of ``ROWS_PER_TASK`` (a multiple of the compressed ``.ply``'s 256-row
 chunk) and quantises each slice in a task that writes its own rows of preallocated output arrays, so the
 result does not depend on how the rows were split or in which order the tasks ran. numpy releases the GIL
-inside its array loops, so the slices run on the host's cores side by side, and a slice's float64
-temporaries (8192 rows x 24 SH coefficients: 1.5 MB) stay in the CPU's cache instead of streaming whole
-[N, ...] arrays through memory once per operation.
+inside its array loops, so the slices run on the host's cores side by side; between two numpy calls a task
+holds the GIL, so a slice is large enough for each call's loop to outweigh that (32,768 rows: on 2 cores the
+compressed ``.ply`` of 202,752 Gaussians is about a fifth faster than with slices of 8,192; docs/benchmarks.md
+"Scene writers") and small enough that a slice's float64 temporaries (32,768 rows x 24 SH coefficients: 6 MB)
+stay in the CPU's last-level cache.
 
 The pool is created on first use with ``workers()`` threads and shared by every writer in the process
 (several scenes written at once, as ``sgmodel predict --video --frames`` does, share it too); a forked
@@ -22,7 +24,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
 #: Rows per task (a multiple of 256, the compressed .ply's chunk).
-ROWS_PER_TASK = 8192
+ROWS_PER_TASK = 32768
 #: Threads of the shared pool at most.
 MAX_WORKERS = 16
 
