@@ -49,17 +49,18 @@ def ctrl_c(argv: list, made_progress: Callable[[], bool], timeout: float = 300) 
     return proc.returncode, err
 
 
-def interrupted(make: Callable[[int], tuple[list, Callable[[], bool]]]) -> tuple[int, str]:
-    """``ctrl_c`` of the command ``make(attempt)`` gives, at most ``ATTEMPTS`` times while the command finishes
-    first; the attempt that was interrupted, and its stderr's one line (warnings left out)."""
+def interrupted(root: Path, make: Callable[[Path], tuple[list, Callable[[], bool]]]) -> tuple[Path, str]:
+    """``ctrl_c`` of the command ``make(out)`` gives for a fresh output folder ``root/out<attempt>``, at most
+    ``ATTEMPTS`` times while the command finishes first; the interrupted attempt's folder, and its stderr's one
+    line (warnings left out)."""
     for attempt in range(ATTEMPTS):
-        argv, made_progress = make(attempt)
-        rc, err = ctrl_c(argv, made_progress)
+        out = root / f"out{attempt}"
+        rc, err = ctrl_c(*make(out))
         if rc != 0:
             break
     lines = [line for line in err.splitlines() if ": warning: " not in line and not line.startswith("Warp ")]
     assert rc == 130 and len(lines) == 1 and "Traceback" not in err, (rc, err)
-    return attempt, lines[0]
+    return out, lines[0]
 
 
 def temp_files(root: Path) -> list[str]:
@@ -95,13 +96,11 @@ def test_ctrl_c_of_build_then_the_rerun_resumes_to_the_same_bytes(long_teachers,
     flags = ["--teachers", long_teachers, "--samples-per-shard", "2", "--workers", "1", "--val-scenes", "0",
              "--batch-pairs", "1", "--no-progress"]
 
-    def make(attempt):
-        out = tmp_path / f"out{attempt}"
+    def make(out):
         return (["scenesplat_stereo.cli", "build", "--out", out, *flags],
                 lambda: any((out / "train" / shards.DONE_DIR).glob("shard-*.json")))
 
-    attempt, line = interrupted(make)
-    out = tmp_path / f"out{attempt}"
+    out, line = interrupted(tmp_path, make)
     kept = len(shards.finished_shards(out, "train"))
     assert 1 <= kept < 20 and line == (f"scenesplat-stereo build: interrupted: {kept} of 20 shards of {out} are "
                                        f"finished and kept (each whole); rerun the same command to resume")
@@ -122,12 +121,10 @@ def test_ctrl_c_of_an_eval_table_keeps_its_finished_reports_and_the_rerun_comple
              "--method", "naive-gs", "--encoder", "sgbm", "--resolution", "64", "--batch-size", "1", "--device",
              "cpu", "--no-progress"]
 
-    def make(attempt):
-        out = tmp_path / f"out{attempt}"
+    def make(out):
         return ["sgmodel.cli", "eval", "--out", out, *flags], lambda: (out / "a" / "naive-gs" / "metrics.json").exists()
 
-    attempt, line = interrupted(make)
-    out = tmp_path / f"out{attempt}"
+    out, line = interrupted(tmp_path, make)
     reports = sorted(str(p.parent.relative_to(out)) for p in out.glob("*/*/metrics.json"))
     assert reports[:1] == ["a/naive-gs"] and len(reports) < 3
     assert line == (f"sgmodel eval: interrupted: {len(reports)} of 3 reports finished and kept in {out} "
@@ -161,14 +158,12 @@ def test_ctrl_c_of_predict_video_leaves_out_as_it_was_and_the_rerun_completes(cl
              "--encoder", "sgbm", "--resolution", "64", "--device", "cpu", "--no-progress"]
     earlier = tmp_path / "earlier.txt"  # a file beside OUT: nothing but OUT may change
 
-    def make(attempt):
-        out = tmp_path / f"out{attempt}"
+    def make(out):
         return (["sgmodel.cli", "predict", "--out", out, *flags],
                 lambda: any(tmp_path.glob(f".tmp-{out.name}.pid*/frames/000001.ply")))
 
     earlier.write_text("the user's")
-    attempt, line = interrupted(make)
-    out = tmp_path / f"out{attempt}"
+    out, line = interrupted(tmp_path, make)
     assert line == (f"sgmodel predict: interrupted: --out {out} is as it was (a prediction replaces it only when "
                     f"complete); rerun the same command")
     assert not out.exists() and not temp_files(out) and earlier.read_text() == "the user's"
@@ -192,12 +187,10 @@ def test_ctrl_c_of_encode_then_the_rerun_resumes_to_the_same_bytes(demo_dataset,
     flags = ["--data", demo_dataset, "--preset", "cpu-small", "--resolution", "64", "--batch-size", "1", "--workers",
              "1", "--device", "cpu", "--no-progress"]
 
-    def make(attempt):
-        out = tmp_path / f"out{attempt}"
+    def make(out):
         return ["sgmodel.cli", "encode", "--out", out, *flags], lambda: (out / "train" / "shard-000000.tar").exists()
 
-    attempt, line = interrupted(make)
-    out = tmp_path / f"out{attempt}"
+    out, line = interrupted(tmp_path, make)
     kept = len(shards.finished_shards(out, "train"))
     assert 1 <= kept < 4 and line == (f"sgmodel encode: interrupted: {kept} of 4 train shards written this run; "
                                       f"rerun the same command to resume")
