@@ -334,7 +334,9 @@ def _sh_palette(sh: np.ndarray, degree: int, palette: int) -> tuple[np.ndarray, 
     rows = math.ceil(palette / 64)
     px = np.zeros((rows * 64 * coeffs, 4), np.uint8)
     px[:len(cells), :3], px[:, 3] = cells, 255
-    return book, px, rows, np.stack([labels & 255, labels >> 8, 0 * labels, 255 + 0 * labels], 1).astype(np.uint8)
+    texels = np.zeros((n, 4), np.uint8)
+    texels[:, 0], texels[:, 1], texels[:, 3] = labels & 255, labels >> 8, 255
+    return book, px, rows, texels
 
 
 def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",

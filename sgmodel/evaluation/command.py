@@ -9,8 +9,8 @@ when the VGG16 weights are available; each over the full image and over the vali
 
 Writes REPORT/ after every input is checked (the data split, the checkpoint or encoder, the LPIPS weights,
 and REPORT itself: absent, empty or an earlier report, apart from the data; a split in which no target has
-a valid pixel is refused): ``metrics.json`` (means, target count, encoder, method or checkpoint, split; per
-target group too when the samples label their targets, as ``scenesplat-stereo import multiview`` does:
+a valid pixel is refused): ``metrics.json`` (means, target count, encoder, method or checkpoint, its precision,
+split; per target group too when the samples label their targets, as ``scenesplat-stereo import multiview`` does:
 "between" and "beside"; a target without a valid pixel is left out of the masked means and counted,
 ``targets_without_valid_pixels``, and a mean over no target is null), ``targets.csv`` (one row per target),
 ``scenes.md`` (a table per scene), and ``sheet.png`` (the worst and the best targets by PSNR: target |
