@@ -98,6 +98,7 @@ class ModelParams:
 class TrainParams:
     steps: int = 30_000  # optimiser steps (appendix A "Training and model selection")
     batch_size: int = 32  # stereo pairs per step, over all ranks (appendix A)
+    accumulate: int = 1  # shares each rank's batch is computed in, one after another, gradients summed
     targets: int = 4  # target views per pair drawn from the stored ten (SPEC section 7)
     lr: float = 4e-4  # AdamW peak learning rate (appendix A "Optimisation")
     weight_decay: float = 0.01  # AdamW (appendix A)
@@ -124,7 +125,7 @@ class TrainParams:
 
     def validate(self) -> None:
         """ValueError naming the flag (the field of the same name) for a schedule that cannot run."""
-        for name in ("steps", "batch_size", "targets", "val_every", "log_every", "sheet_samples"):
+        for name in ("steps", "batch_size", "accumulate", "targets", "val_every", "log_every", "sheet_samples"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} {getattr(self, name)}: must be >= 1")
         if self.val_samples is not None and self.val_samples < 1:

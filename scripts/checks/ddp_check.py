@@ -2,8 +2,8 @@
 CPU with gloo by ``tests/sgmodel/train/test_distributed.py``).
 
     python scripts/checks/ddp_check.py --data DATASET --work DIR --ranks 2 [4 ...] [--device cuda] [--steps 200]
-                                       [--weak-ranks 2 4] [--noise-floor] [--no-resume] [--profile] [--label TEXT]
-                                       [--out report.md] [-- extra `sgmodel train` flags]
+                                       [--weak-ranks 2 4] [--noise-floor] [--split-floor] [--no-resume] [--profile]
+                                       [--label TEXT] [--out report.md] [-- extra `sgmodel train` flags]
 
 Runs, each with the same flags and seed (``--val-every`` a quarter of ``--steps``):
 
@@ -12,7 +12,9 @@ Runs, each with the same flags and seed (``--val-every`` a quarter of ``--steps`
    (bf16 autocast, cuDNN's and the rasteriser's nondeterministic summation order), the floor against which
    the several-rank runs' difference is read;
 3. for each of ``--ranks``, ``torchrun --nproc_per_node=RANKS``, uninterrupted (the throughput; its weights
-   against 1);
+   against 1); with ``--split-floor`` also one process with ``--accumulate RANKS``: the same shares of each
+   batch that the RANKS ranks compute, one after another in one process, their gradients averaged. DDP's
+   weights are read against that run too: what DDP itself (other processes, NCCL) adds to the split;
 4. for each of ``--weak-ranks``, RANKS processes at ``--batch-size`` pairs each (RANKS x that a step: the
    paper's "effective batch = GPUs x per-GPU batch", each GPU as full as the one-process run's), throughput
    only (a different batch trains other weights);
@@ -157,6 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch-size", type=int, default=32, help="pairs a step over all ranks (default 32)")
     p.add_argument("--skip", type=int, default=20, help="steps left out of the throughput (default 20)")
     p.add_argument("--noise-floor", action="store_true", help="a second one-process run of the same seed")
+    p.add_argument("--split-floor", action="store_true",
+                   help="for each of --ranks, one process computing the same shares (`--accumulate RANKS`)")
     p.add_argument("--no-resume", action="store_true", help="leave out the stopped-and-resumed runs")
     p.add_argument("--profile", action="store_true", help="`sgmodel train --profile`: a table of step phases")
     p.add_argument("--label", default="", help="a word for the report's first line (e.g. 'encoder cache')")
@@ -181,6 +185,9 @@ def main(argv: list[str] | None = None) -> int:
     many = {r: work / f"ranks{r}" for r in args.ranks}
     for r, run in many.items():
         train(r, args.data, run, flags)
+    split = {r: work / f"shares{r}" for r in args.ranks} if args.split_floor else {}
+    for r, run in split.items():
+        train(1, args.data, run, [*flags, "--accumulate", str(r)])
     weak = {r: work / f"weak{r}" for r in args.weak_ranks}
     for r, run in weak.items():
         train(r, args.data, run, flags_at(r * args.batch_size))
@@ -204,18 +211,24 @@ def main(argv: list[str] | None = None) -> int:
                           *((r, run, r * args.batch_size) for r, run in weak.items())]:
         pps, ms = pairs_per_second(run, batch, args.skip)
         lines.append(f"| {r} | {batch} ({batch // r} per rank) | {ms:.1f} | {pps:.1f} | {pps / one_pps:.2f} |")
-    lines += ["", "| run | stopped at step | final step | weights vs one process (rel. L2 diff) |",
-              "|---|---:|---:|---:|"]
+    lines += ["", "| run | stopped at step | final step | weights vs one process (rel. L2 diff) | "
+              "vs the same shares in one process |", "|---|---:|---:|---:|---:|"]
     if args.noise_floor:
         step, w = last_weights(again)
         lines.append(f"| 1 process again, same seed (the noise floor) | - | {step} | "
-                     f"{weight_difference(reference, w):.2e} |")
+                     f"{weight_difference(reference, w):.2e} | - |")
+    for r, run in split.items():
+        step, w = last_weights(run)
+        lines.append(f"| 1 process, {r} shares (`--accumulate {r}`) | - | {step} | "
+                     f"{weight_difference(reference, w):.2e} | - |")
     for r, run in many.items():
         step, w = last_weights(run)
-        lines.append(f"| {r} processes, uninterrupted | - | {step} | {weight_difference(reference, w):.2e} |")
+        shares = f"{weight_difference(last_weights(split[r])[1], w):.2e}" if r in split else "-"
+        lines.append(f"| {r} processes, uninterrupted | - | {step} | {weight_difference(reference, w):.2e} | "
+                     f"{shares} |")
     for label, (_, _, run) in resumed.items():
         step, w = last_weights(run)
-        lines.append(f"| {label} | {stopped[label]} | {step} | {weight_difference(reference, w):.2e} |")
+        lines.append(f"| {label} | {stopped[label]} | {step} | {weight_difference(reference, w):.2e} | - |")
     if args.profile:
         from sgmodel.train.step_profile import PHASES
 

@@ -40,18 +40,10 @@ from scenesplat_stereo.common.ownership import OwnedFile
 from scripts.checks.ddp_check import weight_difference
 from sgmodel.args import preset_params
 from sgmodel.bench import report
-from sgmodel.data.loader import make_loader, to_device
+from sgmodel.data.loader import batch_share, make_loader, to_device
 from sgmodel.model.network import create_model
 from sgmodel.train.loop import create_optimizer, render_targets
 from sgmodel.train.losses import create_objective
-
-
-def share(batch: dict, index: int, shares: int) -> dict:
-    """Pairs ``index * B/shares .. (index + 1) * B/shares - 1`` of every batched tensor (the slots rank
-    ``index`` of ``shares`` reads, ``sgmodel.data.loader``)."""
-    n = len(batch["keys"]) // shares
-    return {k: v[index * n:(index + 1) * n] if torch.is_tensor(v) or isinstance(v, list) else v
-            for k, v in batch.items()}
 
 
 #: precision -> (bf16 autocast, gradients rounded to bf16)
@@ -78,7 +70,7 @@ def run(model0, batches: list[dict], objective, shares: int, precision: str, lr:
     for batch in batches:
         optimizer.zero_grad(set_to_none=True)
         for i in range(shares):
-            (loss_of(model, share(batch, i, shares), objective, autocast) / shares).backward()
+            (loss_of(model, batch_share(batch, i, shares), objective, autocast) / shares).backward()
         optimizer.step()
         history.append({k: v.detach().clone() for k, v in model.state_dict().items() if v.is_floating_point()})
     return history

@@ -10,10 +10,11 @@
 #   cache  the same with --encoder-cache (each rank reads its share of the cache), without the noise floor
 #   build  scripts/checks/ray_build_scale.py: `scenesplat-stereo build --backend ray` on 1, 2, 4 GPUs (16 demo
 #          teachers at 616x456; nvJPEG when the machine has it), and the paper's build projected for 4 GPUs
-#   weights  where DDP's weights part from one process's (not in the default list): the batch split in one
-#          process with cuDNN autotuned as training runs it (split_batch_drift.py --cudnn-benchmark), then DDP
-#          on 2 GPUs against one process in float32 with TF32 off, WEIGHT_STEPS (5) steps
-# Each phase writes its markdown table to $OUT (data.md, live.md, cache.md, build.md, drift.md and weights.md)
+#   weights  where DDP's weights part from one process's (not in the default list): in bf16 autocast and in
+#          float32, one process, the same again (the noise floor), one process computing the 2 ranks' shares
+#          (`--accumulate 2`: the split without DDP) and DDP on 2 GPUs (ddp_check.py --split-floor)
+# Each phase writes its markdown table to $OUT (data.md, live.md, cache.md, build.md, weights-bf16.md and
+# weights-float32.md)
 # for docs/benchmarks.md.
 # Here, once (git-ignored folders):
 #   bash ../shared/tools/warp-gpu-kit .gpukit
@@ -93,15 +94,14 @@ for x in read_split(sys.argv[1], s))}' for s in ('train', 'val')))" $work/datase
         --out "$OUT/$phase.md" -- $train_flags $cache ;;
     weights)
       [[ $ranks == 1 ]] && { echo "scale.sh weights: needs 2 GPUs or more" >&2; exit 2; }
-      [[ $dev == cuda ]] && autotune=--cudnn-benchmark || autotune=""
-      $py scripts/checks/split_batch_drift.py --data $work/dataset --device $dev --resolution $S \
-        --preset $( [[ $dev == cuda ]] && echo paper || echo cpu-small ) --batch-size $BATCH --shares $ranks \
-        --steps $STEPS $autotune --out "$OUT/drift.md"
-      rm -rf $work/runs-weights
-      NVIDIA_TF32_OVERRIDE=0 $py scripts/checks/ddp_check.py --data $work/dataset --work $work/runs-weights \
-        --ranks $(echo $ranks | awk '{print $1}') --device $dev --steps ${WEIGHT_STEPS:-5} --batch-size $BATCH \
-        --skip 1 --noise-floor --no-resume --label "float32, TF32 off" --out "$OUT/weights.md" \
-        -- $train_flags --no-amp ;;
+      first=$(echo $ranks | awk '{print $1}')
+      for precision in bf16 float32; do
+        rm -rf $work/runs-weights-$precision
+        $py scripts/checks/ddp_check.py --data $work/dataset --work $work/runs-weights-$precision --ranks $first \
+          --device $dev --steps $STEPS --batch-size $BATCH --skip $SKIP --noise-floor --split-floor --no-resume \
+          --label "$precision" --out "$OUT/weights-$precision.md" \
+          -- $train_flags $( [[ $precision == float32 ]] && echo --no-amp )
+      done ;;
     build)
       rm -rf $work/build-teachers
       $py -m scenesplat_stereo.cli demo-teachers $work/build-teachers --scenes $teachers --frames $BUILD_FRAMES \

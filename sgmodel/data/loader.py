@@ -413,6 +413,23 @@ def make_loader(root: Path, split: str, batch_size: int, resolution: int = RESOL
                       pin_memory=pin_memory, **workers)
 
 
+def batch_share(batch: dict, index: int, shares: int) -> dict:
+    """Share ``index`` of ``shares`` equal shares of a Batch dict: its samples ``index * B/shares`` to
+    ``(index + 1) * B/shares - 1`` in every per-sample value (tensors, the lists ``keys``, ``scenes`` and
+    ``target_groups``, and each scale of ``encoder_features``): the slots rank ``index`` of ``shares`` would
+    read (module docstring). ``shares`` must divide B."""
+    n, rem = divmod(len(batch["keys"]), shares)
+    if rem:
+        raise ValueError(f"a batch of {len(batch['keys'])} pairs does not split into {shares} equal shares")
+    part = slice(index * n, (index + 1) * n)
+
+    def cut(name: str, v):
+        if name == "encoder_features":  # a list of scales, each batched
+            return [t[part] for t in v]
+        return v[part] if torch.is_tensor(v) or isinstance(v, list) else v
+    return {k: cut(k, v) for k, v in batch.items()}
+
+
 def to_device(batch: dict, device: torch.device) -> dict:
     """The batch's tensors (and lists of tensors) on ``device``; other values as they are."""
     def move(v):

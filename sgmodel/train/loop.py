@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,8 +21,8 @@ from scenesplat_stereo.common.ownership import FolderLock, check_apart, check_re
 from scenesplat_stereo.common.text import format_table, value_cell
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
-from sgmodel.data.loader import (RUN_SPLITS, check_first_sample, check_valid_pixels, load_sample, loader_workers,
-                                 make_loader, read_split, to_device)
+from sgmodel.data.loader import (RUN_SPLITS, batch_share, check_first_sample, check_valid_pixels, load_sample,
+                                 loader_workers, make_loader, read_split, to_device)
 from sgmodel.metrics import image as metrics
 from sgmodel.metrics.sheets import validation_sheet
 from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
@@ -96,26 +97,38 @@ def _no_mark(_: str) -> None:
 
 
 def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, scheduler, amp: bool,
-               mark=_no_mark) -> dict:
+               mark=_no_mark, accumulate: int = 1) -> dict:
     """One optimiser step on one batch; returns loss, its parts, PSNR (dB) and the learning rate used.
-    ``mark(name)``: called once the loss ("forward"), the backward ("backward") and the optimiser step
-    ("optimizer") are queued (``StepProfile.mark``)."""
+    ``accumulate``: the batch is computed in that many equal shares (``batch_share``), one after another,
+    each share's loss divided by their number: the gradient is the mean of the shares' gradients, as DDP's
+    is the mean of its ranks' (under DDP the all-reduce runs once, after the last share). The returned
+    values are the shares' means. ``mark(name)``: called once the loss ("forward"), the backward
+    ("backward") and the optimiser step ("optimizer") are queued (``StepProfile.mark``; with shares, the
+    last share's loss and backward)."""
     optimizer.zero_grad(set_to_none=True)
-    rgb, _, _ = render_targets(model, batch, amp)
-    loss, parts = objective(rgb.flatten(0, 1), batch["targets"].flatten(0, 1))
-    mark("forward")
-    loss.backward()
+    values = []
+    for i in range(accumulate):
+        part = batch_share(batch, i, accumulate) if accumulate > 1 else batch
+        last = i == accumulate - 1
+        with model.no_sync() if not last and isinstance(model, DistributedDataParallel) else nullcontext():
+            rgb, _, _ = render_targets(model, part, amp)
+            loss, parts = objective(rgb.flatten(0, 1), part["targets"].flatten(0, 1))
+            if last:
+                mark("forward")
+            (loss / accumulate if accumulate > 1 else loss).backward()
+        psnr = metrics.psnr(rgb.detach(), part["targets"]).mean()
+        values.append(torch.stack([loss.detach(), psnr, *(v.detach() for v in parts.values())]))
     mark("backward")
+    values = torch.stack(values).mean(0)
     # checked once the backward is queued (the GPU is not left idle while the host starts it), before the
     # optimiser: a non-finite loss still changes no weight
-    if not torch.isfinite(loss):
-        raise TrainingDiverged(f"the loss is {loss.item()}")
+    if not torch.isfinite(values[0]):
+        raise TrainingDiverged(f"the loss is {values[0].item()}")
     lr = optimizer.param_groups[0]["lr"]
     optimizer.step()
     scheduler.step()
     mark("optimizer")
-    psnr = metrics.psnr(rgb.detach(), batch["targets"]).mean()
-    values = torch.stack([loss.detach(), psnr, *parts.values()]).tolist()  # one transfer for all of them
+    values = values.tolist()  # one transfer for all of them
     return {"loss": values[0], "psnr": values[1], "lr": lr, **dict(zip(parts, values[2:]))}
 
 
@@ -220,9 +233,9 @@ def _check_resumable(paths: RunPaths, config: dict) -> bool:
     if not isinstance(old, dict):
         raise ValueError(f"{paths.config}: not a JSON object; choose another --out")
     differs = [part for part in ("model", "data", "encoder", "loss", "init_from") if old.get(part) != config[part]]
-    # workers do not change results, compilation only their rounding (and a run from before a compile flag
-    # existed resumes)
-    ignore = ("workers", "compile_lpips", "compile_composer", "ddp_bucket_mb", "profile")
+    # workers do not change results, compilation and shares only their rounding, as another number of ranks
+    # does (and a run from before a compile flag existed resumes)
+    ignore = ("workers", "compile_lpips", "compile_composer", "ddp_bucket_mb", "profile", "accumulate")
     if {k: v for k, v in old.get("train", {}).items() if k not in ignore} != \
             {k: v for k, v in config["train"].items() if k not in ignore}:
         differs.append("train")
@@ -275,6 +288,9 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
            vgg_path: str | None, progress: bool, init_from: Path | None, encoder_cache: Path | None) -> dict:
     if tp.batch_size % world.size:
         raise ValueError(f"--batch-size {tp.batch_size} must be divisible by the {world.size} ranks")
+    if (tp.batch_size // world.size) % tp.accumulate:
+        raise ValueError(f"--accumulate {tp.accumulate}: must divide the batch per rank ({tp.batch_size // world.size}"
+                         f" = --batch-size {tp.batch_size} over {world.size} rank(s))")
     if tp.ddp_bf16_grads and world.device.type != "cuda":
         raise ValueError("--ddp-bf16-grads: the bfloat16 all-reduce needs NCCL (CUDA devices)")
     check_run_folder(paths, data)
@@ -395,7 +411,7 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
                 profile.begin()
             try:
                 stats = train_step(net, batch, objective, optimizer, scheduler, tp.amp,
-                                   profile.mark if profile is not None else _no_mark)
+                                   profile.mark if profile is not None else _no_mark, tp.accumulate)
             except TrainingDiverged as e:
                 raise diverged(step + 1, str(e)) from None
             step += 1

@@ -49,6 +49,18 @@ def test_ranks_train_what_one_process_trains_and_only_rank_0_writes(single, demo
     assert sorted(p.name for p in (run / "sheets").iterdir()) == sorted(p.name for p in (single / "sheets").iterdir())
 
 
+@pytest.mark.parametrize("ranks, shares", [(1, 4), (2, 2)])
+def test_a_batch_in_shares_trains_what_one_process_trains(single, demo_dataset, tmp_path, ranks, shares):
+    """``--accumulate``: each rank's batch in shares, one after another (under DDP the all-reduce once, after
+    the last), trains the weights of the whole batch, and logs the same loss."""
+    run = tmp_path / f"ranks{ranks}-shares{shares}"
+    train(ranks, demo_dataset, run, [*FLAGS, "--accumulate", str(shares)])
+    assert final_difference(single, run) < SAME_MODEL
+    for a, b in zip(records(run), records(single), strict=True):
+        if "loss" in b:
+            assert a["loss"] == pytest.approx(b["loss"], rel=1e-4), a["step"]
+
+
 @pytest.mark.parametrize("first, then", [(4, 2)])  # 2 -> 1 and 1 -> 2: the recipe test below
 def test_a_run_stopped_on_some_ranks_resumes_on_others(single, demo_dataset, tmp_path, first, then):
     run = tmp_path / f"from{first}to{then}"
@@ -67,15 +79,18 @@ def test_the_recipe_reports_throughput_and_resumes(demo_dataset, tmp_path):
     out = tmp_path / "report.md"
     assert main(["--data", str(demo_dataset), "--work", str(tmp_path / "w"), "--ranks", "2", "--device", "cpu",
                  "--weak-ranks", "2", "--steps", "8", "--batch-size", "4", "--skip", "2", "--noise-floor", "--profile",
-                 "--out", str(out),
+                 "--split-floor", "--out", str(out),
                  "--", "--preset", "cpu-small", "--resolution", "32", "--padding", "2", "--targets", "2",
                  "--workers", "0"]) == 0
     text = out.read_text()
     assert "| 2 | 4 (2 per rank) | " in text and "resumed on 1" in text and "resumed on 2" in text
     assert "| 2 | 8 (4 per rank) | " in text  # --weak-ranks: each rank as full as the one process
-    rows = [line for line in text.splitlines() if "resumed" in line or "uninterrupted" in line or "noise" in line]
-    diffs = [float(line.rsplit("|", 2)[-2]) for line in rows]
-    assert len(diffs) == 4 and max(diffs) < SAME_MODEL
+    rows = [line.split("|")[1:-1] for line in text.splitlines()
+            if any(word in line for word in ("resumed", "uninterrupted", "noise", "shares (`--accumulate 2`)"))]
+    diffs = [float(row[3]) for row in rows]
+    assert len(diffs) == 5 and max(diffs) < SAME_MODEL
+    against_shares = [float(row[4]) for row in rows if "uninterrupted" in row[0]]
+    assert len(against_shares) == 1 and against_shares[0] < SAME_MODEL
     runs = ("| one |", "| ranks2 |", "| weak2 |")
     profiled = [line.split("|")[1:3] for line in text.splitlines() if line.startswith(runs)]
     assert [[c.strip() for c in row] for row in profiled] == [["one", "0"], ["ranks2", "0"], ["ranks2", "1"],

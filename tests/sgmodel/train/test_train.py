@@ -3,6 +3,7 @@ input is refused before anything is written."""
 
 from __future__ import annotations
 
+import copy
 import json
 import re
 
@@ -47,6 +48,39 @@ def test_overfitting_one_batch_raises_psnr_by_10db():
     for _ in range(150):
         last = train_mod.train_step(model, batch, objective, opt, sched, amp=False)["psnr"]
     assert last >= first + 10.0, (first, last)
+
+
+def test_a_step_in_shares_is_the_step_on_the_whole_batch():
+    """``train_step(accumulate=N)``: N shares' losses, each over its pairs, averaged, the weights after the step
+    and the logged values those of the whole batch (float32 summation order apart); the same shares cut
+    from each batched tensor and list, encoder features included (``batch_share``)."""
+    from sgmodel.data.loader import batch_share
+
+    torch.manual_seed(0)
+    batch = textured_batch(B=4, T=2, S=32)
+    batch["encoder_features"] = [torch.arange(4.0).view(4, 1).expand(4, 3), torch.arange(4.0).view(4, 1, 1)]
+    half = batch_share(batch, 1, 2)
+    assert half["keys"] == ["s2", "s3"] and torch.equal(half["left"], batch["left"][2:])
+    assert [f.flatten().unique().tolist() for f in half["encoder_features"]] == [[2.0, 3.0], [2.0, 3.0]]
+    with pytest.raises(ValueError, match="4 pairs does not split into 3"):
+        batch_share(batch, 0, 3)
+    del batch["encoder_features"]
+    model0 = create_model(tiny_model_params(), encoder=StandInEncoder())
+    objective = create_objective(None, device="cpu")
+    runs = []
+    for shares in (1, 2, 4):
+        model = copy.deepcopy(model0)
+        # SGD, not AdamW: its step is proportional to the gradient, so a sum of shares not divided is seen
+        opt = torch.optim.SGD([p for p in model.parameters() if p.requires_grad], lr=1e-2)
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0)
+        stats = train_mod.train_step(model, batch, objective, opt, sched, amp=False, accumulate=shares)
+        runs.append((stats, torch.cat([p.detach().flatten() for p in model.parameters()])))
+    moved = (runs[0][1] - torch.cat([p.detach().flatten() for p in model0.parameters()])).norm()
+    for stats, weights in runs[1:]:
+        # measured 7e-7 and 1.3e-6 of the step (float32 summation order); shares summed, not averaged: 1
+        assert (weights - runs[0][1]).norm() < 1e-4 * moved
+        assert stats["loss"] == pytest.approx(runs[0][0]["loss"], rel=1e-5)
+        assert stats.keys() == runs[0][0].keys()
 
 
 def _records(run):
@@ -138,6 +172,8 @@ def test_resume_refuses_other_settings(demo_dataset, tmp_path):
     (["--resolution", "30"], "resolution"),
     (["--encoder", "nope"], "nope"),
     (["--device", "tpu"], "--device"),
+    (["--accumulate", "3"], "--accumulate 3: must divide the batch per rank"),  # cpu-small's batch is 4
+    (["--accumulate", "0"], "--accumulate"),
 ])
 def test_cli_bad_input_exits_2_and_writes_nothing(demo_dataset, tmp_path, capsys, argv, match):
     out = tmp_path / "run"
