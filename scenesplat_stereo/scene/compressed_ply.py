@@ -177,6 +177,7 @@ def _unit_interval(columns: np.ndarray, box: np.ndarray, clamp: float | None = N
     but at its hi (above lo), as splat-transform does."""
     blocks = columns.reshape(3, -1, CHUNK_SIZE)
     lo, hi = blocks.min(2), blocks.max(2)  # exact float32 values: the padding repeats a real value
+    _signed_zero_bounds(blocks, lo, hi)
     if clamp is not None:
         np.clip(lo, -clamp, clamp, out=lo)
         np.clip(hi, -clamp, clamp, out=hi)
@@ -191,6 +192,18 @@ def _unit_interval(columns: np.ndarray, box: np.ndarray, clamp: float | None = N
     if narrow.any():
         np.copyto(t, (blocks > lo64) & (blocks >= hi64), where=np.broadcast_to(narrow, t.shape))
     return t.reshape(3, -1)
+
+
+def _signed_zero_bounds(blocks: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+    """Give bounds at zero the sign JavaScript's Math.min and Math.max give them (splat-transform's chunk
+    boxes): a lower bound -0 when some value of its block is -0, else +0; an upper bound +0 when some value is
+    +0, else -0. numpy's min and max return either zero. In place; only blocks with a bound at zero are read."""
+    for bound, negative in ((lo, True), (hi, False)):
+        at_zero = np.nonzero(bound == 0)
+        if len(at_zero[0]):
+            values = blocks[at_zero]  # [z, CHUNK_SIZE]: the blocks whose bound is a zero
+            signed = ((values == 0) & (np.signbit(values) == negative)).any(1)
+            bound[at_zero] = np.where(signed == negative, -0.0, 0.0)
 
 
 def _to_unorm(t: np.ndarray, bits: int) -> np.ndarray:

@@ -132,11 +132,21 @@ def _unorm(t: float, bits: int) -> int:
     return int(min(top, max(0, math.floor(t * top + 0.5))))
 
 
+def js_min(values: list[float]) -> float:
+    """JavaScript's Math.min (splat-transform's): -0 below +0."""
+    return min(values, key=lambda v: (v, math.copysign(1.0, v)))
+
+
+def js_max(values: list[float]) -> float:
+    """JavaScript's Math.max: +0 above -0."""
+    return max(values, key=lambda v: (v, math.copysign(1.0, v)))
+
+
 def reference_file(scene: GaussianScene) -> bytes:
     """The compressed layout from its description (module docstring of scenesplat_stereo.scene.compressed_ply, as
     splat-transform writes it), chunk by chunk and value by value in Python floats, in ``reference_morton``'s
-    order: boxes of the float32 values (the last chunk padded with its last row; log scales clamped to +-20
-    in the box), t = (v - lo) / (hi - lo) (0 at or below lo, 1 at or above hi, 0 in a range under 1e-5),
+    order: boxes of the float32 values by Math.min and Math.max (the last chunk padded with its last row; log
+    scales clamped to +-20 in the box), t = (v - lo) / (hi - lo) (0 at or below lo, 1 at or above hi, 0 in a range under 1e-5),
     unorm fields floor(t (2^b - 1) + 1/2), SH trunc(256 (f / 8 + 1/2)) clamped, channel-major."""
     n, k = len(scene), (scene.sh_degree + 1) ** 2
     order = reference_morton(scene.means)
@@ -150,8 +160,8 @@ def reference_file(scene: GaussianScene) -> bytes:
         padded = rows + [n - 1] * (256 - len(rows))
         t, box = {}, []
         for name, values in fields.items():
-            lo = [min(values[r][a] for r in padded) for a in range(3)]
-            hi = [max(values[r][a] for r in padded) for a in range(3)]
+            lo = [js_min([values[r][a] for r in padded]) for a in range(3)]
+            hi = [js_max([values[r][a] for r in padded]) for a in range(3)]
             if name == "scale":
                 lo, hi = ([min(20.0, max(-20.0, v)) for v in x] for x in (lo, hi))
             box += [(lo, hi)]
@@ -193,10 +203,11 @@ def reference_file(scene: GaussianScene) -> bytes:
     return "\n".join(lines + ["end_header\n"]).encode() + body
 
 
-@pytest.mark.parametrize("degree,n", [(0, 1900), (2, 1500)])
+@pytest.mark.parametrize("degree,n", [(0, 2600), (2, 2400)])
 def test_writer_bytes_equal_the_layout_point_by_point(tmp_path: Path, degree: int, n: int) -> None:
-    """Rows split over many slices (``row_tasks``), clumps, flat and clamped chunks, equal quaternion
-    components, SH beyond the ends: the bytes of the layout's description."""
+    """Rows split over many slices (``row_tasks``), clumps, flat, narrow and clamped chunks, chunk bounds at -0
+    and +0, equal quaternion components, SH beyond the ends and at rounding ties: the bytes of the layout's
+    description."""
     from scenesplat_stereo.scene import row_tasks
 
     rng = np.random.default_rng(20 + degree)
@@ -207,7 +218,18 @@ def test_writer_bytes_equal_the_layout_point_by_point(tmp_path: Path, degree: in
     scene.means[812:1324, 2] += rng.integers(0, 4, 512) * 2.0**-25  # narrow ones (0 < range < 1e-5)
     scene.scales[:200] = np.exp(rng.choice([-25.0, 22.0], (200, 3)))  # log scales beyond +-20
     scene.quats[900:1200] = rng.choice([-0.5, 0.5], (300, 4))
+    # a cluster with x >= 0 and y <= 0 and zeros there: chunk bounds at zero, in chunks with both zeros (of
+    # even index in the file, where the zero's sign does not move a point) and with one
+    scene.means[1324:2348] = rng.uniform(0, 1, (1024, 3)) * [1, -1, 1] + [0, 0, 12]
+    rows = rng.integers(1324, 2348, (2, 200))
+    scene.means[rows[0], 0], scene.means[rows[1], 1] = 0.0, -0.0
+    chunk = np.argsort(morton_order(scene.means)) // 256
+    for axis in (0, 1):
+        flip = rows[axis][(chunk[rows[axis]] % 2 == 0) & (rng.uniform(size=200) < 0.5)]
+        scene.means[flip, axis] *= -1
     scene.sh[:, 1:] = rng.uniform(-4.5, 4.5, scene.sh[:, 1:].shape)
+    ties = [-4.0, 4.0, 0.0, -0.0, -2.0**-52, -2.0**-53, 1 / 32, -1 / 32]  # 32 f + 128 rounds to 128 at -2^-53
+    scene.sh[:100, 1:] = rng.choice(ties, scene.sh[:100, 1:].shape)
     original = row_tasks.ROWS_PER_TASK
     try:
         row_tasks.ROWS_PER_TASK = 512

@@ -89,6 +89,20 @@ def test_compressed_writer_is_bit_identical_to_splat_transform(tmp_path: Path, g
     assert _without_comments((tmp_path / "theirs.compressed.ply").read_bytes()) == ours.read_bytes()
 
 
+def test_compressed_writer_takes_splat_transforms_signed_zero_bounds(tmp_path: Path) -> None:
+    """Chunk bounds at zero: -0 where a -0 is among a chunk's smallest values, +0 where a +0 is among its largest
+    (JavaScript's Math.min and Math.max), the same bytes as splat-transform's."""
+    rng = np.random.default_rng(1)
+    scene = random_scene(rng, 3000, 1)
+    scene.means[:, 0], scene.means[:, 1] = np.abs(scene.means[:, 0]), -np.abs(scene.means[:, 1])
+    for axis in range(3):
+        scene.means[rng.integers(0, 3000, 600), axis] = rng.choice([0.0, -0.0], 600)
+    save_ply(scene, tmp_path / "s.ply")
+    ours = FORMATS["compressed-ply"].save(load_ply(tmp_path / "s.ply"), tmp_path / "ours.compressed.ply")
+    splat_transform(str(tmp_path / "s.ply"), str(tmp_path / "theirs.compressed.ply"))
+    assert _without_comments((tmp_path / "theirs.compressed.ply").read_bytes()) == ours.read_bytes()
+
+
 def test_spz_encoding_is_niantics(tmp_path: Path) -> None:
     """splat-transform --spz-version 3 runs Niantic's encoder (the @adobe/spz WebAssembly build of
     nianticlabs/spz) on our .ply; its uncompressed stream equals ours byte for byte."""
