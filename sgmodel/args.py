@@ -63,10 +63,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--steps", type=whole_number("--steps"), help="optimiser steps (default 30000)")
     g.add_argument("--batch-size", type=whole_number("--batch-size"),
                    help="stereo pairs per step over all ranks (default 32)")
-    g.add_argument("--accumulate", type=whole_number("--accumulate"),
+    g.add_argument("--accumulate", type=whole_number("--accumulate"), metavar="N",
                    help="compute each rank's batch in N equal shares, one after another, their gradients averaged: "
-                        "the step N GPUs take, in about 1/N of the activation memory (default 1; N must divide "
-                        "the batch per rank)")
+                        "the step N GPUs take, holding one share's activations at a time (default 1; N must "
+                        "divide the batch per rank)")
     g.add_argument("--targets", type=whole_number("--targets"),
                    help="targets per pair per step, of the stored 10 (default 4)")
     g.add_argument("--lr", type=positive_number("--lr"), help="AdamW peak learning rate (default 4e-4)")
