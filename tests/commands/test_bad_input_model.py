@@ -106,6 +106,8 @@ TRAIN_FLAGS = [  # (flags, message); each refused by its argparse type or the pa
     (["--edge-mask", "hard", "--no-back-layer"], "--edge-mask hard: an edge mask gates the back layer"),
     (["--steps", "0"], "--steps 0: must be >= 1"),
     (["--batch-size", "0"], "--batch-size 0: must be >= 1"),
+    (["--accumulate", "0"], "--accumulate 0: must be >= 1"),
+    (["--accumulate", "3"], r"--accumulate 3: must divide the batch per rank \(4 = --batch-size 4 over 1 rank"),
     (["--val-samples", "0"], "--val-samples 0: must be >= 1"),
     (["--device", "tpu"], "--device 'tpu': expected cpu, cuda or cuda:<n>"),
     (["--device", "mps"], "--device 'mps': the rasteriser runs on cpu or cuda only"),
