@@ -98,7 +98,7 @@ class ModelParams:
 class TrainParams:
     steps: int = 30_000  # optimiser steps (appendix A "Training and model selection")
     batch_size: int = 32  # stereo pairs per step, over all ranks (appendix A)
-    accumulate: int = 1  # shares each rank's batch is computed in, one after another, gradients summed
+    accumulate: int = 1  # shares each rank's batch is computed in, one after another, gradients averaged
     targets: int = 4  # target views per pair drawn from the stored ten (SPEC section 7)
     lr: float = 4e-4  # AdamW peak learning rate (appendix A "Optimisation")
     weight_decay: float = 0.01  # AdamW (appendix A)

@@ -40,9 +40,9 @@ from scenesplat_stereo.common.ownership import OwnedFile
 from scripts.checks.ddp_check import weight_difference
 from sgmodel.args import preset_params
 from sgmodel.bench import report
-from sgmodel.data.loader import batch_share, make_loader, to_device
+from sgmodel.data.loader import make_loader, to_device
 from sgmodel.model.network import create_model
-from sgmodel.train.loop import create_optimizer, render_targets
+from sgmodel.train.loop import create_optimizer, train_step
 from sgmodel.train.losses import create_objective
 
 
@@ -50,15 +50,10 @@ from sgmodel.train.losses import create_objective
 PRECISIONS = {"float32": (False, False), "bf16 gradients": (False, True), "bf16 autocast": (True, False)}
 
 
-def loss_of(model, batch: dict, objective, autocast: bool) -> torch.Tensor:
-    """The training loss of ``batch`` (``render_targets``: bf16 autocast on CUDA when ``autocast``)."""
-    rgb, _, _ = render_targets(model, batch, autocast)
-    return objective(rgb.flatten(0, 1), batch["targets"].flatten(0, 1))[0]
-
-
 def run(model0, batches: list[dict], objective, shares: int, precision: str, lr: float) -> list[dict]:
-    """Train a copy of ``model0`` on ``batches``; each step's gradient the mean over ``shares`` equal shares.
-    The weights after every step."""
+    """Train a copy of ``model0`` on ``batches`` with ``sgmodel train``'s step (``train_step``), each step's
+    gradient the mean over ``shares`` equal shares (its ``accumulate``), at a constant ``lr``. The weights after
+    every step."""
     model = copy.deepcopy(model0).train()
     params = [p for p in model.parameters() if p.requires_grad]
     autocast, round_grads = PRECISIONS[precision]
@@ -66,12 +61,10 @@ def run(model0, batches: list[dict], objective, shares: int, precision: str, lr:
         for param in params:
             param.register_hook(lambda g: g.to(torch.bfloat16).to(g.dtype))
     optimizer = create_optimizer(params, batches[0]["left"].device, lr=lr)
+    constant = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
     history = []
     for batch in batches:
-        optimizer.zero_grad(set_to_none=True)
-        for i in range(shares):
-            (loss_of(model, batch_share(batch, i, shares), objective, autocast) / shares).backward()
-        optimizer.step()
+        train_step(model, batch, objective, optimizer, constant, autocast, accumulate=shares)
         history.append({k: v.detach().clone() for k, v in model.state_dict().items() if v.is_floating_point()})
     return history
 

@@ -14,7 +14,9 @@ its copy to the device), ``encoder``, ``forward`` (the rest of the forward and t
 (until the last gradient), ``allreduce`` (the exposed part of DDP's gradient all-reduce: from the last
 gradient until the backward returns; on one process the little the autograd engine does after its last
 gradient), ``optimizer``; ``cache_mb``: the encoder-cache bytes of this rank's batch (what it read from
-the cache for the step). GPU phases are stream time between marks, host stalls included.
+the cache for the step). GPU phases are stream time between marks, host stalls included. With ``--accumulate
+N`` the encoder and forward marks are the last share's: ``forward`` then holds the N - 1 shares before it,
+their backward passes included.
 """
 
 from __future__ import annotations
