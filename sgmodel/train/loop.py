@@ -108,14 +108,13 @@ def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, 
     optimizer.zero_grad(set_to_none=True)
     values = []
     for i in range(accumulate):
-        part = batch_share(batch, i, accumulate) if accumulate > 1 else batch
-        last = i == accumulate - 1
+        part, last = batch_share(batch, i, accumulate), i == accumulate - 1
         with model.no_sync() if not last and isinstance(model, DistributedDataParallel) else nullcontext():
             rgb, _, _ = render_targets(model, part, amp)
             loss, parts = objective(rgb.flatten(0, 1), part["targets"].flatten(0, 1))
             if last:
                 mark("forward")
-            (loss / accumulate if accumulate > 1 else loss).backward()
+            (loss / accumulate).backward()
         psnr = metrics.psnr(rgb.detach(), part["targets"]).mean()
         values.append(torch.stack([loss.detach(), psnr, *(v.detach() for v in parts.values())]))
     mark("backward")
