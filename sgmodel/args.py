@@ -89,9 +89,6 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-compile-lpips", action="store_true",
                    help="run the LPIPS term's VGG16 eagerly on CUDA (default: torch.compile, about 15 s once "
                         "per process for a step about 7%% faster)")
-    g.add_argument("--no-compile-composer", action="store_true",
-                   help="run the composer eagerly on CUDA (default: torch.compile, about 20 s once per process "
-                        "and batch shape for a step about 3%% faster)")
     g.add_argument("--ddp-bucket-mb", type=positive_number("--ddp-bucket-mb"),
                    help="several GPUs: DDP's gradient bucket size in MiB (default 25)")
     g.add_argument("--ddp-bf16-grads", action="store_true",
@@ -133,8 +130,6 @@ def params_from_args(args: argparse.Namespace) -> tuple[ModelParams, TrainParams
         train.amp = False
     if getattr(args, "no_compile_lpips", False):
         train.compile_lpips = False
-    if getattr(args, "no_compile_composer", False):
-        train.compile_composer = False
     train.ddp_bf16_grads = getattr(args, "ddp_bf16_grads", False) or train.ddp_bf16_grads
     train.profile = getattr(args, "profile", False) or train.profile
     train.betas = tuple(train.betas)

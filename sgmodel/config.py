@@ -114,7 +114,6 @@ class TrainParams:
     workers: int | None = None  # DataLoader worker processes per rank (None: ``loader_workers``' share of the host)
     amp: bool = True  # bf16 autocast for the encoder and the convolutions on CUDA (rasteriser float32)
     compile_lpips: bool = True  # torch.compile the LPIPS term's VGG16 trunk on CUDA (~15 s once per process)
-    compile_composer: bool = True  # torch.compile the composer on CUDA (~20 s once per process and batch shape)
     sheet_samples: int = 4  # validation samples shown in each contact sheet
     ddp_bucket_mb: float = 25.0  # DDP gradient bucket size (MiB) on several GPUs (PyTorch's default)
     ddp_bf16_grads: bool = False  # all-reduce the gradients in bfloat16 on several GPUs (DDP comm hook)

@@ -10,7 +10,7 @@
 # Device call 2 (carry .devdata):                  mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
 # Device call 3 (carry .gpukit/b, .whl; one call carries at most 64 MiB, each within 30 s of the one before):
 #   SGMODEL_CACHE=/root/sgcache bash scripts/gpu/train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
-#   tests:   the CUDA tests of the layers, concatenation, SSIM term and composer (Triton, compiled), LPIPS (its
+#   tests:   the CUDA tests of the layers, concatenation, SSIM term, LPIPS (its
 #            tap-distance kernels), soft-argmin, rasteriser
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
 #            depend on them); with BASE=DIR (a copy of the code before a change) the same for it, interleaved
@@ -27,7 +27,6 @@
 #   lpips:   the step with the LPIPS term's VGG16 eager (--no-compile-lpips; `bench` times the compiled default),
 #            then training runs with the LPIPS term (random VGG16) compiled and eager, SEEDS each
 #            ($OUT/lpips_curves.md)
-#   composer: training runs with the composer compiled (the default) and eager, SEEDS each ($OUT/composer_curves.md)
 # WHEELS (default .whl), KIT (.gpukit/b), SGMODEL_CACHE (.devdata), GUITAR ($SGMODEL_CACHE/guitar.ply), STEPS (200),
 # VAL (50), SEEDS ("0 1").
 set -uo pipefail
@@ -134,8 +133,6 @@ lpips)  # the LPIPS term's VGG16 compiled (the default) and eager: the step, the
   run python3 -c "import torch; from sgmodel.metrics.lpips import VGG16Trunk
 torch.manual_seed(0); torch.save(VGG16Trunk().state_dict(), '/tmp/vgg16-random.pth')"
   compiled_and_eager "$OUT/lpips_curves.md" lpips --no-compile-lpips --lpips-vgg /tmp/vgg16-random.pth ;;
-composer)  # training runs with the composer compiled (the default on CUDA) and eager, SEEDS each
-  compiled_and_eager "$OUT/composer_curves.md" composer --no-compile-composer ;;
 cache)  # the encoder cache: `sgmodel encode` of the small dataset, its outputs against the encoder run live,
         # then the step on real batches with the encoder run and read from the cache ($OUT/cache_bench.md)
   encoder_cache

@@ -66,8 +66,7 @@ def main() -> int:
     torch.backends.cudnn.benchmark = True
     model = create_model(ModelParams(resolution=args.resolution), device)
     lpips = random_lpips(device) if args.lpips_random_vgg else None
-    if compiles(device):  # the composer and the LPIPS term's VGG16 compiled, as `sgmodel train` runs them
-        model.compile_composer()
+    if compiles(device):  # the LPIPS term's VGG16 compiled, as `sgmodel train` runs it
         lpips = lpips and lpips.compile_trunk()
     objective = Objective(lpips, reason="profiled", amp=True)
     optimizer = create_optimizer([p for p in model.parameters() if p.requires_grad], device, lr=1e-5)

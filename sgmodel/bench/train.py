@@ -171,8 +171,6 @@ def run(args: argparse.Namespace) -> int:
     model = create_model(model_params, device)
     S, amp = model_params.resolution, not args.no_amp
     compiled = compiles(device, not args.no_compile_lpips)  # as `sgmodel train` does
-    if compiles(device, not args.no_compile_composer):  # as `sgmodel train` does
-        model.compile_composer()
     objectives = [Objective(None, reason="the bench times both" if args.lpips_vgg or args.lpips_random_vgg
                             else vgg16_missing_message(), amp=amp)]
     if args.lpips_random_vgg:
@@ -269,7 +267,5 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-amp", action="store_true", help="float32 convolutions")
     p.add_argument("--no-compile-lpips", action="store_true",
                    help="the LPIPS term's VGG16 eagerly (default on CUDA: torch.compile, as sgmodel train)")
-    p.add_argument("--no-compile-composer", action="store_true",
-                   help="the composer eagerly (default on CUDA: torch.compile, as sgmodel train)")
     p.add_argument("--out", type=Path, help="also write the markdown table here (a report of an earlier run of this "
                    "bench is replaced, any other file refused)")

@@ -307,9 +307,8 @@ class _GroupNormGELU(torch.autograd.Function):
 
 
 def compiles(device: torch.device, wanted: bool = True) -> bool:
-    """Whether training runs a block through ``torch.compile`` (the LPIPS term's VGG16, the composer):
-    wanted (not ``--no-compile-lpips`` / ``--no-compile-composer``), on CUDA, with Triton installed (inductor
-    writes its GPU code in Triton)."""
+    """Whether training runs a block through ``torch.compile`` (the LPIPS term's VGG16): wanted (not
+    ``--no-compile-lpips``), on CUDA, with Triton installed (inductor writes its GPU code in Triton)."""
     return wanted and device.type == "cuda" and triton_installed()
 
 

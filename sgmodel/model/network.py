@@ -77,15 +77,6 @@ def encode_pair(encoder: StereoEncoder, left: torch.Tensor, right: torch.Tensor
     return disparity, [f.detach() for f in out.features]
 
 
-def _compose_float(front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | None, depth: torch.Tensor,
-                   rgb: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor, back_layer: bool, edge_mask: str,
-                   composer: bool) -> dict[str, torch.Tensor]:
-    """``compose`` of the predictor's outputs and the canvas RGB cast to float32."""
-    back, dz = (None, None) if back is None else (back.float(), dz.float())
-    return compose(front.float(), back, dz, depth, rgb.float(), K, baseline, back_layer=back_layer,
-                   edge_mask=edge_mask, composer=composer)
-
-
 class StereoGaussians(nn.Module):
     """The trainable decoder and predictor around a frozen encoder (attribute ``encoder``)."""
 
@@ -99,7 +90,6 @@ class StereoGaussians(nn.Module):
                                   params.decoder.groups, params.rgbd, params.decoder.rgbd_scales) if use_phi else None
         self.predictor = GaussianPredictor(params.predictor, params.decoder.channels if use_phi else 0, params.rgbd,
                                            params.composer.back_layer)
-        self._compose = _compose_float  # compile_composer() replaces it
 
     def _apply(self, fn, recurse=True):  # .to()/.cuda()/.float() move the frozen encoder as well
         self.encoder._apply(fn)
@@ -118,19 +108,15 @@ class StereoGaussians(nn.Module):
         front, back, dz = self.predictor(c.rgb, c.depth, phi, phi_padding=P)
         return front, back, dz, c
 
-    def compile_composer(self) -> StereoGaussians:
-        """From now on run the composer, with the casts of its inputs, through ``torch.compile`` (inductor,
-        static shapes): for training on CUDA (``sgmodel train``'s default there; its many small elementwise
-        operations fused, the step about 3% faster on an H100 for about 20 s of compilation per process and
-        batch shape: docs/benchmarks.md). The same operations; results differ by float32 rounding only."""
-        self._compose = torch.compile(_compose_float, dynamic=False)
-        return self
-
     def compose(self, front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | None, c: canvas.Canvas,
                 baseline: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The composer in float32 (the predictor may run in bf16)."""
+        """The composer in float32 (the predictor may run in bf16), eager: through ``torch.compile`` on CUDA it
+        computed the back layer's depth wrong at some batch shapes (docs/benchmarks.md "Issue 34, fifth
+        lease")."""
         p = self.params.composer
-        return self._compose(front, back, dz, c.depth, c.rgb, c.K, baseline, p.back_layer, p.edge_mask, p.composer)
+        back, dz = (None, None) if back is None else (back.float(), dz.float())
+        return compose(front.float(), back, dz, c.depth, c.rgb.float(), c.K, baseline, back_layer=p.back_layer,
+                       edge_mask=p.edge_mask, composer=p.composer)
 
     def forward(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor,
                 doffs: float = 0.0, encoded: tuple[torch.Tensor, list[torch.Tensor]] | None = None) -> Prediction:

@@ -233,7 +233,7 @@ def _check_resumable(paths: RunPaths, config: dict) -> bool:
         raise ValueError(f"{paths.config}: not a JSON object; choose another --out")
     differs = [part for part in ("model", "data", "encoder", "loss", "init_from") if old.get(part) != config[part]]
     # workers do not change results, compilation and shares only their rounding, as another number of ranks
-    # does (and a run from before a compile flag existed resumes)
+    # does (and a run from before a compile flag existed, or from when the composer was compiled, resumes)
     ignore = ("workers", "compile_lpips", "compile_composer", "ddp_bucket_mb", "profile", "accumulate")
     if {k: v for k, v in old.get("train", {}).items() if k not in ignore} != \
             {k: v for k, v in config["train"].items() if k not in ignore}:
@@ -298,8 +298,6 @@ def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPat
     # every training step has the same shapes: let cuDNN time its algorithms once (8% of a step on an H100)
     torch.backends.cudnn.benchmark = world.device.type == "cuda"
     model = create_model(model_params, world.device)
-    if compiles(world.device, tp.compile_composer):
-        model.compile_composer()
     objective = create_objective(vgg_path, device=world.device, weight=tp.lpips_weight, amp=tp.amp,
                                  compile_trunk=compiles(world.device, tp.compile_lpips))
     cache = open_run_cache(encoder_cache, data, model.encoder, model_params.resolution, world.device, tp.amp) \

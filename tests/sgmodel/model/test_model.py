@@ -11,7 +11,7 @@ from sgmodel.model.decoder import DPTDecoder
 from sgmodel.model.network import create_model
 from sgmodel.model.predictor import CHANNELS, LAYER_CHANNELS, GaussianPredictor
 from sgmodel.model.render import render_views
-from tests.support.model_helpers import StandInEncoder, record_compile, textured_batch
+from tests.support.model_helpers import StandInEncoder, textured_batch
 
 
 def small_params(**changes) -> ModelParams:
@@ -164,69 +164,3 @@ def test_invalid_configurations_are_refused():
     with pytest.raises(ValueError, match="multiple"):
         small_params(decoder=DecoderParams(channels=10, groups=4)).validate()
     assert ModelParams.from_dict(small_params().to_dict()) == small_params()
-
-
-def test_compiled_composer_is_handed_to_torch_compile_and_computes_the_same(monkeypatch):
-    """``compile_composer`` gives the composer (with its inputs' float32 casts) to ``torch.compile`` with static
-    shapes and the model's forward runs it, with the eager values. Compilation is replaced by a recorder here
-    (CI has no Triton); the real compiled kernels are the CUDA test below. ``sgmodel train`` compiles by
-    default only where ``layers.compiles`` says (CUDA with Triton); --no-compile-composer turns it off."""
-    from sgmodel.args import params_from_args
-    from sgmodel.cli import build_parser
-
-    torch.manual_seed(0)
-    model = create_model(small_params(), "cpu", encoder=StandInEncoder())
-    batch = textured_batch(2, 1, 32)
-    args = (batch["left"], batch["right"], batch["K"], batch["baseline"])
-    with torch.no_grad():
-        want = model(*args).gaussians
-        seen = record_compile(monkeypatch)
-        got = model.compile_composer()(*args).gaussians
-    assert seen == [{"dynamic": False}, "call"]
-    for k in want:
-        assert torch.equal(got[k], want[k]), k
-    argv = ["train", "--data", "d", "--out", "o"]
-    assert params_from_args(build_parser().parse_args(argv))[1].compile_composer
-    assert not params_from_args(build_parser().parse_args(argv + ["--no-compile-composer"]))[1].compile_composer
-
-
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (torch.compile's Triton kernels)")
-@pytest.mark.parametrize("composer,back_layer,edge_mask", [(True, True, "none"), (False, True, "soft"),
-                                                          (True, False, "none")])
-def test_compiled_composer_matches_eager_on_cuda(composer, back_layer, edge_mask):
-    """The compiled composer against the eager one on the predictor's bf16 outputs (37 of 40 channels, as the
-    branches give them): every attribute within float32 rounding, the gradients of every input within one bf16
-    ulp of the largest (they are rounded to the inputs' bf16)."""
-    from sgmodel.kernels import triton_installed
-    from sgmodel.model.network import _compose_float
-    if not triton_installed():
-        pytest.skip("Triton is not installed")
-    torch.manual_seed(0)
-    B, H = 3, 72
-    branch = [(torch.randn(B, 40, H, H, device="cuda") * 2).to(torch.bfloat16)
-              .contiguous(memory_format=torch.channels_last)[:, :37] for _ in range(2)]
-    dz = torch.randn(B, 1, H, H, device="cuda").to(torch.bfloat16)
-    depth = torch.rand(B, 1, H, H, device="cuda") * 5 + 0.2
-    depth[:, :, 20:40, 30:] = 9.5  # a depth edge (the edge band and the caps)
-    rgb = torch.rand(B, 3, H, H, device="cuda")
-    K = torch.tensor([[60.0, 0, 36], [0, 60.0, 36], [0, 0, 1]], device="cuda").expand(B, 3, 3).contiguous()
-    baseline = torch.full((B,), 0.12, device="cuda")
-    options = (back_layer, edge_mask, composer)
-    results = []
-    for fn in (_compose_float, torch.compile(_compose_float, dynamic=False)):
-        inputs = [t.detach().clone().requires_grad_(True) for t in (*branch, dz, depth, rgb)]
-        out = fn(*inputs, K, baseline, *options)
-        g = torch.Generator(device="cuda").manual_seed(1)
-        cot = {k: torch.randn(v.shape, device="cuda", generator=g) for k, v in out.items()}
-        wrt = inputs if back_layer else [inputs[0], inputs[3], inputs[4]]
-        results.append((out, torch.autograd.grad([out[k] for k in cot], wrt, [cot[k] for k in cot],
-                                                 allow_unused=True)))  # without the composer rgb is unused
-    (want, want_g), (got, got_g) = results
-    for k in want:
-        torch.testing.assert_close(got[k], want[k], rtol=1e-5, atol=1e-6)
-    for u, v in zip(got_g, want_g):
-        assert (u is None) == (v is None)
-        if v is None:
-            continue
-        scale = v.abs().max().item()
-        assert (u.float() - v.float()).abs().max().item() <= 2 ** -7 * scale + 1e-6 * (1 + scale)

@@ -214,3 +214,23 @@ def test_a_batch_in_shares_trains_the_whole_batchs_weights_in_float32_not_under_
     split = "2 shares (what 2 ranks compute)"
     assert rows[("float32", split)] < 1e-6
     assert rows[("bf16 gradients", split)] > max(100 * rows[("float32", split)], 1e-7)
+
+
+def test_the_gradient_check_finds_ddp_computing_the_shares_of_one_process(demo_dataset, tmp_path):
+    """``scripts/checks/ddp_gradient.py`` on two gloo ranks (what it runs on two GPUs with NCCL): its table holds
+    DDP's first-step gradient against one process's shares to float summation order, the shares again exactly
+    (the CPU's run-to-run floor is 0), and the whole batch apart from its shares by summation order too."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "gradient.md"
+    subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                    "scripts/checks/ddp_gradient.py", "--data", str(demo_dataset), "--device", "cpu", "--preset",
+                    "cpu-small", "--resolution", "32", "--batch-size", "4", "--out", str(out)],
+                   check=True, cwd=Path(__file__).resolve().parents[3], capture_output=True)
+    rows = {line.split("|")[1].strip(): [float(c) for c in line.split("|")[2:4]]
+            for line in out.read_text().splitlines() if line.startswith(("| one process", "| DDP"))}
+    assert rows["one process, 2 shares again"] == [rows["one process, 2 shares"][0], 0.0]
+    assert rows["one process, whole batch"][0] == 0.0 and rows["one process, 2 shares"][1] == 0.0
+    assert rows["DDP, 2 ranks"][1] < 1e-5 and rows["one process, 2 shares"][0] < 1e-5
