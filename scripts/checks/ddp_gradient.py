@@ -27,8 +27,8 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from scenesplat_stereo.common.ownership import OwnedFile
-from sgmodel.bench import report
 from sgmodel.args import preset_params
+from sgmodel.bench import report
 from sgmodel.data.loader import batch_share, make_loader, to_device
 from sgmodel.model.network import create_model
 from sgmodel.train.distributed import barrier, close_world, init_world, wrap_model
