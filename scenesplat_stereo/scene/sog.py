@@ -374,10 +374,13 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
         m = scene.means[a:b].astype(np.float64)
         t[a:b] = np.sign(m) * np.log1p(np.abs(m))
         bounds[i] = t[a:b].min(0), t[a:b].max(0)
-        np.log(scene.scales[a:b], out=log_scales[a:b], dtype=np.float64)
         tex[2, a:b] = _pack_quats(scene.quats[a:b])
         tex[[0, 1, 3], a:b, 3] = 255
         tex[4, a:b, 3] = np.clip(np.rint(scene.opacities[a:b].astype(np.float64) * 255.0), 0, 255)
+
+    def scale_codebook_of_logs() -> palettes.Nearest:  # all log scales at once: the codebook needs them all
+        np.log(scene.scales, out=log_scales, dtype=np.float64)
+        return palettes.Nearest(palettes.codebook(log_scales))
 
     def positions(a: int, b: int) -> None:
         q = np.rint(65535.0 * (t[a:b] - mins) / np.where(maxs > mins, maxs - mins, 1.0)).astype(np.uint16)
@@ -392,6 +395,7 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
 
     try:
         colour_codebook = submit(lambda: palettes.Nearest(palettes.codebook(scene.sh[:, 0].astype(np.float64))))
+        scale_codebook = submit(scale_codebook_of_logs)
         if degree:
             palette = min(64, 2 ** math.floor(math.log2(n / 1024))) * 1024 if n >= 1024 else n
             palette = max(1, min(palette, sh_palette_max, n))
@@ -399,7 +403,6 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
         futures += [pool.submit(logs_quats_opacities, i, a, b) for i, (a, b) in enumerate(slices)]
         order = morton_order(scene.means)
         row_tasks.wait_all(futures[-len(slices):])
-        scale_codebook = submit(lambda: palettes.Nearest(palettes.codebook(log_scales)))
         mins, maxs = bounds[:, 0].min(0), bounds[:, 1].max(0)
         rows(positions)
         images = {name: encode(i) for i, name in enumerate(IMAGES[:3])}
