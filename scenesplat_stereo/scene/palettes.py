@@ -20,7 +20,7 @@ def codebook(values: np.ndarray, k: int = 256, alpha: float = 0.2, bins: int = 1
     ones were found).
 
     Density-weighted k-means, as splat-transform's ``quantize1d`` (which takes alpha 0.5 and an exact dynamic
-    programme): the values are binned into a ``bins``-bin histogram over their range, each bin weighs
+    programme): the values are binned into a ``bins``-bin histogram over their range (``histogram``), each bin weighs
     count^alpha (so sparse tails get entries that plain k-means would give the dense middle), and Lloyd's
     iterations start from weighted quantiles. alpha 0.2 gave the smallest RMS and largest errors of 0.5, 0.3,
     0.2, 0.1 on the guitar's log-scales and colours."""
@@ -28,7 +28,7 @@ def codebook(values: np.ndarray, k: int = 256, alpha: float = 0.2, bins: int = 1
     lo, hi = float(flat.min()), float(flat.max())
     if hi - lo < 1e-20:
         return np.full(k, lo, np.float32)
-    counts, edges = np.histogram(flat, bins, (lo, hi))
+    counts, edges = histogram(flat, bins, lo, hi)
     x = 0.5 * (edges[1:] + edges[:-1])[counts > 0]
     w = counts[counts > 0].astype(np.float64) ** alpha
     cw, cwx = np.concatenate([[0.0], np.cumsum(w)]), np.concatenate([[0.0], np.cumsum(w * x)])
@@ -39,6 +39,18 @@ def codebook(values: np.ndarray, k: int = 256, alpha: float = 0.2, bins: int = 1
         weight = cw[end] - cw[start]
         centres = np.unique(np.where(weight > 0, (cwx[end] - cwx[start]) / np.where(weight > 0, weight, 1), centres))
     return np.concatenate([centres, np.full(k - len(centres), centres[-1])]).astype(np.float32)
+
+
+def histogram(flat: np.ndarray, bins: int, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """(counts [bins] int64, edges [bins + 1] float64) of float64 values ``flat`` in [lo, hi] (lo < hi): value v in
+    bin floor((v - lo) bins / (hi - lo)), the last bin closed. ``np.histogram``'s bins in a third of its time,
+    but for a value within rounding of an edge, which may land in the bin on the edge's other side
+    (``np.histogram`` checks each value against the edges)."""
+    cell = np.subtract(flat, lo)
+    cell *= bins / (hi - lo)
+    cell = cell.astype(np.intp)  # floor: cell >= 0
+    np.minimum(cell, bins - 1, out=cell)
+    return np.bincount(cell, minlength=bins), np.linspace(lo, hi, bins + 1)
 
 
 class Nearest:

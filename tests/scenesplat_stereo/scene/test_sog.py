@@ -149,6 +149,31 @@ def test_nearest_entry_is_the_binary_search() -> None:
         np.testing.assert_array_equal(b[palettes.Nearest(book)(away)], b[brute])
 
 
+def test_codebook_histogram_is_numpys_but_at_the_edges() -> None:
+    """``palettes.histogram`` against ``np.histogram`` over ranges of every scale, on random values and every bin
+    edge: the same edges; the same counts for the values farther than a few float steps from every edge; with
+    the values near an edge too, counts that differ from numpy's by at most those values moved one bin."""
+    rng = np.random.default_rng(7)
+    for trial in range(60):
+        bins = int(rng.choice([1, 7, 256, 1 << 14]))
+        x = rng.standard_normal(int(rng.integers(2, 4000))) * 10 ** rng.uniform(-6, 6) + rng.uniform(-1e3, 1e3)
+        lo, hi = float(x.min()), float(x.max())
+        edges = np.histogram_bin_edges(x, bins, (lo, hi))
+        values = np.concatenate([x, edges])
+        i = np.clip(np.searchsorted(edges, values), 1, bins)
+        gap = np.minimum(np.abs(values - edges[i - 1]), np.abs(values - edges[i]))
+        near = gap <= 8 * np.spacing(max(abs(lo), abs(hi)))
+        for part, exact in ((values[~near], True), (values, False)):
+            counts, got_edges = palettes.histogram(part, bins, lo, hi)
+            want = np.histogram(part, bins, (lo, hi))[0]
+            np.testing.assert_array_equal(got_edges, edges)
+            assert counts.sum() == len(part)
+            if exact:
+                np.testing.assert_array_equal(counts, want, err_msg=f"trial {trial}")
+            else:
+                assert np.abs(counts - want).sum() <= 2 * near.sum(), trial
+
+
 def test_kmeans_labels_are_each_rows_nearest_centroid() -> None:
     """Every row's label is its nearest centroid by float64 brute force (up to float32 ties), and the palette
     is closer to the rows than one of k rows picked at random is."""
