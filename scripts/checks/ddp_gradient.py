@@ -31,7 +31,7 @@ from sgmodel.args import preset_params
 from sgmodel.bench import report
 from sgmodel.data.loader import batch_share, make_loader, to_device
 from sgmodel.model.network import create_model
-from sgmodel.train.distributed import barrier, close_world, init_world, wrap_model
+from sgmodel.train.distributed import close_world, init_world, wrap_model
 from sgmodel.train.loop import render_targets
 from sgmodel.train.losses import create_objective
 
@@ -88,8 +88,7 @@ def main(argv: list[str] | None = None) -> int:
 
     model = fresh()
     ddp = gradient(model, wrap_model(model, world), first_batch(world.size, world.rank), objective, args.amp, 1)
-    barrier(world)
-    close_world(world)
+    close_world(world, finished=True)
     if not world.main:
         return 0
     whole = first_batch(1, 0)

@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
     params = encoder_params(args, model.encoder)
     size = args.resolution or model.resolution
     splits = list(dict.fromkeys(args.splits))
-    world = init_world(device_from_flag(args.device))
+    world, finished = init_world(device_from_flag(args.device)), False
     try:
         # cuDNN's default algorithm choice, not `train`'s timed search: the same cache bytes on every run and resume
         torch.backends.cudnn.benchmark = False
@@ -228,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
                               args.batch_size, args.workers, not args.no_progress, world)
         if world.main:
             print(summary(rows, args.out, world.size))
+        finished = True
         return 0
     finally:
-        close_world(world)
+        close_world(world, finished)

@@ -275,12 +275,14 @@ def train(model_params: ModelParams, train_params: TrainParams, data: Path, out:
     place of running the encoder (the same numbers; it may be given or left out when a run resumes)."""
     model_params.validate()
     train_params.validate()
-    world = init_world(device)
+    world, finished = init_world(device), False
     try:
-        return _train(model_params, train_params, Path(data), RunPaths(Path(out)), world, vgg_path, progress,
-                      init_from, encoder_cache)
+        summary = _train(model_params, train_params, Path(data), RunPaths(Path(out)), world, vgg_path, progress,
+                         init_from, encoder_cache)
+        finished = True
+        return summary
     finally:
-        close_world(world)
+        close_world(world, finished)
 
 
 def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPaths, world: World,
