@@ -49,10 +49,10 @@ def init_world(device: str) -> World:
 
 def close_world(world: World, finished: bool = False) -> None:
     """Leave the job (nothing in a world of one). ``finished``: this rank's work ended without an error, so every
-    rank is waited for first; rank 0 may still be writing its last checkpoint, and a rank that tears down its
-    connections while another is still in the job can abort either (a gloo rank once ended in SIGABRT,
-    "terminate called without an active exception", in CI). After an error there is no wait: the others may
-    never come, and torchrun ends them."""
+    rank is waited for first (rank 0 may still be writing its last checkpoint), and no rank tears down its
+    connections while another is still in the job: the likely cause, not reproduced, of a gloo rank that once
+    ended in SIGABRT ("terminate called without an active exception") at the end of a CI run. After an error
+    there is no wait: the others may never come, and torchrun ends them."""
     if world.size > 1 and dist.is_initialized():
         if finished:
             dist.barrier()
