@@ -188,7 +188,9 @@ def test_ctrl_c_of_encode_then_the_rerun_resumes_to_the_same_bytes(demo_dataset,
              "1", "--device", "cpu", "--no-progress"]
 
     def make(out):
-        return ["sgmodel.cli", "encode", "--out", out, *flags], lambda: (out / "train" / "shard-000000.tar").exists()
+        # a shard is finished once its done marker is written, after its .tar is in place (as build's test waits)
+        return (["sgmodel.cli", "encode", "--out", out, *flags],
+                lambda: any((out / "train" / shards.DONE_DIR).glob("shard-*.json")))
 
     out, line = interrupted(tmp_path, make)
     kept = len(shards.finished_shards(out, "train"))
