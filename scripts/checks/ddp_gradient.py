@@ -6,7 +6,7 @@ the GPU counterpart of tests/sgmodel/train/test_distributed.py's gloo check, wit
         [--resolution 256] [--preset paper] [--amp] [--out report.md]
 
 Every rank builds the model from one seed, wraps it in DDP as ``sgmodel train`` does (``wrap_model``) and runs
-step 0's forward and backward on its share of the global batch. Rank 0 keeps the all-reduced gradient, then
+step 0's forward and backward on its share of the global batch (``train_step``, its optimiser moving nothing). Rank 0 keeps the all-reduced gradient, then
 computes the same global batch again in this one process, on a model built from the same seed (with the cuDNN
 algorithms its DDP share ran): whole, in as many shares as there are ranks (``train_step``'s
 ``accumulate``), and the shares again (this process's run-to-run floor). The report gives the relative L2
@@ -29,25 +29,22 @@ sys.path.insert(0, str(REPO))
 from scenesplat_stereo.common.ownership import OwnedFile
 from sgmodel.args import preset_params
 from sgmodel.bench import report
-from sgmodel.data.loader import batch_share, make_loader, to_device
+from sgmodel.data.loader import make_loader, to_device
 from sgmodel.model.network import create_model
 from sgmodel.train.distributed import close_world, init_world, wrap_model
-from sgmodel.train.loop import render_targets
+from sgmodel.train.loop import train_step
 from sgmodel.train.losses import create_objective
 
 SEED = 0
 
 
 def gradient(model, net, batch: dict, objective, amp: bool, shares: int) -> dict[str, torch.Tensor]:
-    """The gradient of ``objective`` over ``batch`` in ``shares`` equal shares (each share's loss divided by
-    their number, as ``train_step`` does), run through ``net`` (``model`` itself or its DDP wrapper); float64
-    copies of ``model``'s parameter gradients."""
-    model.zero_grad(set_to_none=True)
-    for i in range(shares):
-        part = batch_share(batch, i, shares)
-        rgb, _, _ = render_targets(net, part, amp)
-        loss, _ = objective(rgb.flatten(0, 1), part["targets"].flatten(0, 1))
-        (loss / shares).backward()
+    """The gradient ``sgmodel train``'s step (``train_step``, in ``shares`` shares) leaves on ``model``'s
+    parameters for ``batch``, run through ``net`` (``model`` itself or its DDP wrapper), as float64 copies. Its
+    optimiser moves no weight (SGD at a learning rate of 0)."""
+    still = torch.optim.SGD([p for p in model.parameters() if p.requires_grad], lr=0.0)
+    train_step(net, batch, objective, still, torch.optim.lr_scheduler.LambdaLR(still, lambda _: 1.0), amp,
+               accumulate=shares)
     return {n: p.grad.double().clone() for n, p in model.named_parameters() if p.grad is not None}
 
 

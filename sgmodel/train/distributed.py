@@ -7,6 +7,8 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -45,6 +47,18 @@ def init_world(device: str) -> World:
         dev = torch.device(device)
         dist.init_process_group("gloo")
     return World(rank, size, dev, int(os.environ.get("LOCAL_WORLD_SIZE", size)))
+
+
+@contextmanager
+def joined_world(device: str) -> Iterator[World]:
+    """``init_world`` for the block, then ``close_world``: finished (every rank waited for) when the block ends
+    without an error, at once after one."""
+    world, finished = init_world(device), False
+    try:
+        yield world
+        finished = True
+    finally:
+        close_world(world, finished)
 
 
 def close_world(world: World, finished: bool = False) -> None:

@@ -44,7 +44,7 @@ from sgmodel.data.loader import (RUN_SPLITS, DataError, Shard, check_first_sampl
 from sgmodel.encoders.flags import add_encoder_arguments, build_encoder, encoder_params
 from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import encode_pair
-from sgmodel.train.distributed import World, all_sum, barrier, close_world, init_world
+from sgmodel.train.distributed import World, all_sum, barrier, joined_world
 
 
 OWNER = "sgmodel encode"  # a cache holds cache.json; any other --out must be new or empty
@@ -218,8 +218,7 @@ def run(args: argparse.Namespace) -> int:
     params = encoder_params(args, model.encoder)
     size = args.resolution or model.resolution
     splits = list(dict.fromkeys(args.splits))
-    world, finished = init_world(device_from_flag(args.device)), False
-    try:
+    with joined_world(device_from_flag(args.device)) as world:
         # cuDNN's default algorithm choice, not `train`'s timed search: the same cache bytes on every run and resume
         torch.backends.cudnn.benchmark = False
         encoder = build_encoder(params, world.device)
@@ -228,7 +227,4 @@ def run(args: argparse.Namespace) -> int:
                               args.batch_size, args.workers, not args.no_progress, world)
         if world.main:
             print(summary(rows, args.out, world.size))
-        finished = True
         return 0
-    finally:
-        close_world(world, finished)

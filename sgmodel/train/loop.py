@@ -29,7 +29,7 @@ from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weig
 from sgmodel.model.layers import amp_autocast, compiles
 from sgmodel.model.network import StereoGaussians, create_model
 from sgmodel.model.render import render_views
-from sgmodel.train.distributed import (World, all_sum, broadcast_flag, close_world, init_world, same_on_every_rank,
+from sgmodel.train.distributed import (World, all_sum, broadcast_flag, joined_world, same_on_every_rank,
                                        wrap_model)
 from sgmodel.train.losses import create_objective
 from sgmodel.train.step_profile import StepProfile, gathered_record
@@ -275,14 +275,9 @@ def train(model_params: ModelParams, train_params: TrainParams, data: Path, out:
     place of running the encoder (the same numbers; it may be given or left out when a run resumes)."""
     model_params.validate()
     train_params.validate()
-    world, finished = init_world(device), False
-    try:
-        summary = _train(model_params, train_params, Path(data), RunPaths(Path(out)), world, vgg_path, progress,
-                         init_from, encoder_cache)
-        finished = True
-        return summary
-    finally:
-        close_world(world, finished)
+    with joined_world(device) as world:
+        return _train(model_params, train_params, Path(data), RunPaths(Path(out)), world, vgg_path, progress,
+                      init_from, encoder_cache)
 
 
 def _train(model_params: ModelParams, tp: TrainParams, data: Path, paths: RunPaths, world: World,
