@@ -152,7 +152,10 @@ def scales(depth: torch.Tensor, delta_s: torch.Tensor, K: torch.Tensor, cap: tor
     s0 = KAPPA * depth / torch.sqrt(K[:, 0, 0] * K[:, 1, 1]).view(-1, 1, 1, 1)
     if composer:
         if cap is not None:
-            delta_s = torch.minimum(delta_s, torch.as_tensor(cap, dtype=delta_s.dtype, device=delta_s.device))
+            # minimum keeps its input for the backward: a copy of the 3 channels, not a view that would keep the
+            # whole 37-channel branch alive until then (at the paper's batch, 345 MiB a layer)
+            delta_s = torch.minimum(delta_s.contiguous(),
+                                    torch.as_tensor(cap, dtype=delta_s.dtype, device=delta_s.device))
         s = (s0 * phi(delta_s)).clamp(S_MIN, S_MAX)
     else:
         log_s = (torch.log(s0) + delta_s).clamp(math.log(S_MIN) - 1.0, math.log(S_MAX) + 1.0)  # exp stays finite
@@ -168,8 +171,8 @@ def quats(delta_q: torch.Tensor, composer: bool = True) -> torch.Tensor:
     q = delta_q.permute(0, 2, 3, 1).reshape(B, H * W, 4)
     identity = torch.zeros_like(q)
     identity[..., 0] = 1.0
-    if composer:
-        q = identity + R_QUAT * q
+    # a new tensor either way: the backward keeps q, which must not be a view of the whole branch
+    q = identity + R_QUAT * q if composer else q.contiguous()
     n2 = (q * q).sum(-1, keepdim=True)
     unit = q / torch.sqrt(n2.clamp_min(_QUAT_EPS**2))
     return torch.where(n2 > _QUAT_EPS**2, unit, identity)
