@@ -6,13 +6,13 @@ the GPU counterpart of tests/sgmodel/train/test_distributed.py's gloo check, wit
         [--resolution 256] [--preset paper] [--amp] [--out report.md]
 
 Every rank builds the model from one seed, wraps it in DDP as ``sgmodel train`` does (``wrap_model``) and runs
-step 0's forward and backward on its share of the global batch (``train_step``, its optimiser moving nothing). Rank 0 keeps the all-reduced gradient, then
-computes the same global batch again in this one process, on a model built from the same seed (with the cuDNN
-algorithms its DDP share ran): whole, in as many shares as there are ranks (``train_step``'s
-``accumulate``), and the shares again (this process's run-to-run floor). The report gives the relative L2
-distance of the gradients, ||g - g_ref|| / ||g_ref||, over all parameters and for the parameters farthest
-apart. Nothing is trained: the weights' drift over many steps (``ddp_check.py``) amplifies such a first-step
-difference, and this shows where it starts.
+step 0's forward and backward on its share of the global batch (``train_step``, its optimiser moving nothing).
+Rank 0 keeps the all-reduced gradient, then computes the same global batch again in this one process, on a
+model built from the same seed (with the cuDNN algorithms its DDP share ran): whole, in as many shares as
+there are ranks (``train_step``'s ``accumulate``), and the shares again (this process's run-to-run floor). The
+report gives the relative L2 distance of the gradients, ||g - g_ref|| / ||g_ref||, over all parameters and for
+the parameters farthest apart. Nothing is trained: the weights' drift over many steps (``ddp_check.py``)
+amplifies such a first-step difference, and this shows where it starts.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from sgmodel.args import preset_params
 from sgmodel.bench import report
 from sgmodel.data.loader import make_loader, to_device
 from sgmodel.model.network import create_model
-from sgmodel.train.distributed import close_world, init_world, wrap_model
+from sgmodel.train.distributed import joined_world, wrap_model
 from sgmodel.train.loop import train_step
 from sgmodel.train.losses import create_objective
 
@@ -65,27 +65,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, help="also write the markdown report here (rank 0)")
     args = p.parse_args(argv)
     out = OwnedFile(args.out, "--out", "scripts/checks/ddp_gradient.py")
-    world = init_world(args.device)
-    if args.batch_size % world.size:
-        p.error(f"--batch-size {args.batch_size} is not divisible by the {world.size} ranks")
-    torch.backends.cudnn.benchmark = world.device.type == "cuda"  # as `sgmodel train` does
-    model_params, train_params = preset_params(args.preset)
-    model_params.resolution, model_params.padding = args.resolution, max(2, args.resolution // 16)  # P = 16 at 256
-    targets = train_params.targets
-    objective = create_objective(None, device=world.device)
+    with joined_world(args.device) as world:  # left, every rank waited for, once DDP's gradient is taken
+        if args.batch_size % world.size:
+            p.error(f"--batch-size {args.batch_size} is not divisible by the {world.size} ranks")
+        torch.backends.cudnn.benchmark = world.device.type == "cuda"  # as `sgmodel train` does
+        model_params, train_params = preset_params(args.preset)
+        model_params.resolution, model_params.padding = args.resolution, max(2, args.resolution // 16)  # P = 16 at 256
+        targets = train_params.targets
+        objective = create_objective(None, device=world.device)
 
-    def fresh():
-        torch.manual_seed(SEED)
-        return create_model(model_params, world.device)
+        def fresh():
+            torch.manual_seed(SEED)
+            return create_model(model_params, world.device)
 
-    def first_batch(ranks: int, rank: int) -> dict:
-        loader = make_loader(args.data, "train", args.batch_size // ranks, args.resolution, targets, seed=SEED,
-                             rank=rank, world_size=ranks)
-        return to_device(next(iter(loader)), world.device)
+        def first_batch(ranks: int, rank: int) -> dict:
+            loader = make_loader(args.data, "train", args.batch_size // ranks, args.resolution, targets, seed=SEED,
+                                 rank=rank, world_size=ranks)
+            return to_device(next(iter(loader)), world.device)
 
-    model = fresh()
-    ddp = gradient(model, wrap_model(model, world), first_batch(world.size, world.rank), objective, args.amp, 1)
-    close_world(world, finished=True)
+        model = fresh()
+        ddp = gradient(model, wrap_model(model, world), first_batch(world.size, world.rank), objective, args.amp, 1)
     if not world.main:
         return 0
     whole = first_batch(1, 0)

@@ -20,18 +20,13 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "checks"))
 
+from compiled_composer import composed, inputs  # noqa: E402
 from scenesplat_stereo.common.ownership import OwnedFile  # noqa: E402
 from sgmodel.bench import report  # noqa: E402
-from sgmodel.model.composer import LAYER_CHANNELS, compose  # noqa: E402
 
 MiB = 2**20
-
-
-def branch(batch: int, side: int, g: torch.Generator) -> torch.Tensor:
-    """A predictor-shaped branch: the first 37 channels of a bf16 channels-last [B, 40, side, side] tensor."""
-    full = torch.randn(batch, LAYER_CHANNELS + 3, side, side, generator=g).to(torch.bfloat16)
-    return full.contiguous(memory_format=torch.channels_last)[:, :LAYER_CHANNELS].requires_grad_()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,13 +37,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     out = OwnedFile(args.out, "--out", "scripts/profile/composer_memory.py")
     B, S = args.batch, args.canvas
-    g = torch.Generator().manual_seed(0)
-    front, back = branch(B, S, g), branch(B, S, g)
-    dz = torch.randn(B, 1, S, S, generator=g).to(torch.bfloat16).requires_grad_()
-    depth = torch.rand(B, 1, S, S, generator=g) * 5 + 0.2
-    rgb = torch.rand(B, 3, S, S, generator=g)
-    K = torch.tensor([[1.1 * S, 0, S / 2], [0, 1.1 * S, S / 2], [0, 0, 1]]).expand(B, 3, 3).contiguous()
-    front32, back32 = front.float(), back.float()  # as StereoGaussians.compose casts them
+    front, back, dz, *rest = inputs(B, S, torch.device("cpu"))  # the predictor's layout (compiled_composer.py)
+    front, back, dz = (t.requires_grad_() for t in (front, back, dz))
+    front32, back32 = front.float(), back.float()  # as StereoGaussians.compose casts them (``composed`` copies no more)
     names = {front32.untyped_storage().data_ptr(): "the front branch in float32",
              back32.untyped_storage().data_ptr(): "the back branch in float32"}
     kept: dict[int, tuple[int, tuple[int, ...], str]] = {}
@@ -59,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
         return t
 
     with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        result = compose(front32, back32, dz.float(), depth, rgb, K, torch.full((B,), 0.12))
+        result = composed(front32, back32, dz, *rest)
     outputs = sum(v.untyped_storage().nbytes() for v in result.values())
     total = sum(n for n, _, _ in kept.values())
     lines = [f"The composer's saved tensors for its backward, batch {B}, canvas {S}x{S}, torch {torch.__version__}: "
