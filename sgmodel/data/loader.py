@@ -27,8 +27,10 @@ Bad input raises ``DataError`` naming the file (and the JSON field, through ``Sa
 
 from __future__ import annotations
 
+import atexit
 import json
 import os
+import sys
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -383,7 +385,22 @@ def check_valid_pixels(root: Path, split: str) -> None:
 
 
 def init_loader_worker(_: int) -> None:
-    cv2.setNumThreads(1)  # one resize thread per loader worker; the workers are the parallelism
+    """A DataLoader worker's setup: one resize thread (the workers are the parallelism), and an exit without
+    Python's finalization (``_leave_at_exit``)."""
+    cv2.setNumThreads(1)
+    atexit.register(_leave_at_exit)
+
+
+def _leave_at_exit() -> None:
+    """End a loader worker once Python starts to exit, before its finalization. There CPython (up to 3.13) ends
+    daemon threads still running with ``pthread_exit``; the worker's queue feeder thread is often one, freeing the
+    tensors of a batch it just sent, and a thread ended inside libtorch's tensor release aborts the process
+    (std::terminate: "terminate called without an active exception"; "DataLoader worker ... is killed by signal:
+    Aborted" in the trainer's log). At this point the worker has left torch's loop: the trainer took what it
+    wanted or shut the worker down, so nothing is lost."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 def loader_workers(workers: int | None, local_ranks: int = 1) -> int:
