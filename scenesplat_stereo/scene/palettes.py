@@ -8,24 +8,27 @@ depends on the order of the values except which rows the palette's k-means sampl
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+from scenesplat_stereo.scene import row_tasks
 
 #: Cells of the grid through which ``Nearest`` looks labels up (fine enough that only 1-3% of real log-scales
 #: and colours fall near a midpoint of their 256-entry codebook).
 LOOKUP_CELLS = 1 << 16
 
 
-def codebook(values: np.ndarray, k: int = 256, alpha: float = 0.2, bins: int = 1 << 14,
+def codebook(values: np.ndarray | torch.Tensor, k: int = 256, alpha: float = 0.2, bins: int = 1 << 14,
              iterations: int = 30) -> np.ndarray:
-    """A 1-D codebook of ``values`` (any shape): k ascending float32 entries (the last repeated when fewer distinct
-    ones were found).
+    """A 1-D codebook of ``values`` (any shape; a tensor on any device, its histogram made there): k ascending
+    float32 entries (the last repeated when fewer distinct ones were found).
 
     Density-weighted k-means, as splat-transform's ``quantize1d`` (which takes alpha 0.5 and an exact dynamic
     programme): the values are binned into a ``bins``-bin histogram over their range (``histogram``), each bin weighs
     count^alpha (so sparse tails get entries that plain k-means would give the dense middle), and Lloyd's
-    iterations start from weighted quantiles. alpha 0.2 gave the smallest RMS and largest errors of 0.5, 0.3,
-    0.2, 0.1 on the guitar's log-scales and colours."""
-    flat = np.asarray(values, np.float64).reshape(-1)
-    lo, hi = float(flat.min()), float(flat.max())
+    iterations start from weighted quantiles (on the CPU: they see only the bins). alpha 0.2 gave the smallest RMS
+    and largest errors of 0.5, 0.3, 0.2, 0.1 on the guitar's log-scales and colours."""
+    flat = torch.as_tensor(values).to(torch.float64).reshape(-1)
+    lo, hi = torch.stack(torch.aminmax(flat)).tolist()
     if hi - lo < 1e-20:
         return np.full(k, lo, np.float32)
     counts, edges = histogram(flat, bins, lo, hi)
@@ -41,54 +44,51 @@ def codebook(values: np.ndarray, k: int = 256, alpha: float = 0.2, bins: int = 1
     return np.concatenate([centres, np.full(k - len(centres), centres[-1])]).astype(np.float32)
 
 
-def histogram(flat: np.ndarray, bins: int, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
-    """(counts [bins] int64, edges [bins + 1] float64) of float64 values ``flat`` in [lo, hi] (lo < hi): value v in
-    bin floor((v - lo) bins / (hi - lo)), the last bin closed. ``np.histogram``'s bins in a third of its time,
-    but for a value within rounding of an edge, which may land in the bin on the edge's other side
-    (``np.histogram`` checks each value against the edges)."""
-    cell = np.subtract(flat, lo)
-    cell *= bins / (hi - lo)
-    cell = cell.astype(np.intp)  # floor: cell >= 0
-    np.minimum(cell, bins - 1, out=cell)
-    return np.bincount(cell, minlength=bins), np.linspace(lo, hi, bins + 1)
+def histogram(flat: torch.Tensor, bins: int, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """(counts [bins] int64, edges [bins + 1] float64) of float64 values ``flat`` in [lo, hi] (lo < hi; a tensor on
+    any device): value v in bin floor((v - lo) bins / (hi - lo)), the last bin closed. ``np.histogram``'s bins in
+    a third of its time, but for a value within rounding of an edge, which may land in the bin on the edge's other
+    side (``np.histogram`` checks each value against the edges)."""
+    cell = ((flat - lo) * (bins / (hi - lo))).long()  # truncation is the floor: flat - lo >= 0
+    counts = torch.bincount(cell.clamp_(max=bins - 1), minlength=bins)
+    return counts.cpu().numpy(), np.linspace(lo, hi, bins + 1)
 
 
 class Nearest:
-    """The nearest entry of an ascending codebook ``book`` (at most 256 entries): ``Nearest(book)(values)`` are
-    uint8 labels (shaped like ``values``, finite), the number of midpoints of consecutive entries (float64) below
-    each value, at most len(book) - 1 (a value on a midpoint takes the lower entry): ``np.searchsorted``'s.
+    """The nearest entry of an ascending codebook ``book`` (at most 256 entries): ``Nearest(book, device)(values)``
+    are uint8 labels (a tensor on ``device``, shaped like ``values``, finite), the number of midpoints of
+    consecutive entries (float64) below each value, at most len(book) - 1 (a value on a midpoint takes the lower
+    entry): ``torch.searchsorted``'s.
 
-    A binary search over 255 midpoints costs about 60 ns a value; instead the value's cell c of ``LOOKUP_CELLS``
-    equal cells over [book[0], book[-1]] is computed (clipped to the first and last), and where no midpoint lies
-    in cells c - 1 to c + 1 the label is the count below cell c - 1. Cells are kept over 2^40 times wider than
-    the float64 spacing of the book's values, so rounding moves a value's cell by far less than one cell and it
-    lies within those three; the 1-3% of values near a midpoint are searched exactly. The table is made once
-    (about 4 ms) for all the slices of rows labelled with it."""
+    A binary search over 255 midpoints costs about 60 ns a value on a CPU; instead the value's cell c of
+    ``LOOKUP_CELLS`` equal cells over [book[0], book[-1]] is computed (clipped to the first and last), and where no
+    midpoint lies in cells c - 1 to c + 1 the label is the count below cell c - 1. Cells are kept over 2^40 times
+    wider than the float64 spacing of the book's values, so rounding moves a value's cell by far less than one
+    cell and it lies within those three; the 1-3% of values near a midpoint are searched exactly. The table is
+    made once for all the values labelled with it."""
 
-    def __init__(self, book: np.ndarray):
+    def __init__(self, book: np.ndarray, device: torch.device | str = "cpu"):
         self.book = book
-        b = np.asarray(book, np.float64)
-        self.mids, self.lo, hi = 0.5 * (b[1:] + b[:-1]), float(b[0]), float(b[-1])
+        b = torch.as_tensor(np.asarray(book, np.float64), device=device)
+        self.mids, self.lo, hi = 0.5 * (b[1:] + b[:-1]), float(book[0]), float(book[-1])
         self.scale, self.below = 0.0, None  # below: midpoints below each cell's lower neighbour
         if (hi - self.lo) / LOOKUP_CELLS > 2.0**-40 * max(abs(self.lo), abs(hi)):  # else a flat or too narrow book
-            g = LOOKUP_CELLS
-            edges = np.concatenate([[-np.inf], self.lo + (hi - self.lo) * (np.arange(g + 1) / g), [np.inf]])
-            self.scale, self.below = g / (hi - self.lo), np.searchsorted(self.mids, edges)
+            g, inf = LOOKUP_CELLS, torch.tensor([np.inf], dtype=torch.float64, device=device)
+            grid = self.lo + (hi - self.lo) * (torch.arange(g + 1, dtype=torch.float64, device=device) / g)
+            below = torch.searchsorted(self.mids, torch.cat([-inf, grid, inf]))
+            self.scale, self.below = g / (hi - self.lo), below.to(torch.uint8)  # at most 255
 
-    def __call__(self, values: np.ndarray) -> np.ndarray:
-        v = np.asarray(values, np.float64).reshape(-1)
+    def __call__(self, values: np.ndarray | torch.Tensor) -> torch.Tensor:
+        values = torch.as_tensor(values, device=self.mids.device)
+        v = values.to(torch.float64).reshape(-1)
         if self.below is None:
-            labels = np.searchsorted(self.mids, v)
+            labels = torch.searchsorted(self.mids, v)
         else:
-            cell = np.subtract(v, self.lo)
-            with np.errstate(over="ignore"):  # far outside: inf, clipped to the last cell
-                cell *= self.scale
-            np.clip(cell, 0, LOOKUP_CELLS - 1, out=cell)
-            cell = cell.astype(np.intp)
-            labels = np.take(self.below, cell)
-            near = np.flatnonzero(labels != np.take(self.below[3:], cell))
-            labels[near] = np.searchsorted(self.mids, v[near])
-        return np.minimum(labels, len(self.mids)).astype(np.uint8).reshape(np.shape(values))
+            cell = ((v - self.lo) * self.scale).clamp_(0, LOOKUP_CELLS - 1).long()  # far outside: the end cells
+            labels = self.below.index_select(0, cell)
+            near = torch.nonzero(labels != self.below[3:].index_select(0, cell)).squeeze(1)
+            labels[near] = torch.searchsorted(self.mids, v[near]).to(torch.uint8)
+        return labels.clamp_(max=len(self.mids)).to(torch.uint8).reshape(values.shape)
 
 
 def kmeans(x: np.ndarray, k: int, iterations: int = 5, fit_rows: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -96,18 +96,17 @@ def kmeans(x: np.ndarray, k: int, iterations: int = 5, fit_rows: int = 8) -> tup
     row's nearest centroid). Lloyd's iterations run on a random ``fit_rows`` k of the rows (all when fewer),
     starting from k of them.
 
-    5 iterations: 10 (the earlier count) gave 0.2-0.9% smaller RMS errors on a real prediction (SH 2), the skull
-    capture (SH 3) and the synthetic bench scene, at twice the time. Distances are |c|^2 - 2 x.c in blocks of
-    rows (about 4 MiB on the CPU, 64 MiB on a GPU); on the CPU numpy takes the argmin (torch's is several times
+    The centroids' sums are taken on the CPU (at most ``fit_rows`` k rows), so the palette is the same from run to
+    run on a GPU too. 5 iterations: 10 (the earlier count) gave 0.2-0.9% smaller RMS errors on a real prediction
+    (SH 2), the skull capture (SH 3) and the synthetic bench scene, at twice the time. Distances are |c|^2 - 2 x.c in blocks of
+    rows (about 4 MiB on the CPU, 256 MiB on a GPU); on the CPU numpy takes the argmin (torch's is several times
     slower there)."""
-    import torch
-
-    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    dev = row_tasks.device()
     X = torch.from_numpy(np.ascontiguousarray(x, np.float32)).to(dev)
     rows = torch.randperm(len(X), generator=torch.Generator().manual_seed(0)).to(dev)
     fit = X[rows[:fit_rows * k]]
     C = fit[:k].clone()
-    block = max(1, (1 << (24 if dev == "cuda" else 20)) // k)  # rows a block of distances
+    block = max(1, (1 << (26 if dev.type == "cuda" else 20)) // k)  # rows a block of distances
 
     def assign(points: torch.Tensor) -> torch.Tensor:
         c2, m2ct = (C * C).sum(1), (-2.0 * C).T.contiguous()
@@ -117,9 +116,10 @@ def kmeans(x: np.ndarray, k: int, iterations: int = 5, fit_rows: int = 8) -> tup
             out[i:i + block] = d.argmin(1) if d.is_cuda else torch.from_numpy(d.numpy().argmin(1))
         return out
 
-    for _ in range(iterations):
-        labels = assign(fit)
-        count = torch.zeros(k, device=dev).index_add_(0, labels, torch.ones(len(fit), device=dev))
-        total = torch.zeros_like(C).index_add_(0, labels, fit)
-        C = torch.where(count[:, None] > 0, total / count.clamp(min=1)[:, None], C)
+    fit_cpu = fit.cpu()
+    for _ in range(iterations):  # the sums on the CPU: a GPU's index_add_ adds in no fixed order
+        labels = assign(fit).cpu()
+        count = torch.zeros(k).index_add_(0, labels, torch.ones(len(fit)))
+        total = torch.zeros(k, x.shape[1]).index_add_(0, labels, fit_cpu)
+        C = torch.where(count[:, None] > 0, total / count.clamp(min=1)[:, None], C.cpu()).to(dev)
     return C.cpu().numpy(), assign(X).cpu().numpy()

@@ -1,5 +1,6 @@
 """Row-range tasks on one shared thread pool, for the scene writers' quantisation (``spz``, ``compressed_ply``,
-``sog``, which also runs its codebooks, SH palette and WebP encodes there as tasks of their own).
+``sog``, which also runs its codebooks, SH palette and WebP encodes there as tasks of their own), and the device
+of the writers' torch work (the Morton order, ``sog_texels``).
 
 A writer splits its N rows into slices of ``ROWS_PER_TASK`` (a multiple of the compressed ``.ply``'s 256-row
 chunk) and quantises each slice in a task that writes its own rows of preallocated output arrays, so the
@@ -22,6 +23,10 @@ import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
 
 #: Rows per task (a multiple of 256, the compressed .ply's chunk).
 ROWS_PER_TASK = 32768
@@ -83,3 +88,10 @@ def wait_all(futures: list[Future]) -> None:
             error = error or e
     if error is not None:
         raise error
+
+
+def device() -> torch.device:
+    """Where the writers' torch work runs: the current CUDA device when there is one, else the CPU."""
+    import torch  # only for writing: the readers do without it
+
+    return torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")

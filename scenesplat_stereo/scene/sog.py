@@ -51,8 +51,8 @@ from pathlib import Path
 import numpy as np
 
 from scenesplat_stereo.common.files import atomic_write_bytes
-from scenesplat_stereo.scene import palettes, row_tasks
-from scenesplat_stereo.scene.compressed_ply import largest_component, morton_order
+from scenesplat_stereo.scene import row_tasks
+from scenesplat_stereo.scene.compressed_ply import morton_order
 from scenesplat_stereo.scene.gaussians import GaussianScene, decoded_scene
 
 #: Coefficients above the DC term per SH degree (bands).
@@ -300,54 +300,17 @@ def load_sog(path: str | os.PathLike) -> GaussianScene:
 IMAGES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp", "shN_labels.webp")
 
 
-def _pack_quats(quats: np.ndarray) -> np.ndarray:
-    """uint8 [m, 4] "smallest three" texels of unit wxyz quaternions [m, 4] float32 (module docstring): q / |q|
-    (the norm in float32, as ``np.linalg.norm`` of the rows) negated where its largest |component| (the first of
-    equals) is negative; RGB the other three as rint(255 (sqrt(2) c / 2 + 1/2)), A = 252 + the largest's index.
-    Computed on columns (one row per component): numpy's reductions and argmax along short rows are slow."""
-    q32 = np.ascontiguousarray(quats.T)  # [4, m]
-    square = q32 * q32
-    norm = np.sqrt(((square[0] + square[1]) + square[2]) + square[3])  # float32, the order of np.add.reduce
-    q = q32.astype(np.float64)
-    q /= norm
-    largest, value = largest_component(q)
-    q *= np.where(value < 0, -math.sqrt(2.0), math.sqrt(2.0))
-    out = np.empty((q.shape[1], 4), np.uint8)
-    for j in range(3):  # the j-th component other than the largest
-        c = np.where(largest <= j, q[j + 1], q[j])
-        c *= 0.5
-        c += 0.5
-        c *= 255.0
-        out[:, j] = np.clip(np.rint(c), 0, 255)
-    out[:, 3] = 252 + largest
-    return out
-
-
-def _sh_palette(sh: np.ndarray, degree: int, palette: int) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
-    """The SH palette of ``sh`` [N, K, 3] (module docstring): (its 256-entry codebook, the centroid image's texels,
-    its rows, the label texels [N, 4] in the scene's order)."""
-    coeffs, n = SH_COEFFS[degree], len(sh)
-    rest = sh[:, 1:].transpose(0, 2, 1).reshape(n, 3 * coeffs)  # channel-major, as f_rest
-    centroids, labels = palettes.kmeans(rest, palette)
-    book = palettes.codebook(centroids)
-    cells = palettes.Nearest(book)(centroids).reshape(palette, 3, coeffs).transpose(0, 2, 1).reshape(-1, 3)
-    rows = math.ceil(palette / 64)
-    px = np.zeros((rows * 64 * coeffs, 4), np.uint8)
-    px[:len(cells), :3], px[:, 3] = cells, 255
-    texels = np.zeros((n, 4), np.uint8)
-    texels[:, 0], texels[:, 1], texels[:, 3] = labels & 255, labels >> 8, 255
-    return book, px, rows, texels
-
-
 def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
                sh_palette_max: int = SH_PALETTE_MAX) -> bytes:
     """The bundled ``.sog`` (zip) bytes of ``scene`` (module docstring).
 
-    All but the order is computed in the scene's order, side by side on the shared pool of ``row_tasks`` while
-    this thread finds the Morton order: the two codebooks and the SH palette one task each, the texels in
-    slices of rows. Each image is then gathered into Morton order and encoded in a task of its own
-    (``write_webp`` runs without the GIL). The bytes depend neither on the slices nor on the threads. Not to be
-    called from a task of that pool (``morton_order`` waits for tasks of it)."""
+    The texels are quantised in the scene's order by ``sog_texels`` in three tasks of the shared pool of
+    ``row_tasks`` (positions and quaternions, scales, colours), and the SH palette in a fourth, while this thread finds the Morton order (all of it in torch
+    on ``row_tasks.device()``, a GPU where there is one); each image is then gathered into Morton order and
+    encoded in a task of its own (``write_webp`` runs without the GIL). Not to be called from a task of that
+    pool (this function waits for tasks of it)."""
+    from scenesplat_stereo.scene import sog_texels  # torch: only for writing
+
     n = len(scene)
     if n == 0:
         raise SogError(f"{path}: an empty scene has no SOG (images of at least one texel)")
@@ -361,70 +324,37 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
         futures.append(pool.submit(fn, *args))
         return futures[-1]
 
-    def rows(fn: Callable[[int, int], None]) -> None:  # fn over slices of rows on the pool, waited for
-        futures.extend(row_tasks.submit_rows(fn, n))
-        row_tasks.wait_all(futures[-len(slices):])
-
-    slices = row_tasks.row_ranges(n)
-    tex = np.empty((len(IMAGES) - (degree == 0), n, 4), np.uint8)  # IMAGES' texels in the scene's order
-    t, log_scales = np.empty((n, 3)), np.empty((n, 3))  # t = sign(x) ln(|x| + 1) of the positions
-    bounds = np.empty((len(slices), 2, 3))  # each slice's mins and maxs of t
-
-    def logs_quats_opacities(i: int, a: int, b: int) -> None:
-        m = scene.means[a:b].astype(np.float64)
-        t[a:b] = np.sign(m) * np.log1p(np.abs(m))
-        # per column: numpy's min(0) over the rows of an [m, 3] array is some 10x slower than three strided mins
-        bounds[i] = [[f(t[a:b, k]) for k in range(3)] for f in (np.min, np.max)]
-        tex[2, a:b] = _pack_quats(scene.quats[a:b])
-        tex[[0, 1, 3], a:b, 3] = 255
-        tex[4, a:b, 3] = np.clip(np.rint(scene.opacities[a:b].astype(np.float64) * 255.0), 0, 255)
-
-    def scale_codebook_of_logs() -> palettes.Nearest:  # all log scales at once: the codebook needs them all
-        np.log(scene.scales, out=log_scales, dtype=np.float64)
-        return palettes.Nearest(palettes.codebook(log_scales))
-
-    def positions(a: int, b: int) -> None:
-        q = np.rint(65535.0 * (t[a:b] - mins) / np.where(maxs > mins, maxs - mins, 1.0)).astype(np.uint16)
-        tex[0, a:b, :3], tex[1, a:b, :3] = q & 255, q >> 8
-
-    def labels(a: int, b: int) -> None:
-        tex[3, a:b, :3] = scale_book(log_scales[a:b])
-        tex[4, a:b, :3] = colour_book(scene.sh[a:b, 0])
-
-    def encode(i: int, method: int = WEBP_METHOD) -> Future:  # image i in Morton order
-        return submit(lambda: write_webp(np.take(tex[i], order, axis=0), width, height, method))
+    def encode(rgba: np.ndarray, method: int = WEBP_METHOD) -> Future:  # texels in the scene's order
+        return submit(lambda: write_webp(np.take(rgba, order, axis=0), width, height, method))
 
     try:
-        colour_codebook = submit(lambda: palettes.Nearest(palettes.codebook(scene.sh[:, 0].astype(np.float64))))
-        scale_codebook = submit(scale_codebook_of_logs)
+        dev = row_tasks.device()
+        placed = submit(sog_texels.placed, scene, dev)
+        scales, colours = (submit(fn, scene, dev) for fn in (sog_texels.scale_texels, sog_texels.colour_texels))
         if degree:
             palette = min(64, 2 ** math.floor(math.log2(n / 1024))) * 1024 if n >= 1024 else n
             palette = max(1, min(palette, sh_palette_max, n))
-            shn = submit(_sh_palette, scene.sh, degree, palette)
-        futures += [pool.submit(logs_quats_opacities, i, a, b) for i, (a, b) in enumerate(slices)]
+            shn = submit(sog_texels.sh_palette, scene.sh, degree, palette)
         order = morton_order(scene.means)
-        row_tasks.wait_all(futures[-len(slices):])
-        mins, maxs = bounds[:, 0].min(0), bounds[:, 1].max(0)
-        rows(positions)
-        images = {name: encode(i) for i, name in enumerate(IMAGES[:3])}
-        scale_book, colour_book = scale_codebook.result(), colour_codebook.result()
-        rows(labels)
-        images.update((name, encode(i)) for i, name in enumerate(IMAGES[3:5], 3))
+        rgba, mins, maxs = placed.result()
+        images = {name: encode(texels) for name, texels in zip(IMAGES[:3], rgba)}
+        (scale_rgba, scale_book), (colour_rgba, colour_book) = scales.result(), colours.result()
+        images.update(zip(IMAGES[3:5], (encode(scale_rgba), encode(colour_rgba))))
         meta = {"version": 2, "asset": {"generator": "scenesplat_stereo.scene.sog"}, "count": n,
                 "means": {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": ["means_l.webp", "means_u.webp"]},
-                "scales": {"codebook": scale_book.book.tolist(), "files": ["scales.webp"]},
+                "scales": {"codebook": scale_book.tolist(), "files": ["scales.webp"]},
                 "quats": {"files": ["quats.webp"]},
-                "sh0": {"codebook": colour_book.book.tolist(), "files": ["sh0.webp"]}}
+                "sh0": {"codebook": colour_book.tolist(), "files": ["sh0.webp"]}}
         if degree:
-            book, px, centroid_rows, tex[5] = shn.result()
+            book, px, centroid_rows, labels = shn.result()
             images["shN_centroids.webp"] = submit(write_webp, px, 64 * SH_COEFFS[degree], centroid_rows,
                                                   WEBP_PALETTE_METHOD)
-            images["shN_labels.webp"] = encode(5, WEBP_PALETTE_METHOD)
+            images["shN_labels.webp"] = encode(labels, WEBP_PALETTE_METHOD)
             meta["shN"] = {"count": palette, "bands": degree, "codebook": book.tolist(),
                            "files": ["shN_centroids.webp", "shN_labels.webp"]}
         names = [*IMAGES[:5], *(["shN_centroids.webp", IMAGES[5]] if degree else [])]
         files = {name: images[name].result() for name in names}
-    finally:  # after an error, no task is left writing into the arrays above
+    finally:  # after an error, no task is left running
         for f in futures:
             f.cancel()
         wait(futures)

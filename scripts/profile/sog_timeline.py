@@ -5,10 +5,10 @@ zip) can be read off on the machine measured.
     python scripts/profile/sog_timeline.py [--gaussians 202752] [--sh-degree 0] [--repeats 5] [--out FILE]
 
 The scene is ``bench scenes``' prediction-shaped one. The stages are the writer's own functions, wrapped for the
-run (the codebooks, the nearest-entry labels, the SH palette's k-means, the quaternion bytes, the Morton order,
-every WebP encode) and every task of the shared pool of ``row_tasks`` (the slices of rows; a lambda there is a
-codebook or an encode, timed again inside). ``--repeats`` writes after two unmeasured ones; the timeline shown
-is the run of median length. Milliseconds from the call's start; threads named as the pool names them.
+run (the texels' three tasks ``placed``, ``scale_texels`` and ``colour_texels``, on the GPU where there is
+one; the codebooks, the nearest-entry labels, the SH palette's k-means, the quaternion bytes, the Morton order,
+every WebP encode) and every task of the shared pool of ``row_tasks`` (a lambda there is an encode, timed again
+inside). ``--repeats`` writes after two unmeasured ones; the timeline shown is the run of median length. Milliseconds from the call's start; threads named as the pool names them.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from scenesplat_stereo.bench.scenes import PREDICTION_GAUSSIANS, synthetic_scene  # noqa: E402
 from scenesplat_stereo.common.ownership import OwnedFile  # noqa: E402
-from scenesplat_stereo.scene import palettes, row_tasks, sog  # noqa: E402
+from scenesplat_stereo.scene import palettes, row_tasks, sog, sog_texels  # noqa: E402
 from sgmodel.bench import report  # noqa: E402
 
 events: list[tuple[str, str, float, float]] = []  # (stage, thread, start, end), perf_counter seconds
@@ -56,8 +56,10 @@ def instrument() -> None:
     palettes.kmeans = timed("kmeans", palettes.kmeans)
     palettes.Nearest.__init__ = timed("nearest table", palettes.Nearest.__init__)
     palettes.Nearest.__call__ = timed("nearest labels", palettes.Nearest.__call__)
-    for name in ("write_webp", "_pack_quats", "morton_order", "_sh_palette"):
-        setattr(sog, name, timed(name.strip("_"), getattr(sog, name)))
+    for name in ("write_webp", "morton_order"):
+        setattr(sog, name, timed(name, getattr(sog, name)))
+    for name in ("placed", "scale_texels", "colour_texels", "pack_quats", "sh_palette"):
+        setattr(sog_texels, name, timed(name, getattr(sog_texels, name)))
     row_tasks._pool = TimedPool(row_tasks.workers(), thread_name_prefix="row-tasks")
 
 

@@ -2,7 +2,8 @@
 (tests/support/sog_helpers.py) for versions 1 and 2, bundled and not, SH degrees 0-3; against PlayCanvas
 splat-transform 3.7.0's decode of the real captures (tests/data/captures, made by scripts/inputs/capture_samples.py);
 the writer's round trip and splat-transform reading our files; the writer's quantisers (``palettes``, the quaternion
-texels) against plain float64 / row-by-row versions, and its bytes against a run on one thread in small slices."""
+texels) against plain float64 / row-by-row versions, its bytes against a run on one thread, and its texels on a GPU
+against those on the CPU."""
 
 from __future__ import annotations
 
@@ -16,12 +17,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-from scenesplat_stereo.scene import palettes, row_tasks
+from scenesplat_stereo.scene import palettes, row_tasks, sog_texels
 from scenesplat_stereo.scene.compressed_ply import morton_order
 from scenesplat_stereo.scene.gaussians import GaussianScene, load_ply
 from scenesplat_stereo.scene.scene_files import load_scene, scene_info
-from scenesplat_stereo.scene.sog import _pack_quats, encode_sog, load_sog, save_sog
+from scenesplat_stereo.scene.sog import encode_sog, load_sog, save_sog
 from tests.support.paths import CAPTURES, SPLAT_TRANSFORM, TEST_DATA
 from tests.support.ply_helpers import random_scene
 from tests.support.sog_helpers import make_sog, reference_decode
@@ -140,13 +142,13 @@ def test_nearest_entry_is_the_binary_search() -> None:
                                  np.nextafter(b, np.inf), b[0] + (b[-1] - b[0]) * rng.random(5000),
                                  rng.normal(0, 20, 500), [-1e300, 1e300]])
         for shaped in (values, values[:len(values) // 3 * 3].reshape(-1, 3)):
-            labels = palettes.Nearest(book)(shaped)
+            labels = palettes.Nearest(book)(shaped).numpy()
             assert labels.shape == shaped.shape and labels.dtype == np.uint8
             np.testing.assert_array_equal(labels, np.minimum(np.searchsorted(mids, shaped), len(b) - 1))
         finite = values[np.abs(values) < 1e100]  # |1e300 - entry| is 1e300 for every entry
         away = finite[np.abs(finite[:, None] - mids[None]).min(1, initial=np.inf) > 1e-9 * (1 + np.abs(finite))]
         brute = np.abs(away[:, None] - b[None]).argmin(1)  # the first of equal entries
-        np.testing.assert_array_equal(b[palettes.Nearest(book)(away)], b[brute])
+        np.testing.assert_array_equal(b[palettes.Nearest(book)(away).numpy().astype(np.intp)], b[brute])
 
 
 def test_codebook_histogram_is_numpys_but_at_the_edges() -> None:
@@ -164,7 +166,7 @@ def test_codebook_histogram_is_numpys_but_at_the_edges() -> None:
         gap = np.minimum(np.abs(values - edges[i - 1]), np.abs(values - edges[i]))
         near = gap <= 8 * np.spacing(max(abs(lo), abs(hi)))
         for part, exact in ((values[~near], True), (values, False)):
-            counts, got_edges = palettes.histogram(part, bins, lo, hi)
+            counts, got_edges = palettes.histogram(torch.from_numpy(part), bins, lo, hi)
             want = np.histogram(part, bins, (lo, hi))[0]
             np.testing.assert_array_equal(got_edges, edges)
             assert counts.sum() == len(part)
@@ -210,17 +212,38 @@ def test_quaternion_texels_match_a_row_by_row_version() -> None:
     q[800:1200] = np.round(q[800:1200] * 4) / 4  # components near rounding half-steps
     q[np.abs(q).sum(1) == 0] = [1.0, 0.0, 0.0, 0.0]
     q = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
-    np.testing.assert_array_equal(_pack_quats(q), reference_pack_quats(q))
+    np.testing.assert_array_equal(sog_texels.pack_quats(torch.from_numpy(q)).numpy(), reference_pack_quats(q))
 
 
-def test_writer_bytes_do_not_depend_on_slices_or_threads() -> None:
-    """The same bytes from the shared pool in its usual slices as from one thread in slices of 512 rows."""
+def test_writer_bytes_do_not_depend_on_threads() -> None:
+    """The same bytes from the shared pool and torch's threads as from one pool thread (the Morton order's keys in
+    slices of 512 rows) and one torch thread."""
     scene = random_scene(np.random.default_rng(9), 3000, 2)
     usual = encode_sog(scene)
-    pool, step = row_tasks._pool, row_tasks.ROWS_PER_TASK
+    pool, step, threads = row_tasks._pool, row_tasks.ROWS_PER_TASK, torch.get_num_threads()
     try:
         row_tasks._pool, row_tasks.ROWS_PER_TASK = ThreadPoolExecutor(1), 512
+        torch.set_num_threads(1)
         assert encode_sog(scene) == usual
     finally:
         row_tasks._pool.shutdown()
         row_tasks._pool, row_tasks.ROWS_PER_TASK = pool, step
+        torch.set_num_threads(threads)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the texels quantised on a GPU)")
+def test_texels_on_the_gpu_are_those_on_the_cpu() -> None:
+    """Every texel and codebook entry the same on both devices (module docstring of ``sog_texels``: only a
+    logarithm within an ulp of a boundary could differ, which these scenes do not hold), and the box within an
+    ulp, on random scenes and on the bench scene."""
+    from scenesplat_stereo.bench.scenes import synthetic_scene
+
+    scenes = [random_scene(np.random.default_rng(s), 4000 + 999 * s, 0) for s in range(4)]
+    for scene in [*scenes, synthetic_scene(202752, 0)]:
+        texels, *box = sog_texels.placed(scene, torch.device("cpu"))
+        texels_gpu, *box_gpu = sog_texels.placed(scene, torch.device("cuda"))
+        np.testing.assert_array_equal(texels, texels_gpu)
+        np.testing.assert_array_almost_equal_nulp(np.array(box), np.array(box_gpu), 1)
+        for fn in (sog_texels.scale_texels, sog_texels.colour_texels):
+            for cpu, gpu in zip(fn(scene, torch.device("cpu")), fn(scene, torch.device("cuda"))):
+                np.testing.assert_array_equal(cpu, gpu)
