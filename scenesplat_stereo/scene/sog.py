@@ -1,5 +1,5 @@
-"""PlayCanvas SOG ("spatially ordered Gaussians"): reader (versions 1 and 2, bundled or not) and writer (version 2,
-bundled), numpy and OpenImageIO's WebP codec.
+"""PlayCanvas SOG ("spatially ordered Gaussians"): reader (versions 1 and 2, bundled or not; numpy) and writer
+(version 2, bundled; torch, ``sog_texels``), and OpenImageIO's WebP codec.
 
 Written from the format as PlayCanvas' splat-transform 3.7.0 reads and writes it (``readSog`` / ``writeSog``).
 A SOG is a ``meta.json`` and lossless WebP images, either side by side in a folder or bundled in one zip file
@@ -305,10 +305,10 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
     """The bundled ``.sog`` (zip) bytes of ``scene`` (module docstring).
 
     The texels are quantised in the scene's order by ``sog_texels`` in three tasks of the shared pool of
-    ``row_tasks`` (positions and quaternions, scales, colours), and the SH palette in a fourth, while this thread finds the Morton order (all of it in torch
-    on ``row_tasks.device()``, a GPU where there is one); each image is then gathered into Morton order and
-    encoded in a task of its own (``write_webp`` runs without the GIL). Not to be called from a task of that
-    pool (this function waits for tasks of it)."""
+    ``row_tasks`` (positions and quaternions, scales, colours), and the SH palette in a fourth, while this thread
+    finds the Morton order (all of it in torch on ``row_tasks.device()``, a GPU where there is one); each image
+    is then gathered into Morton order and encoded in a task of its own (``write_webp`` runs without the GIL).
+    Not to be called from a task of that pool (this function waits for tasks of it)."""
     from scenesplat_stereo.scene import sog_texels  # torch: only for writing
 
     n = len(scene)

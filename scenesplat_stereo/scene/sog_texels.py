@@ -5,8 +5,8 @@ On a GPU the scene's arrays are copied there (14 floats a Gaussian at SH 0) and 
 Gaussian), and the work between is some 40 kernels; the numbers are the same on either device. Every step is
 an IEEE operation in the precision written (float32 norms of the quaternions, the rest in float64) but the
 logarithms (``log1p`` of the positions, ``log`` of the scales), which the devices' libraries round within an
-ulp of each other: a texel can differ between devices only where such a value lies within an ulp of a
-rounding or codebook boundary.
+ulp of each other: the box of t (``meta.json``) can differ by an ulp between devices, and a texel only where
+such a value lies within an ulp of a rounding or codebook boundary.
 
 The quantities (the format: ``sog``'s docstring): t = sign(x) ln(|x| + 1) of the positions (metres in, unitless
 out) as 16-bit steps of their box, the quaternions' "smallest three" bytes, the opacity byte, and the nearest
