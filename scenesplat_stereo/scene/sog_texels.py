@@ -22,7 +22,6 @@ import torch
 
 from scenesplat_stereo.scene import palettes
 from scenesplat_stereo.scene.gaussians import GaussianScene
-from scenesplat_stereo.scene.sog import SH_COEFFS
 
 
 def placed(scene: GaussianScene, dev: torch.device) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -87,7 +86,7 @@ def sh_palette(sh: np.ndarray, degree: int, palette: int) -> tuple[np.ndarray, n
     """The SH palette of ``sh`` [N, K, 3] (``sog``'s docstring): (its 256-entry codebook, the centroid image's
     texels, its rows, the label texels [N, 4] in the scene's order). The k-means runs where ``palettes.kmeans``
     puts it."""
-    coeffs, n = SH_COEFFS[degree], len(sh)
+    coeffs, n = (degree + 1) ** 2 - 1, len(sh)  # above the DC term: sog.SH_COEFFS (not imported: a circle)
     rest = sh[:, 1:].transpose(0, 2, 1).reshape(n, 3 * coeffs)  # channel-major, as f_rest
     centroids, labels = palettes.kmeans(rest, palette)
     book = palettes.codebook(centroids)
