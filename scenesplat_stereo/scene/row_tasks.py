@@ -1,6 +1,6 @@
-"""Row-range tasks on one shared thread pool, for the scene writers' quantisation (``spz``, ``compressed_ply``,
-``sog``, which also runs its codebooks, SH palette and WebP encodes there as tasks of their own), and the device
-of the writers' torch work (the Morton order, ``sog_texels``).
+"""Row-range tasks on one shared thread pool, for the scene writers' quantisation (``spz``, ``compressed_ply``;
+``sog`` runs its texels, SH palette and WebP encodes there as tasks of their own), and the device of the
+writers' torch work (the Morton order, ``sog_texels``).
 
 A writer splits its N rows into slices of ``ROWS_PER_TASK`` (a multiple of the compressed ``.ply``'s 256-row
 chunk) and quantises each slice in a task that writes its own rows of preallocated output arrays, so the

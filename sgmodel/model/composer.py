@@ -153,7 +153,7 @@ def scales(depth: torch.Tensor, delta_s: torch.Tensor, K: torch.Tensor, cap: tor
     if composer:
         if cap is not None:
             # minimum keeps its input for the backward: a copy of the 3 channels, not a view that would keep the
-            # whole 37-channel branch alive until then (at the paper's batch, 345 MiB a layer)
+            # whole 37-channel branch alive until then (at the paper's batch, 375 MiB a layer)
             delta_s = torch.minimum(delta_s.contiguous(),
                                     torch.as_tensor(cap, dtype=delta_s.dtype, device=delta_s.device))
         s = (s0 * phi(delta_s)).clamp(S_MIN, S_MAX)

@@ -216,18 +216,17 @@ def test_quaternion_texels_match_a_row_by_row_version() -> None:
 
 
 def test_writer_bytes_do_not_depend_on_threads() -> None:
-    """The same bytes from the shared pool and torch's threads as from one pool thread (the Morton order's keys in
-    slices of 512 rows) and one torch thread."""
+    """The same bytes from the shared pool and torch's threads as from one pool thread and one torch thread."""
     scene = random_scene(np.random.default_rng(9), 3000, 2)
     usual = encode_sog(scene)
-    pool, step, threads = row_tasks._pool, row_tasks.ROWS_PER_TASK, torch.get_num_threads()
+    pool, threads = row_tasks._pool, torch.get_num_threads()
     try:
-        row_tasks._pool, row_tasks.ROWS_PER_TASK = ThreadPoolExecutor(1), 512
+        row_tasks._pool = ThreadPoolExecutor(1)
         torch.set_num_threads(1)
         assert encode_sog(scene) == usual
     finally:
         row_tasks._pool.shutdown()
-        row_tasks._pool, row_tasks.ROWS_PER_TASK = pool, step
+        row_tasks._pool = pool
         torch.set_num_threads(threads)
 
 
