@@ -2,15 +2,17 @@
 
 Each tile intersection names its (camera, Gaussian) pair through ``flatten_ids``; its splat is the pair's
 mean2d, conic, effective opacity and D colours. Two compiled variants of the same per-splat step:
-- cooperative (default on CUDA): one thread block per tile, one thread per pixel; a batch of one list
-  entry per thread at a time, the block gathers the entries' splats through their ids from the per-pair
-  tensors [C * N, ...] into shared memory (``splat_batch_func``, one id lookup per splat per block,
-  nothing written to global memory first; the cooperative backward kernels gather the same way) and every
-  thread walks the batch there; the block stops when all its pixels are done. A tile's list holds every
-  splat that reaches the tile, and a warp's pixels (a few rows of it) miss most of them: each warp
-  bounds the batch's entries against its pixels (``may_touch``, conservative, one entry per lane) and
-  votes, and its threads walk only the entries left (an entry ruled out touches none of them: the same
-  image);
+- cooperative (default on CUDA): one thread block per tile, one thread per pixel; a batch of one list entry
+  per thread at a time, the block gathers the entries' splats through their ids from the per-pair tensors
+  [C * N, ...] into shared memory (``splat_batch_func``, one id lookup per splat per block, nothing written to
+  global memory first; the cooperative backward kernels gather the same way) and every thread walks the
+  batch there; the block stops when all its pixels are done. A tile's list holds every splat that reaches
+  the tile, and a warp's pixels (a few rows of it) may miss many of them: each thread bounds one entry's
+  touch box (``touch_extent``, conservative), each warp tests the batch's boxes against its pixels (one
+  entry per lane) and votes (blocks of at most ``VOTE_WARPS`` warps). Where fewer than 1 / ``DENSE_DIVISOR``
+  of the entries are left (small splats, as in trained teachers), its threads walk only those; else every
+  entry, in a plain loop (real captures of large splats, where walking the vote's bits cost 15-25% more:
+  docs/benchmarks.md). An entry ruled out touches none of the warp's pixels: the same image either way;
 - per pixel (default on the CPU, where Warp runs threads serially and shared memory buys nothing): one
   thread per pixel walks its tile's list in depth-sorted splat rows [M, 6 + D] gathered once
   (``gather_splats``, which the per-pixel backward reads too; on the CPU contiguous rows beat an id
@@ -30,7 +32,7 @@ import warp as wp
 
 from scenesplat_stereo.raster._warp import ALPHA_MIN, T_MIN, launch, to_wp, vector_type
 from scenesplat_stereo.raster.binning import Bins
-from scenesplat_stereo.raster.lanes import LANES, block_all, lanes_ballot, lowest_bit
+from scenesplat_stereo.raster.lanes import LANES, bit_count, block_all, lanes_ballot, lowest_bit
 
 # CUDA compile options of the compositing kernels (forward and backward alike, so both make the same
 # touch / stop decisions): fast math turns exp into the hardware approximation gsplat uses (__expf);
@@ -71,7 +73,14 @@ def touch_alpha(xy: wp.vec2, conic: wp.vec3, opacity: float, fx: float, fy: floa
     return alpha
 
 
-# ``may_touch`` bounds only conics with (a + c)^2 <= NEAR_CONDITION * (a c - b^2) (condition number up to about
+#: A batch is dense for a warp when at least 1 / DENSE_DIVISOR of its entries may touch the warp's pixels: the
+#: warp then walks every entry in a plain loop, which costs less than walking the vote's bits one by one.
+DENSE_DIVISOR = 2
+#: Most warps a voting block has (16 x 16 tiles: 8): with 32 (32 x 32 tiles, 1,024 threads) the vote's masks take
+#: more registers than a block of 1,024 threads may have (CUDA refuses the launch), so such blocks do not vote.
+VOTE_WARPS = 8
+
+# ``touch_extent`` bounds only conics with (a + c)^2 <= NEAR_CONDITION * (a c - b^2) (condition number up to about
 # 1e4): for them float32's sigma is within 0.6% of the exact one (its rounding error is at most a few ulp of
 # 0.5 (a dx^2 + c dy^2) + |b dx dy|, which is at most 2 (a + c)^2 / det times sigma), far inside the bound's
 # 1% margin in radius (2% in sigma). More elongated conics are never ruled out.
@@ -79,28 +88,41 @@ NEAR_CONDITION = 1.0e4
 
 
 @wp.func
-def may_touch(xy: wp.vec2, conic: wp.vec3, opacity: float, x0: float, x1: float, y0: float, y1: float) -> int:
-    """0 only when the splat certainly touches no pixel centre in [x0, x1] x [y0, y1] (pixels), else 1.
+def touch_extent(conic: wp.vec3, opacity: float) -> wp.vec2:
+    """Half-widths (rx, ry) in pixels of a box around the mean that holds every pixel centre the splat touches,
+    +inf where no bound is given, -inf where it touches nothing.
 
     A splat touches a pixel where sigma <= ln(255 o) (``touch_alpha``), an ellipse whose bounding box has
     half-widths sqrt(2 t c / det) and sqrt(2 t a / det) (t = ln(255 o), det = a c - b^2: the diagonal of the
     inverse conic). The box is widened by 1% plus 0.01 px and t by 1e-3 for float32 rounding and the fast
-    exp and log; conics that are not positive definite or too elongated (``NEAR_CONDITION``), and NaNs, are
-    never ruled out. A splat with o < 1/255 touches nothing (o exp(-sigma) <= o for sigma >= 0)."""
+    exp and log; conics that are not positive definite or too elongated (``NEAR_CONDITION``), and NaNs, get
+    no bound. A splat with o < 1/255 touches nothing (o exp(-sigma) <= o for sigma >= 0)."""
     if not (opacity >= ALPHA_MIN * 0.999):
-        return 0
+        return wp.vec2(-wp.inf, -wp.inf)
     a = conic[0]
     b = conic[1]
     c = conic[2]
     det = a * c - b * b
     if not (a > 0.0 and c > 0.0 and det > 0.0 and (a + c) * (a + c) <= NEAR_CONDITION * det):
-        return 1
+        return wp.vec2(wp.inf, wp.inf)
     t = 2.0 * (wp.max(wp.log(opacity / ALPHA_MIN), 0.0) + 1.0e-3)
-    rx = wp.sqrt(t * c / det) * 1.01 + 0.01
-    ry = wp.sqrt(t * a / det) * 1.01 + 0.01
-    if xy[0] + rx < x0 or xy[0] - rx > x1 or xy[1] + ry < y0 or xy[1] - ry > y1:
+    return wp.vec2(wp.sqrt(t * c / det) * 1.01 + 0.01, wp.sqrt(t * a / det) * 1.01 + 0.01)
+
+
+@wp.func
+def may_touch_box(xy: wp.vec2, extent: wp.vec2, x0: float, x1: float, y0: float, y1: float) -> int:
+    """0 only when the box of half-widths ``extent`` (``touch_extent``) around ``xy`` misses every pixel centre
+    in [x0, x1] x [y0, y1] (pixels), else 1 (also for NaN means)."""
+    if xy[0] + extent[0] < x0 or xy[0] - extent[0] > x1 or xy[1] + extent[1] < y0 or xy[1] - extent[1] > y1:
         return 0
     return 1
+
+
+@wp.func
+def may_touch(xy: wp.vec2, conic: wp.vec3, opacity: float, x0: float, x1: float, y0: float, y1: float) -> int:
+    """0 only when the splat certainly touches no pixel centre in [x0, x1] x [y0, y1] (pixels), else 1: its
+    ``touch_extent`` box against the pixels (``may_touch_box``)."""
+    return may_touch_box(xy, touch_extent(conic, opacity), x0, x1, y0, y1)
 
 
 @wp.func
@@ -202,9 +224,10 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
     vecD = vector_type(channels)
     splat_batch = splat_batch_func(block, channels)
 
-    # Blocks of whole warps vote per warp on the batch's entries (``may_touch`` against the warp's pixels)
-    # and walk only those left; smaller blocks walk every entry.
-    warps = block // LANES if block % LANES == 0 else 0
+    # Blocks of whole warps, at most VOTE_WARPS of them, vote per warp on the batch's entries (their touch boxes
+    # against the warp's pixels) and walk only those left where few are; other blocks walk every entry.
+    warps = block // LANES if block % LANES == 0 and block // LANES <= VOTE_WARPS else 0
+    vecW = wp.types.vector(length=max(warps, 1), dtype=wp.int32)  # the warp's vote masks, one per LANES entries
 
     @wp.func
     def front_step(xy: wp.vec2, con: wp.vec3, opa: float, col: vecD, fx: float, fy: float, max_alpha: float,
@@ -296,16 +319,25 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
                 break
             xy, con, opa, col = splat_batch(flatten_ids, b, means2d, conics, opacities, colors)
             n = wp.min(block, end - b)
-            for w in range(warps):  # entries w * LANES + r, r in the warp's vote (every lane votes)
-                k = w * LANES + wl
-                near = lanes_ballot(may_touch(xy[k], con[k], opa[k], x0, x1, y0, y1), wl)
-                r = lowest_bit(near, 0)
-                while done == 0 and r >= 0 and w * LANES + r < n:
-                    j = w * LANES + r
-                    T, acc, last, done = front_step(xy[j], con[j], opa[j], col[j], fx, fy, max_alpha, T, acc, last,
-                                                    b + j)
-                    r = lowest_bit(near, r + 1)
-            if warps == 0 and done == 0:
+            masks = vecW()
+            near = n  # without a vote (blocks smaller than a warp): every entry
+            if wp.static(warps > 0):  # each entry's touch box once (thread ``lane``: entry ``lane``)
+                ext = wp.tile_empty(shape=(block,), dtype=wp.vec2, storage="shared")
+                wp.tile_assign(ext, wp.tile(touch_extent(con[lane], opa[lane]), preserve_type=True))
+                near = int(0)
+                for w in range(warps):  # the warp's vote on entries w * LANES + wl (every lane votes)
+                    k = w * LANES + wl
+                    masks[w] = lanes_ballot(wp.where(k < n, may_touch_box(xy[k], ext[k], x0, x1, y0, y1), 0), wl)
+                    near += bit_count(masks[w])
+            if near * DENSE_DIVISOR < n:  # sparse: walk the vote's entries
+                for w in range(warps):
+                    r = lowest_bit(masks[w], 0)
+                    while done == 0 and r >= 0:
+                        j = w * LANES + r
+                        T, acc, last, done = front_step(xy[j], con[j], opa[j], col[j], fx, fy, max_alpha, T, acc,
+                                                        last, b + j)
+                        r = lowest_bit(masks[w], r + 1)
+            elif done == 0:  # dense (or no vote): walk every entry
                 for j in range(n):
                     T, acc, last, done = front_step(xy[j], con[j], opa[j], col[j], fx, fy, max_alpha, T, acc, last,
                                                     b + j)

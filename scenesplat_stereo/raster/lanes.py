@@ -1,7 +1,7 @@
 """Cross-thread votes and sums of cooperative compositing blocks (``wp.launch_tiled``): ``block_all`` for
 any block, the ``lanes_*`` functions for blocks of exactly one warp (``LANES`` = 32 threads,
 ``block_dim=LANES``; ``lanes_ballot`` also in larger blocks on CUDA, see there), the compositing kernels'
-per-warp reductions and votes; ``highest_bit`` and ``lowest_bit`` walk a vote's bit mask.
+per-warp reductions and votes; ``highest_bit`` and ``lowest_bit`` walk a vote's bit mask, ``bit_count`` counts it.
 
 On CUDA they are bare warp intrinsics (a vote, register shuffles), with no shared memory and no block
 barrier; Warp's tile reductions, by contrast, go through a shared-memory tile and ``__syncthreads`` per
@@ -154,6 +154,24 @@ def highest_bit(mask: int, r: int) -> int:
 def lowest_bit(mask: int, r: int) -> int:
     """The lowest set bit of ``mask`` (as 32 bits) at position ``r`` or above, or -1 when there is none (or
     ``r`` > 31)."""
+    ...
+
+
+_POPC = """
+#if defined(__CUDA_ARCH__)
+return __popc((unsigned)mask);
+#else
+int count = 0;
+for (int k = 0; k < 32; ++k)
+    count += (((unsigned)mask) >> k) & 1u;
+return count;
+#endif
+"""
+
+
+@wp.func_native(_POPC)
+def bit_count(mask: int) -> int:
+    """The number of set bits of ``mask`` (as 32 bits)."""
     ...
 
 

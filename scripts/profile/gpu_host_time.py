@@ -1,14 +1,15 @@
 """Host or GPU: where a single frame's time goes, ours against gsplat (issue 9's diagnosis).
 
-Per workload (1M random Gaussians SH3 at 1280x720, and the guitar teacher when ``SCENESPLAT_GUITAR_PLY``
-exists), forward and forward + backward of ours and gsplat's, runs interleaved: the wall time (synchronised)
-and the host time until the call returns; our forward's host time split at the binning's one host sync
-(before it, the binning after it, the compositing launch to the return); and the GPU's busy time per call
-(the union of kernel intervals that ``torch.profiler`` records) with the longest kernels. When the host
-time approaches the wall time, the GPU is waiting for the host. ``--quick``: tiny sizes, runs on the CPU
-too (a smoke test of this script, without gsplat or the profiler table).
+Per workload (1M random Gaussians SH3 at 1280x720, the guitar teacher when ``SCENESPLAT_GUITAR_PLY`` exists,
+and with ``--captures DIR`` the real captures of ``gpu_vs_gsplat.py``), forward and forward + backward of ours
+and gsplat's, runs interleaved: the wall time (synchronised) and the host time until the call returns; our
+forward's host time split at the binning's one host sync (before it, the binning after it, the compositing
+launch to the return); and the GPU's busy time per call (the union of kernel intervals that ``torch.profiler``
+records) with the longest kernels. When the host time approaches the wall time, the GPU is waiting for the
+host. ``--quick``: tiny sizes, runs on the CPU too (a smoke test of this script, without gsplat or the
+profiler table).
 
-    python3 scripts/profile/gpu_host_time.py [--quick] [--repeats N] [--out FILE.md]
+    python3 scripts/profile/gpu_host_time.py [--quick] [--repeats N] [--captures DIR] [--out FILE.md]
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import sys
 import time
 
 import torch
-from gpu_vs_gsplat import call, report, script_args, single_scenes
+from gpu_vs_gsplat import call, capture_scenes, report, script_args, single_scenes
 
 import scenesplat_stereo.raster.rendering as rendering
 from scenesplat_stereo.raster import rasterization
@@ -103,7 +104,7 @@ def workload(name, data, W, H, sh, dev, gs, repeats) -> list[str]:
 def main() -> int:
     a = script_args(__doc__, 30)
     dev = "cuda" if torch.cuda.is_available() else "cpu"
-    work = single_scenes(a.quick, dev)[::-1]  # the guitar first
+    work = [*single_scenes(a.quick, dev)[::-1], *capture_scenes(a.captures, dev)]  # the guitar first
     report("Host time against GPU time, medians", work, workload, dev, a.repeats, a.out)
     return 0
 

@@ -4,20 +4,25 @@ Per workload: forward ms and forward + backward ms of mean(render^2), ours and g
 ``max_alpha=0.999``, gsplat 1.5.3's clamp), and our compositing backward alone (cotangents of ones).
 Medians (min-max) of ``--repeats`` interleaved runs after two warm-up calls each, synchronised, and the
 torch allocator's peak of one more call of each above what was allocated before it. Workloads:
-the model's (32 scenes x 4 targets at 256x256, SH 2, one batched call), 1M random SH3 1280x720, and the
-guitar teacher when ``SCENESPLAT_GUITAR_PLY`` exists. ``--quick``: tiny sizes, runs on the CPU too (a smoke
-test of this script, without gsplat).
+the model's (32 scenes x 4 targets at 256x256, SH 2, one batched call), 1M random SH3 1280x720, the
+guitar teacher when ``SCENESPLAT_GUITAR_PLY`` exists, and with ``--captures DIR`` the real captures there
+(``CAPTURES``, any format ``load_scene`` reads) at 1280x720, each seen by one camera and by four in one call
+(an orbit around the median of the means at four azimuths, framing 80% of the means). ``--quick``: tiny
+sizes, runs on the CPU too (a smoke test of this script, without gsplat).
 
-    python3 scripts/profile/gpu_vs_gsplat.py [--quick] [--repeats N] [--out FILE.md]
+    python3 scripts/profile/gpu_vs_gsplat.py [--quick] [--repeats N] [--captures DIR] [--out FILE.md]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import sys
 import time
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from scenesplat_stereo.bench import render_batch as rb
@@ -28,8 +33,13 @@ from scenesplat_stereo.raster.composite import composite_forward
 from scenesplat_stereo.raster.composite_backward import composite_backward
 from scenesplat_stereo.raster.projection import project_gaussians
 from scenesplat_stereo.raster.sh import eval_sh_colors
+from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
+from scenesplat_stereo.scene.scene_files import load_scene
 
 KEYS = ("means", "quats", "scales", "opacities", "colors")
+#: Real captures of ``--captures`` (paths under it): a .splat of 113,648 Gaussians, the SH 3 skull (94,936), and
+#: the largest SOG statue (101,275).
+CAPTURES = ("plant/plant.splat", "skull/skull.sog", "statue-narcissus/narcissus.sog")
 
 
 def call(impl, data, W, H, sh, grad, marks: dict | None = None):
@@ -127,6 +137,7 @@ def script_args(doc: str, repeats: int) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--repeats", type=int, default=repeats)
     p.add_argument("--out", default=None)
+    p.add_argument("--captures", type=Path, default=None, help="a folder holding CAPTURES (skipped when absent)")
     return p.parse_args()
 
 
@@ -139,6 +150,29 @@ def single_scenes(quick: bool, dev: str) -> list[tuple]:
     if GUITAR.exists() and not quick:
         g, gv, gK = guitar_scene(dev, W, H)
         work.append((f"guitar {g['means'].shape[0]:,} SH0 {W}x{H}", g | dict(viewmats=gv, Ks=gK), W, H, 0))
+    return work
+
+
+def capture_scenes(root: Path | None, dev: str, W: int = 1280, H: int = 720) -> list[tuple]:
+    """(name, data, W, H, sh_degree) of each capture of ``CAPTURES`` under ``root`` that exists, seen by one
+    camera and by four cameras in one call (module docstring)."""
+    _, K = identity_camera(W, H, dev)
+    work = []
+    for rel in CAPTURES if root is not None else ():
+        if not (root / rel).exists():
+            continue
+        scene = load_scene(root / rel)
+        center = np.median(scene.means, axis=0)
+        radius = float(np.quantile(np.linalg.norm(scene.means - center, axis=1), 0.8))
+        distance = radius / math.tan(math.atan(0.5 * H / float(K[0, 1, 1])))  # the radius fills half the height
+        views = [viewmats_from_c2w(look_at(center + distance * np.array([math.sin(a), -0.3, -math.cos(a)]), center))
+                 for a in np.arange(4) * math.pi / 2]
+        vm = torch.tensor(np.stack(views), dtype=torch.float32, device=dev)
+        data = scene.to_torch(dev)
+        for cams in (1, 4):
+            work.append((f"{Path(rel).name} {len(scene):,} SH{scene.sh_degree} {W}x{H}, {cams} camera(s)",
+                         data | dict(viewmats=vm[:cams], Ks=K.expand(cams, 3, 3).contiguous()), W, H,
+                         scene.sh_degree))
     return work
 
 
@@ -162,7 +196,7 @@ def main() -> int:
     dev = "cuda" if torch.cuda.is_available() else "cpu"
     scenes, side = (2, 32) if a.quick else (32, 256)
     work = [(f"model: {scenes} scenes x 4 targets {side}x{side}, SH 2, batched", rb.workload(scenes, side, dev),
-             side, side, rb.SH_DEGREE), *single_scenes(a.quick, dev)]
+             side, side, rb.SH_DEGREE), *single_scenes(a.quick, dev), *capture_scenes(a.captures, dev)]
     report("Ours against gsplat", work, workload_rows, dev, a.repeats, a.out)
     return 0
 

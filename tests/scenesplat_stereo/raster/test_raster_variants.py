@@ -24,7 +24,7 @@ def _scene(n: int, seed: int):
     return means, quats, scales, opacities
 
 
-@pytest.mark.parametrize("tile_size", [8, 12, 16])
+@pytest.mark.parametrize("tile_size", [8, 12, 16, 32])
 @pytest.mark.parametrize("channels", [1, 3, 4])
 def test_cooperative_and_per_pixel_agree_exactly(tile_size: int, channels: int) -> None:
     width, height = 45, 37  # not multiples of the tile size
