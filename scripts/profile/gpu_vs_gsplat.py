@@ -164,7 +164,7 @@ def capture_scenes(root: Path | None, dev: str, W: int = 1280, H: int = 720) -> 
         scene = load_scene(root / rel)
         center = np.median(scene.means, axis=0)
         radius = float(np.quantile(np.linalg.norm(scene.means - center, axis=1), 0.8))
-        distance = radius / math.tan(math.atan(0.5 * H / float(K[0, 1, 1])))  # the radius fills half the height
+        distance = radius * float(K[0, 1, 1]) / (0.5 * H)  # the radius fills half the image's height
         views = [viewmats_from_c2w(look_at(center + distance * np.array([math.sin(a), -0.3, -math.cos(a)]), center))
                  for a in np.arange(4) * math.pi / 2]
         vm = torch.tensor(np.stack(views), dtype=torch.float32, device=dev)
