@@ -11,8 +11,9 @@ mean2d, conic, effective opacity and D colours. Two compiled variants of the sam
   touch box (``touch_extent``, conservative), each warp tests the batch's boxes against its pixels (one
   entry per lane) and votes (blocks of at most ``VOTE_WARPS`` warps). Where fewer than 1 / ``DENSE_DIVISOR``
   of the entries are left (small splats, as in trained teachers), its threads walk only those; else every
-  entry, in a plain loop (real captures of large splats, where walking the vote's bits cost 15-25% more:
-  docs/benchmarks.md). An entry ruled out touches none of the warp's pixels: the same image either way;
+  entry, in a plain loop (real captures of large splats, where a kernel that always walked the bits took
+  16-33% longer: docs/benchmarks.md). An entry ruled out touches none of the warp's pixels: the same image
+  either way;
 - per pixel (default on the CPU, where Warp runs threads serially and shared memory buys nothing): one
   thread per pixel walks its tile's list in depth-sorted splat rows [M, 6 + D] gathered once
   (``gather_splats``, which the per-pixel backward reads too; on the CPU contiguous rows beat an id
