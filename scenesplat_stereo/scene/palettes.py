@@ -98,9 +98,9 @@ def kmeans(x: np.ndarray, k: int, iterations: int = 5, fit_rows: int = 8) -> tup
 
     The centroids' sums are taken on the CPU (at most ``fit_rows`` k rows), so the palette is the same from run to
     run on a GPU too. 5 iterations: 10 (the earlier count) gave 0.2-0.9% smaller RMS errors on a real prediction
-    (SH 2), the skull capture (SH 3) and the synthetic bench scene, at twice the time. Distances are |c|^2 - 2 x.c in blocks of
-    rows (about 4 MiB on the CPU, 256 MiB on a GPU); on the CPU numpy takes the argmin (torch's is several times
-    slower there)."""
+    (SH 2), the skull capture (SH 3) and the synthetic bench scene, at twice the time. Distances are |c|^2 - 2 x.c in
+    blocks of rows (about 4 MiB on the CPU, 256 MiB on a GPU); on the CPU numpy takes the argmin (torch's is several
+    times slower there)."""
     dev = row_tasks.device()
     X = torch.from_numpy(np.ascontiguousarray(x, np.float32)).to(dev)
     rows = torch.randperm(len(X), generator=torch.Generator().manual_seed(0)).to(dev)

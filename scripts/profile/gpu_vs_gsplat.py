@@ -33,7 +33,7 @@ from scenesplat_stereo.raster.composite import composite_forward
 from scenesplat_stereo.raster.composite_backward import composite_backward
 from scenesplat_stereo.raster.projection import project_gaussians
 from scenesplat_stereo.raster.sh import eval_sh_colors
-from scenesplat_stereo.scene.cameras import look_at, viewmats_from_c2w
+from scenesplat_stereo.scene.cameras import orbit_poses, viewmats_from_c2w
 from scenesplat_stereo.scene.scene_files import load_scene
 
 KEYS = ("means", "quats", "scales", "opacities", "colors")
@@ -165,9 +165,9 @@ def capture_scenes(root: Path | None, dev: str, W: int = 1280, H: int = 720) -> 
         center = np.median(scene.means, axis=0)
         radius = float(np.quantile(np.linalg.norm(scene.means - center, axis=1), 0.8))
         distance = radius * float(K[0, 1, 1]) / (0.5 * H)  # the radius fills half the image's height
-        views = [viewmats_from_c2w(look_at(center + distance * np.array([math.sin(a), -0.3, -math.cos(a)]), center))
-                 for a in np.arange(4) * math.pi / 2]
-        vm = torch.tensor(np.stack(views), dtype=torch.float32, device=dev)
+        # a quarter turn apart, the first looking along +z, 0.3 of the distance above the centre (y down)
+        poses = orbit_poses(center, distance * math.hypot(1.0, 0.3), 4, math.degrees(math.atan(0.3)))
+        vm = torch.tensor(viewmats_from_c2w(np.roll(poses, 1, axis=0)), dtype=torch.float32, device=dev)
         data = scene.to_torch(dev)
         for cams in (1, 4):
             work.append((f"{Path(rel).name} {len(scene):,} SH{scene.sh_degree} {W}x{H}, {cams} camera(s)",
