@@ -304,11 +304,15 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
                sh_palette_max: int = SH_PALETTE_MAX) -> bytes:
     """The bundled ``.sog`` (zip) bytes of ``scene`` (module docstring).
 
-    The texels are quantised in the scene's order by ``sog_texels`` in three tasks of the shared pool of
-    ``row_tasks`` (positions and quaternions, scales, colours), and the SH palette in a fourth, while this thread
-    finds the Morton order (all of it in torch on ``row_tasks.device()``, a GPU where there is one); each image
-    is then gathered into Morton order and encoded in a task of its own (``write_webp`` runs without the GIL).
-    Not to be called from a task of that pool (this function waits for tasks of it)."""
+    The SH palette is made in a task of the shared pool of ``row_tasks`` while this thread finds the Morton order
+    and then quantises the texels in the scene's order with ``sog_texels`` (all of it in torch on
+    ``row_tasks.device()``, a GPU where there is one): the colours, then the positions and quaternions, then the
+    scales, the order of their images' encode times, longest first. Each image is gathered into Morton order and
+    encoded in a pool task of its own as soon as its texels exist (``write_webp`` runs without the GIL), so the
+    encodes overlap the rest of the quantisation. On a GPU that work is bound by the host's kernel launches: in
+    one thread it takes as long as in three tasks side by side (docs/benchmarks.md "Issue 35: the SOG writer's
+    encodes queued as their texels are ready"). Not to be called from a task of that pool (this function waits
+    for tasks of it)."""
     from scenesplat_stereo.scene import sog_texels  # torch: only for writing
 
     n = len(scene)
@@ -329,17 +333,17 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
 
     try:
         dev = row_tasks.device()
-        placed = submit(sog_texels.placed, scene, dev)
-        scales, colours = (submit(fn, scene, dev) for fn in (sog_texels.scale_texels, sog_texels.colour_texels))
         if degree:
             palette = min(64, 2 ** math.floor(math.log2(n / 1024))) * 1024 if n >= 1024 else n
             palette = max(1, min(palette, sh_palette_max, n))
             shn = submit(sog_texels.sh_palette, scene.sh, degree, palette)
         order = morton_order(scene.means)
-        rgba, mins, maxs = placed.result()
-        images = {name: encode(texels) for name, texels in zip(IMAGES[:3], rgba)}
-        (scale_rgba, scale_book), (colour_rgba, colour_book) = scales.result(), colours.result()
-        images.update(zip(IMAGES[3:5], (encode(scale_rgba), encode(colour_rgba))))
+        colour_rgba, colour_book = sog_texels.colour_texels(scene, dev)
+        images = {IMAGES[4]: encode(colour_rgba)}
+        rgba, mins, maxs = sog_texels.placed(scene, dev)
+        images.update((name, encode(texels)) for name, texels in zip(IMAGES[:3], rgba))
+        scale_rgba, scale_book = sog_texels.scale_texels(scene, dev)
+        images[IMAGES[3]] = encode(scale_rgba)
         meta = {"version": 2, "asset": {"generator": "scenesplat_stereo.scene.sog"}, "count": n,
                 "means": {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": ["means_l.webp", "means_u.webp"]},
                 "scales": {"codebook": scale_book.tolist(), "files": ["scales.webp"]},
