@@ -33,14 +33,14 @@ class ProjectGaussians(torch.autograd.Function):
                 eps2d, antialiased, tile_size, scenes):
         proj = project_gaussians(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane,
                                  far_plane, eps2d, antialiased, tile_size, scenes)
-        ctx.mark_non_differentiable(proj.radii, proj.tile_rects, proj.tiles_touched)
+        ctx.mark_non_differentiable(proj.radii, proj.tile_rects, proj.tiles_touched, proj.touch_extents)
         ctx.save_for_backward(means, quats, scales, opacities, viewmats, Ks, proj.radii)
         ctx.config = (width, height, eps2d, antialiased, scenes)
         return (proj.means2d, proj.conics, proj.depths, proj.opacities, proj.radii, proj.tile_rects,
-                proj.tiles_touched)
+                proj.tiles_touched, proj.touch_extents)
 
     @staticmethod
-    def backward(ctx, v_means2d, v_conics, v_depths, v_opacities, _v_radii, _v_rects, _v_tiles):
+    def backward(ctx, v_means2d, v_conics, v_depths, v_opacities, _v_radii, _v_rects, _v_tiles, _v_extents):
         means, quats, scales, opacities, viewmats, Ks, radii = ctx.saved_tensors
         if not any(ctx.needs_input_grad[:4]):
             return (None,) * 14
@@ -73,11 +73,11 @@ class SHColors(torch.autograd.Function):
 
 class CompositeTiles(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, tile_ranges, flatten_ids, tiles_x, tiles_y, width,
-                height, tile_size, max_alpha, deterministic):
+    def forward(ctx, means2d, conics, colors, opacities, touch_extents, tile_ranges, flatten_ids, tiles_x, tiles_y,
+                width, height, tile_size, max_alpha, deterministic):
         bins = Bins(tile_ranges, flatten_ids, tiles_x, tiles_y)
-        render, alphas, last_ids = composite_forward(means2d, conics, colors, opacities, bins, width, height,
-                                                     tile_size, max_alpha)
+        render, alphas, last_ids = composite_forward(means2d, conics, colors, opacities, touch_extents, bins, width,
+                                                     height, tile_size, max_alpha)
         ctx.mark_non_differentiable(last_ids)
         ctx.save_for_backward(means2d, conics, colors, opacities, tile_ranges, flatten_ids, alphas, last_ids)
         ctx.config = (tiles_x, tiles_y, width, height, tile_size, max_alpha, deterministic)
@@ -87,7 +87,7 @@ class CompositeTiles(torch.autograd.Function):
     def backward(ctx, v_render, v_alphas, _v_last_ids):
         means2d, conics, colors, opacities, tile_ranges, flatten_ids, alphas, last_ids = ctx.saved_tensors
         if not any(ctx.needs_input_grad[:4]):
-            return (None,) * 13
+            return (None,) * 14
         tiles_x, tiles_y, width, height, tile_size, max_alpha, deterministic = ctx.config
         packed = composite_backward(
             means2d, conics, colors, opacities, Bins(tile_ranges, flatten_ids, tiles_x, tiles_y), width,
@@ -96,7 +96,7 @@ class CompositeTiles(torch.autograd.Function):
         v_means2d, v_conics, v_colors, v_opac = unpack_splat_grads(packed)
         grads = [g if need else None
                  for g, need in zip((v_means2d, v_conics, v_colors, v_opac), ctx.needs_input_grad)]
-        return (*grads, *(None,) * 9)
+        return (*grads, *(None,) * 10)
 
 
 def _differentiable(*tensors: torch.Tensor) -> bool:
@@ -124,12 +124,14 @@ def sh_colors(degree: int, means: torch.Tensor, viewmats: torch.Tensor, coeffs: 
     return SHColors.apply(degree, means, viewmats, coeffs, radii, scenes)
 
 
-def composite(means2d, conics, colors, opacities, bins: Bins, width, height, tile_size, max_alpha,
+def composite(means2d, conics, colors, opacities, touch_extents, bins: Bins, width, height, tile_size, max_alpha,
               deterministic: bool = False):
-    """Differentiable compositing (see composite.composite_forward): (render, alphas, last_ids);
-    ``deterministic`` selects the bit-reproducible backward reduction."""
+    """Differentiable compositing (see composite.composite_forward; ``touch_extents``, the projection's, only
+    bound the forward's walk and get no gradient): (render, alphas, last_ids); ``deterministic`` selects the
+    bit-reproducible backward reduction."""
     if not _differentiable(means2d, conics, colors, opacities):
-        return composite_forward(means2d, conics, colors, opacities, bins, width, height, tile_size, max_alpha)
-    return CompositeTiles.apply(means2d, conics, colors, opacities, bins.tile_ranges, bins.flatten_ids,
-                                bins.tiles_x, bins.tiles_y, width, height, tile_size, max_alpha,
+        return composite_forward(means2d, conics, colors, opacities, touch_extents, bins, width, height, tile_size,
+                                 max_alpha)
+    return CompositeTiles.apply(means2d, conics, colors, opacities, touch_extents, bins.tile_ranges,
+                                bins.flatten_ids, bins.tiles_x, bins.tiles_y, width, height, tile_size, max_alpha,
                                 bool(deterministic))

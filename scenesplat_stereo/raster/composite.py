@@ -7,13 +7,14 @@ mean2d, conic, effective opacity and D colours. Two compiled variants of the sam
   [C * N, ...] into shared memory (``splat_batch_func``, one id lookup per splat per block, nothing written to
   global memory first; the cooperative backward kernels gather the same way) and every thread walks the
   batch there; the block stops when all its pixels are done. A tile's list holds every splat that reaches
-  the tile, and a warp's pixels (a few rows of it) may miss many of them: each thread bounds one entry's
-  touch box (``touch_extent``, conservative), each warp tests the batch's boxes against its pixels (one
-  entry per lane) and votes (blocks of at most ``VOTE_WARPS`` warps). Where fewer than 1 / ``DENSE_DIVISOR``
-  of the entries are left (small splats, as in trained teachers), its threads walk only those; else every
-  entry, in a plain loop (real captures of large splats, where a kernel that always walked the bits took
-  16-33% longer: docs/benchmarks.md). An entry ruled out touches none of the warp's pixels: the same image
-  either way;
+  the tile, and a warp's pixels (a few rows of it) may miss many of them: the batch carries each entry's
+  touch box (``projection.touch_extent``, conservative; written once per pair by the projection, as the
+  block computing it for every batch made this kernel up to 10% slower on real captures), each warp tests
+  the batch's boxes against its pixels (one entry per lane) and votes (blocks of at most ``VOTE_WARPS``
+  warps). Where fewer than 1 / ``DENSE_DIVISOR`` of the entries are left (small splats, as in trained
+  teachers), its threads walk only those; else every entry, in a plain loop (real captures of large splats,
+  where a kernel that always walked the bits took 16-33% longer: docs/benchmarks.md). An entry ruled out
+  touches none of the warp's pixels: the same image either way;
 - per pixel (default on the CPU, where Warp runs threads serially and shared memory buys nothing): one
   thread per pixel walks its tile's list in depth-sorted splat rows [M, 6 + D] gathered once
   (``gather_splats``, which the per-pixel backward reads too; on the CPU contiguous rows beat an id
@@ -34,6 +35,7 @@ import warp as wp
 from scenesplat_stereo.raster._warp import ALPHA_MIN, T_MIN, launch, to_wp, vector_type
 from scenesplat_stereo.raster.binning import Bins
 from scenesplat_stereo.raster.lanes import LANES, bit_count, block_all, lanes_ballot, lowest_bit
+from scenesplat_stereo.raster.projection import touch_extent
 
 # CUDA compile options of the compositing kernels (forward and backward alike, so both make the same
 # touch / stop decisions): fast math turns exp into the hardware approximation gsplat uses (__expf);
@@ -81,39 +83,11 @@ DENSE_DIVISOR = 2
 #: more registers than a block of 1,024 threads may have (CUDA refuses the launch), so such blocks do not vote.
 VOTE_WARPS = 8
 
-# ``touch_extent`` bounds only conics with (a + c)^2 <= NEAR_CONDITION * (a c - b^2) (condition number up to about
-# 1e4): for them float32's sigma is within 0.6% of the exact one (its rounding error is at most a few ulp of
-# 0.5 (a dx^2 + c dy^2) + |b dx dy|, which is at most 2 (a + c)^2 / det times sigma), far inside the bound's
-# 1% margin in radius (2% in sigma). More elongated conics are never ruled out.
-NEAR_CONDITION = 1.0e4
-
-
-@wp.func
-def touch_extent(conic: wp.vec3, opacity: float) -> wp.vec2:
-    """Half-widths (rx, ry) in pixels of a box around the mean that holds every pixel centre the splat touches,
-    +inf where no bound is given, -inf where it touches nothing.
-
-    A splat touches a pixel where sigma <= ln(255 o) (``touch_alpha``), an ellipse whose bounding box has
-    half-widths sqrt(2 t c / det) and sqrt(2 t a / det) (t = ln(255 o), det = a c - b^2: the diagonal of the
-    inverse conic). The box is widened by 1% plus 0.01 px and t by 1e-3 for float32 rounding and the fast
-    exp and log; conics that are not positive definite or too elongated (``NEAR_CONDITION``), and NaNs, get
-    no bound. A splat with o < 1/255 touches nothing (o exp(-sigma) <= o for sigma >= 0)."""
-    if not (opacity >= ALPHA_MIN * 0.999):
-        return wp.vec2(-wp.inf, -wp.inf)
-    a = conic[0]
-    b = conic[1]
-    c = conic[2]
-    det = a * c - b * b
-    if not (a > 0.0 and c > 0.0 and det > 0.0 and (a + c) * (a + c) <= NEAR_CONDITION * det):
-        return wp.vec2(wp.inf, wp.inf)
-    t = 2.0 * (wp.max(wp.log(opacity / ALPHA_MIN), 0.0) + 1.0e-3)
-    return wp.vec2(wp.sqrt(t * c / det) * 1.01 + 0.01, wp.sqrt(t * a / det) * 1.01 + 0.01)
-
-
 @wp.func
 def may_touch_box(xy: wp.vec2, extent: wp.vec2, x0: float, x1: float, y0: float, y1: float) -> int:
-    """0 only when the box of half-widths ``extent`` (``touch_extent``) around ``xy`` misses every pixel centre
-    in [x0, x1] x [y0, y1] (pixels), else 1 (also for NaN means)."""
+    """0 only when the box of half-widths ``extent`` (``projection.touch_extent``) around ``xy`` misses every pixel
+    centre in [x0, x1] x [y0, y1] (pixels), so that the splat certainly touches none of them; else 1 (also for NaN
+    means)."""
     if xy[0] + extent[0] < x0 or xy[0] - extent[0] > x1 or xy[1] + extent[1] < y0 or xy[1] - extent[1] > y1:
         return 0
     return 1
@@ -122,7 +96,8 @@ def may_touch_box(xy: wp.vec2, extent: wp.vec2, x0: float, x1: float, y0: float,
 @wp.func
 def may_touch(xy: wp.vec2, conic: wp.vec3, opacity: float, x0: float, x1: float, y0: float, y1: float) -> int:
     """0 only when the splat certainly touches no pixel centre in [x0, x1] x [y0, y1] (pixels), else 1: its
-    ``touch_extent`` box against the pixels (``may_touch_box``)."""
+    ``touch_extent`` box against the pixels (``may_touch_box``), computed here (the compositing backward, whose
+    batches of 32 took 8-10% longer when they gathered the projection's boxes instead)."""
     return may_touch_box(xy, touch_extent(conic, opacity), x0, x1, y0, y1)
 
 
@@ -185,14 +160,42 @@ def gather_splats(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Ten
 
 
 @functools.cache
-def splat_batch_func(size: int, channels: int):
-    """A Warp function for cooperative blocks: the splats (mean2d, conic, opacity, D colours) of the list
-    entries base .. base + size - 1, gathered through their ids from the per-pair arrays into shared
-    memory, one entry per thread. Entries past the list's end are other tiles' entries or, past the array,
-    read as 0: valid splats that the caller never walks. The four gathers go to registers first, with no
-    barrier between them, so their loads are in flight together; then each is copied to shared memory for
-    every thread to read. Every thread of the block must call it."""
+def splat_batch_func(size: int, channels: int, boxes: bool = False):
+    """A Warp function for cooperative blocks: the splats (mean2d, conic, opacity, D colours; with ``boxes`` also
+    the touch box, an ``extents`` argument after ``colors``) of the list entries base .. base + size - 1, gathered
+    through their ids from the per-pair arrays into shared memory, one entry per thread. Entries past the list's
+    end are other tiles' entries or, past the array, read as 0: valid splats that the caller never walks. The
+    gathers go to registers first, with no barrier between them, so their loads are in flight together; then
+    each is copied to shared memory for every thread to read. Every thread of the block must call it. The
+    forward's batches gather the boxes; the backward's batches of 32 compute them (``may_touch``): gathering
+    them there took 8-10% longer. One gather for both, taking the shared id tile as an argument, lost most of
+    the forward's gain and slowed the backward by 1-5% (docs/benchmarks.md)."""
     vecD = vector_type(channels)
+
+    if boxes:
+        @wp.func
+        def splat_box_batch(flatten_ids: wp.array(dtype=wp.int32), base: int, means2d: wp.array(dtype=wp.vec2),
+                            conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float),
+                            colors: wp.array(dtype=vecD), extents: wp.array(dtype=wp.vec2)):
+            ids = wp.tile_load(flatten_ids, shape=(size,), offset=(base,), storage="shared")
+            xy_r = wp.tile_load_indexed(means2d, indices=ids, shape=(size,), axis=0)
+            con_r = wp.tile_load_indexed(conics, indices=ids, shape=(size,), axis=0)
+            opa_r = wp.tile_load_indexed(opacities, indices=ids, shape=(size,), axis=0)
+            col_r = wp.tile_load_indexed(colors, indices=ids, shape=(size,), axis=0)
+            ext_r = wp.tile_load_indexed(extents, indices=ids, shape=(size,), axis=0)
+            xy = wp.tile_empty(shape=(size,), dtype=wp.vec2, storage="shared")
+            con = wp.tile_empty(shape=(size,), dtype=wp.vec3, storage="shared")
+            opa = wp.tile_empty(shape=(size,), dtype=float, storage="shared")
+            col = wp.tile_empty(shape=(size,), dtype=vecD, storage="shared")
+            ext = wp.tile_empty(shape=(size,), dtype=wp.vec2, storage="shared")
+            wp.tile_assign(xy, xy_r)
+            wp.tile_assign(con, con_r)
+            wp.tile_assign(opa, opa_r)
+            wp.tile_assign(col, col_r)
+            wp.tile_assign(ext, ext_r)
+            return xy, con, opa, col, ext
+
+        return splat_box_batch
 
     @wp.func
     def splat_batch(flatten_ids: wp.array(dtype=wp.int32), base: int, means2d: wp.array(dtype=wp.vec2),
@@ -220,10 +223,11 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
     """The compositing kernel for ``channels`` colour channels and ``tile_size`` square tiles. The
     cooperative variant reads splats through ``flatten_ids`` from the per-pair arrays (P = C * N pairs:
     means2d [P] vec2, conics [P] vec3, opacities [P], colors [P] of D-vectors); the per-pixel variant reads
-    the depth-sorted rows of ``gather_splats``."""
+    the depth-sorted rows of ``gather_splats``; the cooperative one also the pairs' touch boxes ``extents`` [P]
+    vec2 (``Projection.touch_extents``), on which its warps vote."""
     block = tile_size * tile_size
     vecD = vector_type(channels)
-    splat_batch = splat_batch_func(block, channels)
+    splat_batch = splat_batch_func(block, channels, boxes=True)
 
     # Blocks of whole warps, at most VOTE_WARPS of them, vote per warp on the batch's entries (their touch boxes
     # against the warp's pixels) and walk only those left where few are; other blocks walk every entry.
@@ -290,6 +294,7 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
         conics: wp.array(dtype=wp.vec3),
         opacities: wp.array(dtype=float),
         colors: wp.array(dtype=vecD),
+        extents: wp.array(dtype=wp.vec2),
         tile_ranges: wp.array2d(dtype=wp.int32),
         width: int,
         height: int,
@@ -318,13 +323,11 @@ def composite_kernel(channels: int, tile_size: int, cooperative: bool):
             # Every thread reaches the cooperative calls; the block stops once all its pixels are done.
             if block_all(done) != 0:
                 break
-            xy, con, opa, col = splat_batch(flatten_ids, b, means2d, conics, opacities, colors)
+            xy, con, opa, col, ext = splat_batch(flatten_ids, b, means2d, conics, opacities, colors, extents)
             n = wp.min(block, end - b)
             masks = vecW()
             near = n  # without a vote (blocks smaller than a warp): every entry
-            if wp.static(warps > 0):  # each entry's touch box once (thread ``lane``: entry ``lane``)
-                ext = wp.tile_empty(shape=(block,), dtype=wp.vec2, storage="shared")
-                wp.tile_assign(ext, wp.tile(touch_extent(con[lane], opa[lane]), preserve_type=True))
+            if wp.static(warps > 0):
                 near = int(0)
                 for w in range(warps):  # the warp's vote on entries w * LANES + wl (every lane votes)
                     k = w * LANES + wl
@@ -359,6 +362,7 @@ def composite_forward(
     conics: torch.Tensor,
     colors: torch.Tensor,
     opacities: torch.Tensor,
+    touch_extents: torch.Tensor,
     bins: Bins,
     width: int,
     height: int,
@@ -367,8 +371,9 @@ def composite_forward(
     cooperative: bool | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Composite [C, N] screen-space Gaussians with colours [C, N, D] into (render [C,H,W,D] without
-    background, alphas [C,H,W,1], last_ids [C,H,W] int32). ``cooperative`` picks the variant (default:
-    cooperative on CUDA, per pixel on the CPU); both give the same image."""
+    background, alphas [C,H,W,1], last_ids [C,H,W] int32). ``touch_extents`` [C, N, 2] are the projection's
+    (``Projection.touch_extents``; the cooperative variant's votes read them). ``cooperative`` picks the variant
+    (default: cooperative on CUDA, per pixel on the CPU); both give the same image."""
     C, N, D = colors.shape
     dev = colors.device
     if C == 0 or N == 0 or bins.flatten_ids.numel() == 0 or width * height == 0:
@@ -384,7 +389,7 @@ def composite_forward(
     tiles_per_camera = bins.tiles_x * bins.tiles_y
     if cooperative:
         splats = [to_wp(bins.flatten_ids), to_wp(means2d, wp.vec2, (P,)), to_wp(conics, wp.vec3, (P,)),
-                  to_wp(opacities, None, (P,)), to_wp(colors, vecD, (P,))]
+                  to_wp(opacities, None, (P,)), to_wp(colors, vecD, (P,)), to_wp(touch_extents, wp.vec2, (P,))]
     else:
         splats = [to_wp(gather_splats(means2d, conics, colors, opacities, bins.flatten_ids))]
     args = [*splats, to_wp(bins.tile_ranges), int(width), int(height), bins.tiles_x, tiles_per_camera,

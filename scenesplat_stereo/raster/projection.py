@@ -2,7 +2,8 @@
 
 For each camera c and Gaussian g: camera-space mean, EWA covariance through the clamped Jacobian,
 low-pass ``eps2d``, antialiasing compensation (a compiled variant, not a run-time branch), conic,
-screen-space extent from the 1/255 touch rule, and the rectangle of tiles the ellipse can touch.
+screen-space extent from the 1/255 touch rule, the rectangle of tiles the ellipse can touch, and the box of
+pixels it can touch that the compositing kernels vote on (``touch_extent``).
 Units: means in world units, screen quantities in pixels, pixel (u, v) centred at (u+0.5, v+0.5).
 A culled Gaussian has radii (0, 0), zero effective opacity and touches no tile.
 """
@@ -24,6 +25,37 @@ JACOBIAN_CLAMP_MARGIN = 0.15
 EXTENT_MARGIN_PX = 1e-2
 
 
+# ``touch_extent`` bounds only conics with (a + c)^2 <= NEAR_CONDITION * (a c - b^2) (condition number up to about
+# 1e4): for them float32's sigma is within 0.6% of the exact one (its rounding error is at most a few ulp of
+# 0.5 (a dx^2 + c dy^2) + |b dx dy|, which is at most 2 (a + c)^2 / det times sigma), far inside the bound's
+# 1% margin in radius (2% in sigma). More elongated conics are never ruled out.
+NEAR_CONDITION = 1.0e4
+
+
+@wp.func
+def touch_extent(conic: wp.vec3, opacity: float) -> wp.vec2:
+    """Half-widths (rx, ry) in pixels of a box around the mean that holds every pixel centre the splat touches,
+    +inf where no bound is given, -inf where it touches nothing. Written per pair by the projection
+    (``Projection.touch_extents``) for the compositing kernels' votes (``composite.may_touch_box``).
+
+    A splat touches a pixel where sigma <= ln(255 o) (``composite.touch_alpha``), an ellipse whose bounding box
+    has half-widths sqrt(2 t c / det) and sqrt(2 t a / det) (t = ln(255 o), det = a c - b^2: the diagonal of the
+    inverse conic). The box is widened by 1% plus 0.01 px and t by 1e-3 for float32 rounding and the fast exp
+    and log of the compositing kernels; conics that are not positive definite or too elongated
+    (``NEAR_CONDITION``), and NaNs, get no bound. A splat with o < 1/255 touches nothing (o exp(-sigma) <= o
+    for sigma >= 0)."""
+    if not (opacity >= ALPHA_MIN * 0.999):
+        return wp.vec2(-wp.inf, -wp.inf)
+    a = conic[0]
+    b = conic[1]
+    c = conic[2]
+    det = a * c - b * b
+    if not (a > 0.0 and c > 0.0 and det > 0.0 and (a + c) * (a + c) <= NEAR_CONDITION * det):
+        return wp.vec2(wp.inf, wp.inf)
+    t = 2.0 * (wp.max(wp.log(opacity / ALPHA_MIN), 0.0) + 1.0e-3)
+    return wp.vec2(wp.sqrt(t * c / det) * 1.01 + 0.01, wp.sqrt(t * a / det) * 1.01 + 0.01)
+
+
 @dataclass
 class Projection:
     """Per (camera, Gaussian) screen-space quantities, torch float32/int32 tensors of leading shape [C, N]
@@ -36,6 +68,7 @@ class Projection:
     radii: torch.Tensor  # [C, N, 2] int32 extent in pixels per axis, (0, 0) when culled
     tile_rects: torch.Tensor  # [C, N, 4] int32 (tx0, ty0, tx1, ty1) inclusive tile rectangle
     tiles_touched: torch.Tensor  # [C, N] int32 number of tiles in the rectangle, 0 when culled
+    touch_extents: torch.Tensor  # [C, N, 2] float32 half-widths (pixels) of ``touch_extent``'s box, -inf when culled
 
 
 @wp.func
@@ -99,14 +132,17 @@ def write_culled(
     out_radii: wp.array2d(dtype=wp.vec2i),
     out_rects: wp.array2d(dtype=wp.vec4i),
     out_tiles: wp.array2d(dtype=wp.int32),
+    out_extents: wp.array2d(dtype=wp.vec2),
 ):
-    """The outputs of a culled pair: zero mean, conic, opacity and radii, an empty tile rectangle."""
+    """The outputs of a culled pair: zero mean, conic, opacity and radii, an empty tile rectangle, a touch box
+    that holds no pixel."""
     out_means2d[c, g] = wp.vec2(0.0, 0.0)
     out_conics[c, g] = wp.vec3(0.0, 0.0, 0.0)
     out_opacities[c, g] = 0.0
     out_radii[c, g] = wp.vec2i(0, 0)
     out_rects[c, g] = wp.vec4i(0, 0, -1, -1)
     out_tiles[c, g] = 0
+    out_extents[c, g] = wp.vec2(-wp.inf, -wp.inf)
 
 
 @functools.cache
@@ -137,6 +173,7 @@ def projection_kernel(antialiased: bool):
         out_radii: wp.array2d(dtype=wp.vec2i),
         out_rects: wp.array2d(dtype=wp.vec4i),
         out_tiles: wp.array2d(dtype=wp.int32),
+        out_extents: wp.array2d(dtype=wp.vec2),
     ):
         c, g = wp.tid()  # every output of the pair is written once: culled at a return, else at the end
 
@@ -151,14 +188,16 @@ def projection_kernel(antialiased: bool):
         )
         out_depths[c, g] = p[2]
         if not (p[2] > near_plane and p[2] < far_plane):
-            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles,
+                         out_extents)
             return
 
         # Step 2: world covariance R S S^T R^T, then camera covariance.
         q = quats[gi]
         qn = wp.length(q)
         if not (qn > 0.0):
-            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles,
+                         out_extents)
             return
         R = quat_to_rotation(q / qn)
         s = scales[gi]
@@ -187,13 +226,15 @@ def projection_kernel(antialiased: bool):
         d = d + eps2d
         det = a * d - b * b
         if not (det > 0.0):
-            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles,
+                         out_extents)
             return
         o = opacities[gi]
         if wp.static(antialiased):
             o = o * wp.sqrt(wp.max(det_orig / det, 0.0))
         if not (o >= ALPHA_MIN):
-            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles,
+                         out_extents)
             return
 
         # Step 5: screen-space mean and conic.
@@ -211,7 +252,8 @@ def projection_kernel(antialiased: bool):
         v0 = wp.clamp(wp.ceil(m2[1] - ry - 0.5), -1.0, fh)
         v1 = wp.clamp(wp.floor(m2[1] + ry - 0.5), -1.0, fh)
         if not (u1 >= 0.0 and v1 >= 0.0 and u0 <= fw - 1.0 and v0 <= fh - 1.0 and u0 <= u1 and v0 <= v1):
-            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles)
+            write_culled(c, g, out_means2d, out_conics, out_opacities, out_radii, out_rects, out_tiles,
+                         out_extents)
             return
         tx0 = int(wp.max(u0, 0.0)) / tile_size
         tx1 = int(wp.min(u1, fw - 1.0)) / tile_size
@@ -224,6 +266,7 @@ def projection_kernel(antialiased: bool):
         out_radii[c, g] = wp.vec2i(int(wp.min(wp.ceil(rx), 1.0e9)), int(wp.min(wp.ceil(ry), 1.0e9)))
         out_rects[c, g] = wp.vec4i(tx0, ty0, tx1, ty1)
         out_tiles[c, g] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+        out_extents[c, g] = touch_extent(conic, o)
 
     return project
 
@@ -258,6 +301,7 @@ def project_gaussians(
         radii=torch.empty(BC, N, 2, **i32),
         tile_rects=torch.empty(BC, N, 4, **i32),
         tiles_touched=torch.empty(BC, N, **i32),
+        touch_extents=torch.empty(BC, N, 2, **f32),
     )
     if BC == 0 or N == 0:
         return out
@@ -269,6 +313,7 @@ def project_gaussians(
             float(far_plane), float(eps2d), int(tile_size), BC // scenes,
             to_wp(out.means2d, wp.vec2), to_wp(out.conics, wp.vec3), to_wp(out.depths), to_wp(out.opacities),
             to_wp(out.radii, wp.vec2i), to_wp(out.tile_rects, wp.vec4i), to_wp(out.tiles_touched),
+            to_wp(out.touch_extents, wp.vec2),
         ],
         means,
     )

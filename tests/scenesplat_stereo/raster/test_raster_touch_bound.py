@@ -1,10 +1,11 @@
-"""The compositing backward skips list entries that ``composite.may_touch`` rules out for a warp's pixels;
-that is exact only if the bound never rules out a splat that touches one of them. Checked here against a
-float64 evaluation of the touch test (SPEC section 2, step 6: sigma >= 0 and o exp(-sigma) >= 1/255) and
-against the same test in float32, on every pixel centre of the box, for splats built to sit on the
-bound's edge: ellipses whose bounding box ends within a few hundredths of a pixel of the box, opacities
-at the 1/255 threshold, elongated and near-singular conics, NaNs. The bound must also rule out most far
-splats (else skipping buys nothing and the test below it could not fail)."""
+"""The compositing kernels skip list entries whose touch box (``projection.touch_extent``, which the projection
+writes per pair) misses a warp's pixels (``composite.may_touch_box``); that is exact only if the bound never
+rules out a splat that touches one of them. Checked here against a float64 evaluation of the touch test (SPEC
+section 2, step 6: sigma >= 0 and o exp(-sigma) >= 1/255) and against the same test in float32, on every pixel
+centre of the box, for splats built to sit on the bound's edge: ellipses whose bounding box ends within a few
+hundredths of a pixel of the box, opacities at the 1/255 threshold, elongated and near-singular conics, NaNs.
+The bound must also rule out most far splats (else skipping buys nothing and the test below it could not
+fail)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ import torch
 import warp as wp
 
 from scenesplat_stereo.raster._warp import ALPHA_MIN, to_wp
-from scenesplat_stereo.raster.composite import lanes_box, may_touch
+from scenesplat_stereo.raster.composite import lanes_box, may_touch_box
+from scenesplat_stereo.raster.projection import touch_extent
 
 
 @wp.kernel
@@ -23,7 +25,7 @@ def _bound_kernel(xy: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), o
                   box: wp.array(dtype=wp.vec4), out: wp.array(dtype=wp.int32)):
     i = wp.tid()
     b = box[i]
-    out[i] = may_touch(xy[i], conic[i], opacity[i], b[0], b[1], b[2], b[3])
+    out[i] = may_touch_box(xy[i], touch_extent(conic[i], opacity[i]), b[0], b[1], b[2], b[3])
 
 
 @wp.kernel
@@ -138,3 +140,36 @@ def test_lanes_box_covers_exactly_the_warps_pixels() -> None:
             local = np.arange(first, min(first + 32, area))
             px, py = ox + local % tile_size + 0.5, oy + local // tile_size + 0.5
             assert (x0, x1, y0, y1) == (px.min(), px.max(), py.min(), py.max())
+
+
+def test_the_projection_writes_each_pairs_touch_box() -> None:
+    """``Projection.touch_extents``, the boxes the compositing kernels vote on, are ``touch_extent`` of the pair's
+    own conic and opacity (here its formula in float64) and (-inf, -inf), a box holding no pixel, for culled
+    pairs (behind the camera, below 1/255 opacity)."""
+    from scenesplat_stereo.raster.projection import NEAR_CONDITION, project_gaussians
+
+    g = torch.Generator().manual_seed(5)
+    n = 3000
+    means = torch.cat([torch.rand(n, 2, generator=g) * 4 - 2, torch.rand(n, 1, generator=g) * 6 - 1], 1)  # z < 0 too
+    quats = torch.randn(n, 4, generator=g)
+    scales = torch.exp(torch.randn(n, 3, generator=g) * 1.5 - 4)
+    opacities = torch.rand(n, generator=g)
+    opacities[:200] = ALPHA_MIN * 0.5
+    Ks = torch.tensor([[[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]]])
+    proj = project_gaussians(means, quats, scales, opacities, torch.eye(4)[None], Ks, 320, 240, 0.01, 1e10, 0.3,
+                             True, 16)
+    ext, visible = proj.touch_extents[0].double(), proj.tiles_touched[0] > 0
+    assert 1000 < int(visible.sum()) < n - 500  # many of each
+    assert torch.isneginf(ext[~visible]).all()
+    a, b, c = proj.conics[0, visible].double().unbind(-1)
+    o = proj.opacities[0, visible].double()
+    det = a * c - b * b
+    t = 2 * (torch.log(o / ALPHA_MIN).clamp(min=0) + 1e-3)
+    expected = torch.stack([torch.sqrt(t * c / det), torch.sqrt(t * a / det)], -1) * 1.01 + 0.01
+    condition = (a + c) ** 2 / det
+    expected[condition > NEAR_CONDITION] = math.inf
+    assert torch.equal(torch.isinf(ext[visible]), torch.isinf(expected))
+    finite = torch.isfinite(expected)
+    # float32's det = a c - b^2 loses digits with the conic's condition (4e-5 relative at 6,000 here)
+    tolerance = (1e-5 + 2e-7 * condition[:, None]) * expected + 1e-6
+    assert ((ext[visible] - expected).abs() <= tolerance)[finite].all()
