@@ -243,6 +243,11 @@ class PlannedShards:
             self.writer.abort()
             self.writer = None
 
+    def finished(self) -> int:
+        """Planned shards that are finished on disk (a done marker with their planned keys). After an interrupt this
+        is the count to report: one can land after a writer's done marker and before ``done`` counts it."""
+        return sum((read_done(self.root, self.split, number) or {}).get("keys") == keys for number, keys in self.chunks)
+
 
 def remove_unplanned(root: Path, split: str, planned: set[int]) -> int:
     """Remove the temp files of killed runs and every shard of ``root/<split>`` whose number is not in

@@ -177,7 +177,7 @@ def _encode_shards(out: Path, encoder, size: int, precision: str, split: str, to
     except KeyboardInterrupt:
         sink.discard()
         bar.close()
-        raise Interrupted(f"{sink.done} of {len(todo)} {split} shards written this run; rerun the same command "
+        raise Interrupted(f"{sink.finished()} of {len(todo)} {split} shards written this run; rerun the same command "
                           f"to resume") from None
     except BaseException:
         sink.discard()
