@@ -9,7 +9,7 @@ mean2d, conic, effective opacity and D colours. Two compiled variants of the sam
   batch there; the block stops when all its pixels are done. A tile's list holds every splat that reaches
   the tile, and a warp's pixels (a few rows of it) may miss many of them: the batch carries each entry's
   touch box (``projection.touch_extent``, conservative; written once per pair by the projection, as the
-  block computing it for every batch made this kernel up to 10% slower on real captures), each warp tests
+  block computing it for every batch made this kernel up to 12% slower on real captures), each warp tests
   the batch's boxes against its pixels (one entry per lane) and votes (blocks of at most ``VOTE_WARPS``
   warps). Where fewer than 1 / ``DENSE_DIVISOR`` of the entries are left (small splats, as in trained
   teachers), its threads walk only those; else every entry, in a plain loop (real captures of large splats,
@@ -169,7 +169,7 @@ def splat_batch_func(size: int, channels: int, boxes: bool = False):
     each is copied to shared memory for every thread to read. Every thread of the block must call it. The
     forward's batches gather the boxes; the backward's batches of 32 compute them (``may_touch``): gathering
     them there took 8-10% longer. One gather for both, taking the shared id tile as an argument, lost most of
-    the forward's gain and slowed the backward by 1-5% (docs/benchmarks.md)."""
+    the forward's gain and slowed the backward by 1-6% (docs/benchmarks.md)."""
     vecD = vector_type(channels)
 
     if boxes:
