@@ -73,11 +73,11 @@ class SHColors(torch.autograd.Function):
 
 class CompositeTiles(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, touch_extents, tile_ranges, flatten_ids, tiles_x, tiles_y,
-                width, height, tile_size, max_alpha, deterministic):
+    def forward(ctx, means2d, conics, colors, opacities, tile_ranges, flatten_ids, tiles_x, tiles_y, width,
+                height, tile_size, max_alpha, touch_extents, deterministic):
         bins = Bins(tile_ranges, flatten_ids, tiles_x, tiles_y)
-        render, alphas, last_ids = composite_forward(means2d, conics, colors, opacities, touch_extents, bins, width,
-                                                     height, tile_size, max_alpha)
+        render, alphas, last_ids = composite_forward(means2d, conics, colors, opacities, bins, width, height,
+                                                     tile_size, max_alpha, touch_extents)
         ctx.mark_non_differentiable(last_ids)
         ctx.save_for_backward(means2d, conics, colors, opacities, tile_ranges, flatten_ids, alphas, last_ids)
         ctx.config = (tiles_x, tiles_y, width, height, tile_size, max_alpha, deterministic)
@@ -124,14 +124,14 @@ def sh_colors(degree: int, means: torch.Tensor, viewmats: torch.Tensor, coeffs: 
     return SHColors.apply(degree, means, viewmats, coeffs, radii, scenes)
 
 
-def composite(means2d, conics, colors, opacities, touch_extents, bins: Bins, width, height, tile_size, max_alpha,
+def composite(means2d, conics, colors, opacities, bins: Bins, width, height, tile_size, max_alpha, touch_extents,
               deterministic: bool = False):
     """Differentiable compositing (see composite.composite_forward; ``touch_extents``, the projection's, only
     bound the forward's walk and get no gradient): (render, alphas, last_ids); ``deterministic`` selects the
     bit-reproducible backward reduction."""
     if not _differentiable(means2d, conics, colors, opacities):
-        return composite_forward(means2d, conics, colors, opacities, touch_extents, bins, width, height, tile_size,
-                                 max_alpha)
-    return CompositeTiles.apply(means2d, conics, colors, opacities, touch_extents, bins.tile_ranges,
-                                bins.flatten_ids, bins.tiles_x, bins.tiles_y, width, height, tile_size, max_alpha,
+        return composite_forward(means2d, conics, colors, opacities, bins, width, height, tile_size, max_alpha,
+                                 touch_extents)
+    return CompositeTiles.apply(means2d, conics, colors, opacities, bins.tile_ranges, bins.flatten_ids,
+                                bins.tiles_x, bins.tiles_y, width, height, tile_size, max_alpha, touch_extents,
                                 bool(deterministic))

@@ -362,12 +362,12 @@ def composite_forward(
     conics: torch.Tensor,
     colors: torch.Tensor,
     opacities: torch.Tensor,
-    touch_extents: torch.Tensor,
     bins: Bins,
     width: int,
     height: int,
     tile_size: int,
     max_alpha: float,
+    touch_extents: torch.Tensor,
     cooperative: bool | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Composite [C, N] screen-space Gaussians with colours [C, N, D] into (render [C,H,W,D] without

@@ -155,8 +155,8 @@ def rasterization(
     features = features.contiguous()
 
     bins = finish_binning(pending)
-    render, alphas, _ = autograd.composite(proj.means2d, proj.conics, features, proj.opacities, proj.touch_extents,
-                                           bins, width, height, tile_size, max_alpha, deterministic)
+    render, alphas, _ = autograd.composite(proj.means2d, proj.conics, features, proj.opacities, bins, width,
+                                           height, tile_size, max_alpha, proj.touch_extents, deterministic)
     if render_mode in ("ED", "RGB+ED"):
         depth = render[..., -1:] / alphas.clamp_min(1e-10)
         render = torch.cat([render[..., :-1], depth], dim=-1)

@@ -40,8 +40,8 @@ def backward_rows(scene: dict, viewmats, Ks, s: Setting, proj, colors, bins) -> 
     from scenesplat_stereo.raster.projection_backward import project_gaussians_backward
 
     W, H, ts = s.width, s.height, s.tile_size
-    render, alphas, last_ids = composite_forward(proj.means2d, proj.conics, colors, proj.opacities,
-                                                 proj.touch_extents, bins, W, H, ts, 0.999)
+    render, alphas, last_ids = composite_forward(proj.means2d, proj.conics, colors, proj.opacities, bins, W, H, ts,
+                                                 0.999, proj.touch_extents)
     v_render, v_alphas = torch.ones_like(render), torch.ones_like(alphas)
     m, q, sc, o = (scene[k] for k in ("means", "quats", "scales", "opacities"))
     ones = lambda t: torch.ones_like(t)  # noqa: E731
@@ -74,8 +74,8 @@ def profile(name: str, scene: dict, viewmats, Ks, s: Setting, backward: bool = F
         "project": timed(lambda: project_gaussians(m, q, sc, o, viewmats, Ks, W, H, 0.01, 1e10, 0.3, True, ts)),
         "sh colours": timed(lambda: eval_sh_colors(s.sh_degree, m, viewmats, col, proj.radii)),
         "bin (scan, keys, sort, ranges)": timed(lambda: bin_gaussians(proj, W, H, ts)),
-        "composite": timed(lambda: composite_forward(proj.means2d, proj.conics, colors, proj.opacities,
-                                                     proj.touch_extents, bins, W, H, ts, 0.999)),
+        "composite": timed(lambda: composite_forward(proj.means2d, proj.conics, colors, proj.opacities, bins, W,
+                                                     H, ts, 0.999, proj.touch_extents)),
         "rasterization (all)": timed(lambda: rasterization(m, q, sc, o, col, viewmats, Ks, W, H,
                                                            sh_degree=s.sh_degree, rasterize_mode="antialiased",
                                                            max_alpha=0.999)),

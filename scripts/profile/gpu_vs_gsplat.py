@@ -72,7 +72,7 @@ def composite_bwd_fn(data, W, H, sh, ts, dev):
         colors = eval_sh_colors(sh, m[b], vm[b], col[b], proj.radii)
         bins = bin_gaussians(proj, W, H, ts)
         args = (proj.means2d, proj.conics, colors, proj.opacities, bins, W, H, ts, 0.999)
-        _, alphas, last = composite_forward(*args[:4], proj.touch_extents, *args[4:])
+        _, alphas, last = composite_forward(*args, proj.touch_extents)
         fns.append(lambda a=args, al=alphas, la=last: composite_backward(*a, al, la, torch.ones(
             *al.shape[:-1], colors.shape[-1], device=dev), torch.ones_like(al)))
     return lambda: [f() for f in fns]

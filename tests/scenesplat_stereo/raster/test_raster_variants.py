@@ -37,7 +37,7 @@ def test_cooperative_and_per_pixel_agree_exactly(tile_size: int, channels: int) 
     colors = torch.rand(2, 1500, channels, generator=torch.Generator().manual_seed(7))
     bins = bin_gaussians(proj, width, height, tile_size)
     assert bins.flatten_ids.numel() > 0
-    args = (proj.means2d, proj.conics, colors, proj.opacities, proj.touch_extents, bins, width, height, tile_size, 0.99)
+    args = (proj.means2d, proj.conics, colors, proj.opacities, bins, width, height, tile_size, 0.99, proj.touch_extents)
     per_pixel = composite_forward(*args, cooperative=False)
     cooperative = composite_forward(*args, cooperative=True)
     for a, b in zip(per_pixel, cooperative):
@@ -61,7 +61,7 @@ def test_backward_reductions_agree(tile_size: int) -> None:
     colors = torch.rand(1, 800, channels, generator=g)
     bins = bin_gaussians(proj, width, height, tile_size)
     args = (proj.means2d, proj.conics, colors, proj.opacities, bins, width, height, tile_size, 0.99)
-    _, alphas, last_ids = composite_forward(*args[:4], proj.touch_extents, *args[4:])
+    _, alphas, last_ids = composite_forward(*args, proj.touch_extents)
     v_render = torch.randn(1, height, width, channels, generator=g)
     v_alphas = torch.randn(1, height, width, 1, generator=g)
     grads = {r: composite_backward(*args, alphas, last_ids, v_render, v_alphas, reduction=r)
