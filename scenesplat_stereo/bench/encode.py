@@ -33,6 +33,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from scenesplat_stereo.build.protocol import NUM_TARGETS
+from scenesplat_stereo.common import scratch
 from scenesplat_stereo.common.commandline import Parser, run_command
 from scenesplat_stereo.common.ownership import OwnedFile
 from scenesplat_stereo.common.text import parse_size
@@ -195,7 +196,7 @@ def run(args) -> int:
         raise ValueError(f"bench encode: bad --modes {bad} or --repeats/--samples/--workers below 1")
     out = OwnedFile(args.out, "--out", OWNER)  # before any work
     head = (f"bench encode: OpenImageIO {oiio.__version__} (threads attribute {oiio.get_int_attribute('threads')}), "
-            f"{os.cpu_count()} CPU cores, scratch folder {encode.scratch_dir()}, {args.repeats} timed runs per row "
+            f"{os.cpu_count()} CPU cores, scratch folder {scratch.scratch_dir()}, {args.repeats} timed runs per row "
             f"after one untimed; samples of 2 + {args.targets} images and {args.targets} masks\n")
     print(head, flush=True)
     t1 = image_table(sizes, args.repeats, args.calls)

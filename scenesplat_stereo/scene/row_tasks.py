@@ -11,9 +11,9 @@ compressed ``.ply`` of 202,752 Gaussians is about a fifth faster than with slice
 "Scene writers") and small enough that a slice's float64 temporaries (32,768 rows x 24 SH coefficients: 6 MB)
 stay in the CPU's last-level cache.
 
-The pool is created on first use with ``workers()`` threads and shared by every writer in the process
-(several scenes written at once, as ``sgmodel predict --video --frames`` does, share it too); a forked
-child makes its own. A task must
+The pool is created on first use with ``workers()`` threads and shared by every writer in the process; a forked
+child makes its own. A process that writes beside others (``sgmodel predict --video --frames``' writer processes,
+``sgmodel.predict.scene_writers``) pins its thread count (and the CPU) with ``pin`` before its first write. A task must
 never wait for another task of this pool (that could deadlock a full pool); writers wait in their own thread.
 """
 
@@ -35,6 +35,8 @@ MAX_WORKERS = 16
 
 _pool: ThreadPoolExecutor | None = None
 _lock = threading.Lock()
+#: ``pin``'s threads (None: ``workers()``'s and ``device()``'s defaults).
+_pinned: int | None = None
 
 
 def _forget_pool() -> None:
@@ -46,8 +48,20 @@ def _forget_pool() -> None:
 os.register_at_fork(after_in_child=_forget_pool)
 
 
+def pin(threads: int) -> None:
+    """Set this process's pool to ``threads`` threads and its writers' torch work to the CPU (a writer process
+    beside a model on the GPU); before the pool's first use."""
+    global _pinned
+    with _lock:
+        if _pool is not None:
+            raise RuntimeError("row_tasks.pin: the pool is already in use")
+        _pinned = max(1, int(threads))
+
+
 def workers() -> int:
-    """Threads of the shared pool: the CPUs this process may run on, at most ``MAX_WORKERS``."""
+    """Threads of the shared pool: ``pin``'s, else the CPUs this process may run on, at most ``MAX_WORKERS``."""
+    if _pinned is not None:
+        return _pinned
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
@@ -91,7 +105,10 @@ def wait_all(futures: list[Future]) -> None:
 
 
 def device() -> torch.device:
-    """Where the writers' torch work runs: the current CUDA device when there is one, else the CPU."""
+    """Where the writers' torch work runs: the current CUDA device when there is one and ``pin`` was not called, else
+    the CPU."""
     import torch  # only for writing: the readers do without it
 
+    if _pinned is not None:
+        return torch.device("cpu")
     return torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")

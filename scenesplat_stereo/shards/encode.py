@@ -9,8 +9,8 @@
 
 Every encoder fixes all settings (and the EXR ``DateTime``, which OpenImageIO otherwise stamps with the
 wall clock), so the same pixels always give the same bytes. OpenImageIO's Python bindings cannot write to
-memory, so each call goes through a per-thread scratch file in a private folder (in ``/dev/shm`` when it
-has 1 GiB free, else the system temp folder), read back and removed.
+memory, so each call goes through a per-thread scratch file in the process's scratch folder (``common.scratch``:
+in ``/dev/shm`` when it has 1 GiB free, else the system temp folder), read back and removed.
 
 ``encode_sample`` turns one ``SampleImages`` into its shard members; ``encode_pool.SampleEncoder`` runs it
 in encoder threads or processes behind a bounded queue (this module imports nothing of that one).
@@ -18,11 +18,8 @@ in encoder threads or processes behind a bounded queue (this module imports noth
 
 from __future__ import annotations
 
-import atexit
 import os
-import shutil
 import struct
-import tempfile
 import threading
 import zlib
 from dataclasses import dataclass
@@ -30,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import OpenImageIO as oiio
 
+from scenesplat_stereo.common import scratch
 from scenesplat_stereo.shards.sample import JPEG_QUALITY
 
 JPEG_ENCODERS = ("cpu", "nvjpeg")  # where JPEGs are encoded: encoder workers, or the GPU (``nvjpeg``)
@@ -47,32 +45,7 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_END = b"\0\0\0\0IEND\xaeB`\x82"  # the empty IEND chunk with its CRC
 _JPEG_SUBSAMPLING = "4:2:0"
 
-# /dev/shm is used for scratch files only with this much room (containers often give it 64 MB; a few
-# 1752x1168 images per encoder thread must fit), else the system temp folder.
-_SHM_MIN_FREE = 1 << 30
-_scratch_lock = threading.Lock()
-_scratch: dict[str, str] = {}  # {"pid": ..., "dir": ...} of this process
 _local = threading.local()
-
-
-def scratch_dir() -> str:
-    """This process's private scratch folder (created on first use, removed at exit)."""
-    pid = str(os.getpid())
-    with _scratch_lock:
-        if _scratch.get("pid") != pid:
-            base = "/dev/shm" if _free_bytes("/dev/shm") >= _SHM_MIN_FREE else None
-            path = tempfile.mkdtemp(prefix="scenesplat-encode-", dir=base)
-            _scratch.update(pid=pid, dir=path)
-            atexit.register(shutil.rmtree, path, True)
-        return _scratch["dir"]
-
-
-def _free_bytes(path: str) -> int:
-    """Bytes free to us in the file system of ``path`` (0 if it is missing or not writable)."""
-    if not os.access(path, os.W_OK):
-        return 0
-    st = os.statvfs(path)
-    return st.f_bavail * st.f_frsize
 
 
 def _scratch_path(ext: str) -> str:
@@ -81,7 +54,7 @@ def _scratch_path(ext: str) -> str:
         _local.pid = os.getpid()
         _local.paths = {}
     if ext not in _local.paths:
-        _local.paths[ext] = os.path.join(scratch_dir(), f"t{threading.get_ident()}.{ext}")
+        _local.paths[ext] = os.path.join(scratch.scratch_dir(), f"t{threading.get_ident()}.{ext}")
     return _local.paths[ext]
 
 

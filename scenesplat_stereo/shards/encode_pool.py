@@ -12,7 +12,7 @@ Each process is started once per worker count and process (``spawn``: safe after
 started; it imports numpy and OpenImageIO only) and serves every ``SampleEncoder`` of that process.
 Like any ``spawn`` start, a script that builds in this mode needs the ``if __name__ == "__main__":``
 guard (the console scripts and ``python -m`` entries have it).
-Images reach a worker through a ``Slot``: a file in the encoder's private scratch folder (``/dev/shm``
+Images reach a worker through a ``common.scratch.Slot``: a file in the process's scratch folder (``/dev/shm``
 when it has room), mapped in both processes, into which the calling thread copies a sample (one
 ``memcpy`` per array, no pickling); only the slot's name and the arrays' layout cross the pipe, and the
 encoded bytes come back through it. Each worker sets OpenImageIO's ``threads`` to 1 (the workers are the
@@ -21,8 +21,6 @@ parallelism).
 
 from __future__ import annotations
 
-import itertools
-import mmap
 import multiprocessing
 import os
 import queue
@@ -32,23 +30,16 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
-import numpy as np
-
+from scenesplat_stereo.common.scratch import Layout, Slot, arrays_in
 from scenesplat_stereo.shards import encode
 from scenesplat_stereo.shards.sample import JPEG_QUALITY
 
 ENCODER_MODES = ("auto", "threads", "processes")
 
-_ALIGN = 64  # bytes; each array in a slot starts on a cache line
 _pools: dict[int, ProcessPoolExecutor] = {}
 _pools_lock = threading.Lock()
-_slot_ids = itertools.count()
-_maps: dict[str, mmap.mmap] = {}  # in a worker: slot path -> its mapping
 _free_slots: list[Slot] = []  # slots of finished encoders, kept mapped here and in the workers
 _slots_lock = threading.Lock()
-
-# (name, offset in bytes, shape, dtype string) of each array in a slot
-Layout = list[tuple[str, int, tuple[int, ...], str]]
 
 
 def process_pool(workers: int) -> ProcessPoolExecutor:
@@ -93,12 +84,12 @@ def _init_worker() -> None:
     oiio.attribute("threads", 1)
 
 
-def take_slots(n: int, folder: str) -> list[Slot]:
+def take_slots(n: int) -> list[Slot]:
     """``n`` slots, reused from finished encoders where possible (their pages are already allocated and
     mapped in the workers: a new 1752x1168 slot costs about 70 ms of page faults on first use)."""
     with _slots_lock:
         reused = [_free_slots.pop() for _ in range(min(n, len(_free_slots)))]
-    return reused + [Slot(folder) for _ in range(n - len(reused))]
+    return reused + [Slot() for _ in range(n - len(reused))]
 
 
 def give_back_slots(slots: list[Slot]) -> None:
@@ -107,65 +98,12 @@ def give_back_slots(slots: list[Slot]) -> None:
         _free_slots.extend(slots)
 
 
-class Slot:
-    """A shared buffer for one sample at a time: a file in ``folder`` mapped here (grown as needed) and,
-    by path, in the workers. The calling thread owns it from ``put`` until the worker's result is back."""
-
-    def __init__(self, folder: str) -> None:
-        self.folder, self.path, self.buf = folder, "", None
-
-    def put(self, arrays: dict[str, np.ndarray]) -> tuple[str, Layout]:
-        """Copy named ``arrays`` into the slot; returns (path, layout) for ``encode_in_worker``."""
-        layout, offset = [], 0
-        for name, a in arrays.items():
-            layout.append((name, offset, tuple(a.shape), a.dtype.str))
-            offset += -(-a.nbytes // _ALIGN) * _ALIGN
-        if self.buf is None or len(self.buf) < offset:
-            self._grow(offset)
-        for (name, off, shape, dtype) in layout:
-            np.copyto(np.ndarray(shape, dtype, buffer=self.buf, offset=off), arrays[name], casting="no")
-        return self.path, layout
-
-    def _grow(self, nbytes: int) -> None:
-        self.close()  # a new file (a new name): workers map it afresh and drop the old one
-        self.path = os.path.join(self.folder, f"slot-{os.getpid()}-{next(_slot_ids)}")
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
-        try:
-            os.ftruncate(fd, nbytes)
-            self.buf = mmap.mmap(fd, nbytes)
-        finally:
-            os.close(fd)
-
-    def close(self) -> None:
-        if self.buf is not None:
-            self.buf.close()
-            self.buf = None
-        if self.path:
-            try:
-                os.remove(self.path)
-            except FileNotFoundError:
-                pass
-            self.path = ""
-
-
-def _mapping(path: str) -> mmap.mmap:
-    """The worker's mapping of a slot file; mappings of removed slot files are dropped on a miss."""
-    buf = _maps.get(path)
-    if buf is None:
-        for old in [p for p in _maps if not os.path.exists(p)]:
-            _maps.pop(old).close()
-        with open(path, "r+b") as f:
-            buf = _maps[path] = mmap.mmap(f.fileno(), 0)
-    return buf
-
-
 def encode_in_worker(path: str, layout: Layout, key: str, target_ids: tuple[int, ...], meta: bytes,
                      quality: int) -> dict[str, bytes]:
     """In a worker: the members of the sample whose arrays ``Slot.put`` copied to ``path`` under the names
     of ``SampleImages``' fields (``masks``; ``left``, ``right``, ``targets`` unless the caller holds the
     JPEGs already: then only ``encode_other_members``; ``depth`` when there is one)."""
-    buf = _mapping(path)
-    arrays = {name: np.ndarray(shape, dtype, buffer=buf, offset=off) for name, off, shape, dtype in layout}
+    arrays = arrays_in(path, layout)
     sample = encode.SampleImages(key, arrays.get("left"), arrays.get("right"), arrays.get("targets"),
                                  arrays["masks"], target_ids, meta, arrays.get("depth"))
     try:
@@ -241,7 +179,7 @@ class SampleEncoder:
         self._stop = threading.Event()
         self._procs = process_pool(workers) if workers and mode == "processes" else None
         # one slot per thread: a free slot is always there for a running thread
-        self._all_slots = take_slots(workers, encode.scratch_dir()) if self._procs is not None else []
+        self._all_slots = take_slots(workers) if self._procs is not None else []
         self._slots: queue.SimpleQueue = queue.SimpleQueue()
         for slot in self._all_slots:
             self._slots.put(slot)

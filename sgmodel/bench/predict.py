@@ -39,6 +39,7 @@ from sgmodel.model.layers import amp_autocast
 from sgmodel.model.network import Predictor, create_model, load_predictor
 from sgmodel.model.render import SH_DEGREE, render_views
 from sgmodel.predict import export
+from sgmodel.predict.scene_writers import write_scene
 from sgmodel.predict.video import SCENE_WRITERS
 from sgmodel.weights import SHIPPED, checkpoint_path
 
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
             t.append(now())
             scene = export.to_scene(gaussians, 0, model.validity(disparity, K, baseline)[1][0])
             t.append(now())
-            export.write_scene(scene, Path(tmp) / "scene.ply")
+            write_scene(scene, Path(tmp) / "scene.ply")
             t.append(now())
             render_views(gaussians, viewmat, K[:, None], width, height)
             t.append(now())
@@ -138,7 +139,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="video: also run end to end with a scene per frame in each of these formats, as "
                    "`predict --video --frames` does (default: every format; none: only without scenes)")
     p.add_argument("--scene-writers", type=int, default=SCENE_WRITERS,
-                   help=f"video: threads writing those scenes (default as predict: the usable cores but 4, 2 to "
+                   help=f"video: processes writing those scenes (default as predict: the usable cores but 4, 2 to "
                    f"12; {SCENE_WRITERS} here)")
     p.add_argument("--out", type=Path, help="also write the markdown table here (a report of an earlier run of this "
                    "bench is replaced, any other file refused)")

@@ -12,13 +12,16 @@ the pair transform, the model, one novel view per frame, encode (mp4v, writer th
   batch's decode time plus the time from the batch's model start to the end of its encode (a frame waits for
   its batch; the wait of frames decoded ahead for the model to finish the batch before is not counted).
   Then again for each of ``--scene-formats`` with a scene per frame written as ``predict --video --frames``
-  writes them (``--scene-writers`` threads beside the model; a batch is done when its scenes are written).
+  writes them (``--scene-writers`` processes beside the model; a batch is done when its scenes are written;
+  the processes' start, before the stream, is timed apart); "writers busy" is the processes' summed write time
+  over their number times the wall time (near 100%: the writers hold the stream back).
 """
 
 from __future__ import annotations
 
 import argparse
 import tempfile
+import time
 from pathlib import Path
 
 import cv2
@@ -83,23 +86,27 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
             if i >= args.warmup:
                 model_times.append(now() - t)
         w, h = pair.left.shape[-1], pair.left.shape[-2]
-        runs = {}
+        runs, busy, start_s = {}, {}, None
         for fmt in [None, *args.scene_formats]:
             source = StereoSource(str(video))
             frames = None if fmt is None else Path(tmp) / f"frames_{fmt}"
             if frames is not None:
                 frames.mkdir()
+            started = time.perf_counter()
             sink = VideoSink(Path(tmp) / "novel_view.mp4", "mp4v", source.fps, w, h, frames, fmt or "spz",
                              scene_writers=args.scene_writers)
+            start_s = time.perf_counter() - started if frames is not None else start_s
             try:
                 runs[fmt] = stream(source, calib, None, prepare, reconstructor, Trajectory("offset", offset=OFFSET),
                                    sink, device, b, progress=False)
             finally:
                 source.close()
+            if frames is not None:
+                busy[fmt] = sink.processes.busy_s / (args.scene_writers * runs[fmt].wall)
     rows = [["model alone (encoder to Gaussians)", b, *_stats(model_times, b)]]
     for fmt, run in runs.items():
         latency = [x.latency for x in run.batches for _ in range(x.frames)]
-        scenes = "" if fmt is None else f", a {FORMATS[fmt].suffix} scene per frame"
+        scenes = "" if fmt is None else f", a {FORMATS[fmt].suffix} scene per frame (writers busy {busy[fmt]:.0%})"
         rows.append([f"end to end (decode, model, one novel view, encode{scenes})", b,
                      _rate(run.frames / run.wall), f"{1e3 * np.median(latency):.1f}",
                      f"{1e3 * np.percentile(latency, 99):.1f}"])
@@ -112,5 +119,6 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
            f"{markdown_table(['measure', 'batch', 'pairs/s', 'latency median ms', 'latency p99 ms'], rows)}\n\n"
            f"End to end per frame: decode {stages['decode']:.1f} ms (reader thread), model {stages['model']:.1f} ms, "
            f"render {stages['render']:.1f} ms (main thread); encode in the writer thread, and the scenes (copy to "
-           f"the host and write) in {args.scene_writers} scene writer threads.\n", out)
+           f"the host) in {args.scene_writers} threads and written in as many processes"
+           + ("" if start_s is None else f" (started in {start_s:.1f} s before the stream, the last time)") + ".\n", out)
     return 0

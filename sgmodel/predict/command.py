@@ -10,7 +10,7 @@ has no Gaussians: no scene or viewer files, its views are the z-buffered warp of
 
 A stereo video (``--video SBS`` side by side, or ``--left-video L --right-video R``; ``sgmodel.predict.video``)
 writes ``OUT/novel_view.<mp4|avi|mkv>`` (``--codec``), the novel view of every frame along ``--trajectory``,
-the viewer files, and with ``--frames`` ``OUT/frames/NNNNNN.<format>`` (default spz), one scene per frame.
+the viewer files, and with ``--frames`` ``OUT/frames/NNNNNN.<format>`` (default compressed-ply), one scene per frame.
 
 Pixels without a valid stereo depth (no match, occluded, outside the encoder's range, beyond the depth
 clamps) produce no Gaussian; the log says how many were dropped. Images (frames) are resized so the short
@@ -64,6 +64,7 @@ from sgmodel.pairs.prepare import prepare_pairs, read_calibration, read_pair, re
 from sgmodel.pairs.stereo_pair import SIZE_MULTIPLE, Pair, PredictError, model_size, to_tensor
 from sgmodel.predict import export, video
 from sgmodel.predict.inference import Reconstructor
+from sgmodel.predict.scene_writers import write_scene
 from sgmodel.predict.viewers import write_viewer_files
 from sgmodel.weights import SHIPPED, checkpoint_path, describe_checkpoint
 
@@ -73,8 +74,10 @@ DEFAULT_RESOLUTION = 256
 VIEW_RADIUS = 0.15
 #: Frames in the orbit animation.
 ORBIT_FRAMES = 24
-#: Scene format of a still pair and of video frames when --format is not given.
-DEFAULT_FORMAT, DEFAULT_FRAME_FORMAT = "ply", "spz"
+#: Scene format of a still pair and of video frames when --format is not given. Video frames: the compact format
+#: whose writers keep up with a 448x256 video at 30 frames/s on a 16-core GPU host (30.6-33.4 frames/s, 4.2x
+#: smaller than .ply; .spz 24-26, SOG 22: docs/benchmarks.md "Issue 35: the scene writers in processes").
+DEFAULT_FORMAT, DEFAULT_FRAME_FORMAT = "ply", "compressed-ply"
 #: Pairs per model call in a video.
 DEFAULT_BATCH = 4
 DEFAULT_CODEC = "mp4v"  # the novel-view video of --video
@@ -307,7 +310,7 @@ def _predict_pair(args, raw: Pair, reconstructor: Reconstructor, short: int, dev
         scene = scenes.in_frame(frame).scene(0)
         timer.lap("scene to host")
         fmt = args.format or DEFAULT_FORMAT
-        export.write_scene(scene, tmp / f"scene{FORMATS[fmt].suffix}", fmt)
+        write_scene(scene, tmp / f"scene{FORMATS[fmt].suffix}", fmt)
         timer.lap(f"export {fmt}")
         log(f"scene: {len(scene):,} Gaussians, SH degree {scene.sh_degree}"
             + (", in the raw left camera's frame" if frame is not None else ""))

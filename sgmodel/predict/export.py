@@ -16,7 +16,6 @@ import torch
 
 from scenesplat_stereo.scene.cameras import translation
 from scenesplat_stereo.scene.gaussians import GaussianScene, content_sh_degree
-from scenesplat_stereo.scene.scene_files import save_scene
 from sgmodel.model.render import check_gaussians
 
 #: Frames per second of the orbit animation.
@@ -45,12 +44,6 @@ def to_scene(gaussians: dict, index: int = 0, keep: torch.Tensor | None = None) 
     edges = np.cumsum([0] + [f.shape[1] for f in fields])
     means, quats, scales, opacities, sh = (np.ascontiguousarray(table[:, a:b]) for a, b in zip(edges, edges[1:]))
     return GaussianScene(means, quats, scales, opacities[:, 0], sh.reshape(len(sh), -1, 3), sh_degree=degree)
-
-
-def write_scene(scene: GaussianScene, path: str | Path, format: str = "ply") -> Path:
-    """Write ``scene`` in a ``scene_files.FORMATS`` format (atomically, without fsync: a prediction is cheap to
-    make again and the fsync would cost more than the rest of the write, docs/benchmarks.md)."""
-    return save_scene(scene, path, format, durable=False)
 
 
 def _look_at(centre: np.ndarray, focus: np.ndarray) -> np.ndarray:

@@ -2,7 +2,8 @@
 
     decode (reader thread) -> batches of raw ``Pair`` s -> the pair transform (``sgmodel.pairs.prepare``) ->
     ``inference.Reconstructor`` (the path of a still pair) -> one novel view per frame -> encode (writer thread)
-    and, with ``--frames``, each frame's scene to the host and its file (``SCENE_WRITERS`` scene writer threads)
+    and, with ``--frames``, each frame's scene to the host (``SCENE_WRITERS`` threads) and its file
+    (``SCENE_WRITERS`` writer processes, ``scene_writers.SceneWriters``)
 
 Input: one side-by-side video (left eye in the left half) or a left and a right video of one size and frame
 rate, with the calibration of one eye's frame (as for a still pair). Output: the novel view of every frame
@@ -41,8 +42,9 @@ from sgmodel.pairs.calib import Calibration
 from sgmodel.pairs.prepare import PairTransform
 from sgmodel.pairs.rectify import Rectification
 from sgmodel.pairs.stereo_pair import Pair, PredictError, to_tensor
-from sgmodel.predict.export import offset_camera, orbit_camera, write_scene
+from sgmodel.predict.export import offset_camera, orbit_camera
 from sgmodel.predict.inference import Reconstructor
+from sgmodel.predict.scene_writers import SceneWriters, write_scene
 
 
 @dataclass(frozen=True)
@@ -63,10 +65,9 @@ DEFAULT_FPS = 30.0
 ORBIT_RADIUS, ORBIT_PERIOD = 0.15, 8.0
 #: Batches queued for the writer threads at most: the model waits beyond that (frames and scenes held in memory).
 MAX_QUEUED = 2
-#: Threads writing the per-frame scenes of ``--frames``: the usable cores but 4 (the model's thread, the
-#: reader, the encoder and one spare), 2 to 12. The serial part of a writer, the .spz's deflate (100-250 ms a
-#: 200K-Gaussian scene), is what several writers overlap; their quantisation runs on the shared pool of
-#: ``scenesplat_stereo.scene.row_tasks``.
+#: Processes writing the per-frame scenes of ``--frames`` (and threads copying them to the host): the usable cores
+#: but 4 (the model's thread, the reader, the encoder and one spare), 2 to 12. A compact writer takes longer than
+#: a frame's prediction (a .spz's deflate alone 100-250 ms a 200K-Gaussian scene), so several write side by side.
 SCENE_WRITERS = max(2, min(12, row_tasks.workers() - 4))
 
 
@@ -186,12 +187,12 @@ class VideoSink:
     given, one scene per frame named by frame number, its Gaussians moved by ``scene_frame`` first (a raw
     rig's left camera frame; None: the model's).
 
-    The frames are encoded in order by one writer thread; the scenes are written by ``scene_writers``
-    threads side by side (each file atomically, ``export.write_scene``), so a format whose writer takes
-    longer than a frame's prediction still keeps up: the stream runs at the rate of the slower of the model
-    and ``scene_writers`` writers, not of their sum. A batch counts as written when its frames and all its
-    scenes are; the first error of a scene writer is raised from the batch's future, once (``close`` then
-    drops the batches not yet started)."""
+    The frames are encoded in order by one writer thread; each scene is copied to the host by one of
+    ``scene_writers`` threads and written by one of as many processes (each file atomically,
+    ``scene_writers.write_scene``), so a format whose writer takes longer than a frame's prediction still keeps
+    up: the stream runs at the rate of the slower of the model and ``scene_writers`` writers, not of their sum.
+    A batch counts as written when its frames and all its scenes are; the first error of a scene writer is raised
+    from the batch's future, once (``close`` then drops the batches not yet started)."""
 
     def __init__(self, path: Path, codec: str, fps: float, width: int, height: int,
                  scene_folder: Path | None = None, scene_format: str = "spz",
@@ -203,6 +204,11 @@ class VideoSink:
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="video-writer")
         self.scene_writers = max(1, scene_writers)
         self.scene_pool = ThreadPoolExecutor(self.scene_writers, thread_name_prefix="scene-writer")
+        try:
+            self.processes = None if scene_folder is None else SceneWriters(self.scene_writers)
+        except BaseException:
+            self.writer.release()
+            raise
 
     def submit(self, first: int, frames: np.ndarray, scene: Callable[[int], GaussianScene] | None = None) -> Future:
         """Queue uint8 RGB frames [n,H,W,3] (frame numbers first..) and, with a scene folder, their scenes:
@@ -215,7 +221,7 @@ class VideoSink:
 
     def _write_scene(self, scene: Callable[[int], GaussianScene], i: int, number: int) -> Path:
         path = self.scene_folder / f"{number:06d}{FORMATS[self.scene_format].suffix}"
-        return write_scene(scene(i), path, self.scene_format)
+        return self.processes.write(scene(i), path, self.scene_format, write_scene)
 
     def _write(self, frames: np.ndarray, scenes: list[Future]) -> float:
         for f in frames:
@@ -230,6 +236,8 @@ class VideoSink:
         self.scene_pool.shutdown(wait=True, cancel_futures=cancel)
         self.pool.shutdown(wait=True, cancel_futures=cancel)
         self.writer.release()
+        if self.processes is not None:
+            self.processes.close(cancel)
 
 
 # ---------------------------------------------------------------- the stream

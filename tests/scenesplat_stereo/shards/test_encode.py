@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from scenesplat_stereo.common import scratch
 from scenesplat_stereo.shards import encode, encode_pool
 from scenesplat_stereo.shards.encode import (SampleImages, decode_image, encode_depth_exr, encode_jpeg, encode_mask_png,
                                              encode_mask_pngs, encode_png, to_uint8)
@@ -191,7 +192,7 @@ def test_scratch_files_do_not_accumulate():
         list(ex.map(lambda i: (encode_jpeg(smooth_image(seed=i)), decode_image(encode_mask_png(np.eye(4, dtype=bool)), "png")),
                     range(9)))
     # only the shared slots that encoder processes reuse stay (one per worker of an earlier encoder)
-    left = os.listdir(encode.scratch_dir())
+    left = os.listdir(scratch.scratch_dir())
     assert [f for f in left if not f.startswith("slot-")] == []
     assert len(left) <= 2
 

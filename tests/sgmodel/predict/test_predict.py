@@ -21,7 +21,8 @@ from sgmodel.cli import main as sgmodel_main
 from sgmodel.metrics.sheets import depth_png
 from sgmodel.model.baselines import naive_gs
 from sgmodel.predict import command as predict_mod
-from sgmodel.predict.export import orbit_cameras, to_scene, write_scene
+from sgmodel.predict.export import orbit_cameras, to_scene
+from sgmodel.predict.scene_writers import write_scene
 from tests.support.model_helpers import predict_status as run
 
 
@@ -210,9 +211,12 @@ def test_bench_predict_video_on_the_cpu(tmp_path):
                          "--scene-formats", "spz", "--out", str(out)]) == 0
     text = out.read_text()
     assert "Stereo video of 48x32 per eye" in text and "5 frames in batches of 2" in text
-    for row in ("model alone (encoder to Gaussians)", "end to end (decode, model, one novel view, encode)",
-                "end to end (decode, model, one novel view, encode, a .spz scene per frame)"):
-        assert re.search(rf"\| {re.escape(row)} \| 2 \| [\d.]+ \| [\d.]+ \| [\d.]+ \|", text), row
+    for row in (re.escape("model alone (encoder to Gaussians)"),
+                re.escape("end to end (decode, model, one novel view, encode)"),
+                re.escape("end to end (decode, model, one novel view, encode, a .spz scene per frame (writers busy")
+                + r" \d+%\)\)"):
+        assert re.search(rf"\| {row} \| 2 \| [\d.]+ \| [\d.]+ \| [\d.]+ \|", text), row
+    assert re.search(r"written in as many processes \(started in [\d.]+ s before the stream", text)
 
 
 @pytest.mark.parametrize("fmt,suffix", [("spz", ".spz"), ("compressed-ply", ".compressed.ply"), ("sog", ".sog")])

@@ -1,14 +1,16 @@
 """``sgmodel predict --video`` on a short stereo clip rendered from a demo teacher (scripts/figures/video_demo.py,
 lossless FFV1): the same Gaussians as per-frame ``predict`` and the same rendered frames; side-by-side and
 left/right inputs agree; the codecs OpenCV writes here; trajectories; bad input (exit 2, nothing written);
-the scene writer threads: the serial bytes, one clean error, nothing left after an error or Ctrl-C."""
+the scene writer processes: the serial bytes, one clean error, nothing left after an error or Ctrl-C, a
+process that dies."""
 
 from __future__ import annotations
 
 import math
+import os
 import re
-import threading
 import time
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import cv2
@@ -16,14 +18,17 @@ import numpy as np
 import pytest
 import torch
 
+from scenesplat_stereo.common import scratch
 from scenesplat_stereo.scene.gaussians import load_ply
 from scenesplat_stereo.scene.scene_files import FORMATS
 from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scripts.figures.video_demo import read_frames, render_clip
 from sgmodel.model.render import render_views
 from sgmodel.predict import command as predict_mod
-from sgmodel.predict import export, video
+from sgmodel.predict import video
 from sgmodel.predict.export import offset_camera, orbit_camera
+from sgmodel.predict.scene_writers import write_scene
+from tests.support import scene_writer_faults as faults
 from tests.support.model_helpers import predict_status as run
 from tests.support.ply_helpers import random_scene
 
@@ -97,7 +102,7 @@ def test_side_by_side_equals_left_and_right_videos(clip, video_out, tmp_path):
     np.testing.assert_array_equal(read_frames(sbs / "novel_view.mkv"), read_frames(out / "novel_view.mkv")[:3])
 
 
-def test_forward_splat_video_and_the_default_spz_frames(clip, tmp_path):
+def test_forward_splat_video_and_the_default_compressed_ply_frames(clip, tmp_path):
     out = tmp_path / "fs"
     assert run(["--video", clip / "sbs.mkv", "--calib", clip / "K.txt", "--out", out, "--max-frames", 2,
                 "--method", "forward-splat", "--encoder", "sgbm", "--device", "cpu", "--no-progress"]) == 0
@@ -105,7 +110,7 @@ def test_forward_splat_video_and_the_default_spz_frames(clip, tmp_path):
     nb = tmp_path / "nb"
     assert run(["--video", clip / "sbs.mkv", "--calib", clip / "K.txt", "--out", nb, "--max-frames", 1, "--frames",
                 *COMMON]) == 0
-    assert (nb / "frames" / "000000.spz").is_file()
+    assert (nb / "frames" / "000000.compressed.ply").is_file()
 
 
 def test_side_by_side_of_odd_width_is_refused(tmp_path, monkeypatch):
@@ -231,13 +236,14 @@ def test_a_raw_rigs_video_is_rectified_frame_by_frame_like_a_pair(raw_rig, tmp_p
 # ---------------------------------------------------------------- scene writers beside the model
 
 @pytest.mark.parametrize("fmt", sorted(FORMATS))
-def test_scene_writer_threads_write_the_serial_files(tmp_path, fmt):
-    """Several scene writers at once (and the quantisation's row tasks) write each frame's scene byte for byte
-    as ``export.write_scene`` writes it alone, named by frame number, whatever order they finish in."""
+def test_scene_writer_processes_write_the_serial_files(tmp_path, fmt):
+    """Several scene writer processes at once (and the quantisation's row tasks) write each frame's scene byte for
+    byte as ``scene_writers.write_scene`` writes it alone in this process, named by frame number, whatever order they finish in."""
     rng = np.random.default_rng(7)
     scenes = [random_scene(rng, 3000 + 4099 * i, i % 3) for i in range(7)]
     folder = tmp_path / "frames"
     folder.mkdir()
+    slots_before = set(os.listdir(scratch.scratch_dir()))
     sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, folder, fmt, scene_writers=3)
     futures = [sink.submit(first, np.zeros((n, 16, 16, 3), np.uint8), lambda i, first=first: scenes[first + i])
                for first, n in ((0, 3), (3, 1), (4, 3))]
@@ -245,8 +251,10 @@ def test_scene_writer_threads_write_the_serial_files(tmp_path, fmt):
     sink.close()
     suffix = FORMATS[fmt].suffix
     assert sorted(p.name for p in folder.iterdir()) == [f"{i:06d}{suffix}" for i in range(7)]
+    assert sink.processes.busy_s > 0
+    assert set(os.listdir(scratch.scratch_dir())) <= slots_before  # the writers' slots are gone
     for i, scene in enumerate(scenes):
-        serial = export.write_scene(scene, tmp_path / f"serial{suffix}", fmt)
+        serial = write_scene(scene, tmp_path / f"serial{suffix}", fmt)
         assert (folder / f"{i:06d}{suffix}").read_bytes() == serial.read_bytes(), i
 
 
@@ -255,43 +263,50 @@ def _scene_frames_argv(clip: Path, out: Path) -> list:
             "--batch-size", 2, *COMMON]
 
 
-@pytest.mark.parametrize("error,status", [(ValueError, 2), (RuntimeError, 1)])
-def test_a_scene_writers_error_ends_predict_once_and_writes_nothing(clip, tmp_path, monkeypatch, capsys, error,
+@pytest.mark.parametrize("write,status", [(faults.value_error_write, 2), (faults.runtime_error_write, 1)])
+def test_a_scene_writers_error_ends_predict_once_and_writes_nothing(clip, tmp_path, monkeypatch, capsys, write,
                                                                     status):
-    """An error in a scene writer thread (bad input: ValueError or OSError, exit 2; anything else a bug,
+    """An error in a scene writer process (bad input: ValueError or OSError, exit 2; anything else a bug,
     exit 1) ends the command with its one line, and OUT is not written."""
-    def failing(scene, path, format):
-        if path.name.startswith("000003"):
-            raise error(f"{path.name}: broken on purpose")
-        return export.write_scene(scene, path, format)
-
-    monkeypatch.setattr(video, "write_scene", failing)
+    monkeypatch.setattr(video, "write_scene", write)
     assert run(_scene_frames_argv(clip, tmp_path / "out")) == status
     errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]  # (not the warnings)
     assert len(errors) == 1 and errors[0].startswith("sgmodel predict: error: "), errors
-    assert "000003.spz: broken on purpose" in errors[0]
+    assert f"{faults.FAILING_FRAME}.spz: broken on purpose" in errors[0]
     assert list(tmp_path.iterdir()) == []
 
 
 def test_ctrl_c_while_scenes_are_written_leaves_no_file(clip, tmp_path, monkeypatch):
-    """Ctrl-C in the main thread while scene writers are writing: exit 130 once the started writes end, and
-    neither OUT nor a staging folder or temp file remains."""
-    writing = threading.Event()
-
-    def slow(scene, path, format):
-        writing.set()
-        time.sleep(0.2)
-        return export.write_scene(scene, path, format)
-
+    """Ctrl-C in the main thread while scene writer processes are writing: exit 130 once the started writes end,
+    and neither OUT nor a staging folder or temp file remains."""
     submit = video.VideoSink.submit
 
     def interrupt_second(self, first, *rest):
         if first > 0:
-            assert writing.wait(30)
+            deadline = time.monotonic() + 30
+            while not list(tmp_path.rglob(faults.STARTED)):
+                assert time.monotonic() < deadline, "no write started"
+                time.sleep(0.01)
             raise KeyboardInterrupt
         return submit(self, first, *rest)
 
-    monkeypatch.setattr(video, "write_scene", slow)
+    monkeypatch.setattr(video, "write_scene", faults.slow_write)
     monkeypatch.setattr(video.VideoSink, "submit", interrupt_second)
     assert run(_scene_frames_argv(clip, tmp_path / "out")) == 130
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_writer_process_that_dies_ends_the_stream(tmp_path):
+    """A writer process killed mid-stream (out of memory, say) breaks the pool: the batch's future raises
+    BrokenProcessPool (a RuntimeError: exit 1 on the command line) instead of waiting for ever."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, folder, "spz", scene_writers=2)
+    try:
+        for process in sink.processes.pool._processes.values():
+            process.kill()
+        scene = random_scene(np.random.default_rng(0), 100, 0)
+        with pytest.raises(BrokenProcessPool):
+            sink.submit(0, np.zeros((1, 16, 16, 3), np.uint8), lambda i: scene).result(timeout=60)
+    finally:
+        sink.close(cancel=True)

@@ -1,0 +1,109 @@
+"""Scratch space in RAM: this process's private scratch folder, and the slots that carry arrays to worker processes.
+
+* ``scratch_dir``: a private folder in ``/dev/shm`` when it has ``SHM_MIN_FREE`` free (containers often give it
+  64 MB), else in the system's temporary folder; created on first use in each process, removed at its exit.
+* ``Slot``: a file in that folder mapped in the calling process (grown as needed) and, by path, in a worker
+  process (``arrays_in``). The caller copies named arrays in (one ``memcpy`` each, without the GIL) and sends only
+  the path and the layout through the pool's pipe; the worker reads them in place. Pickled through the pipe
+  instead, a big array queues for the GIL between the pipe's 64 KiB chunks. The calling thread owns a slot from
+  ``put`` until the worker's result is back. Users: the shard build's encoder processes
+  (``shards.encode_pool``) and the writers of ``sgmodel predict --video --frames`` (``sgmodel.predict.scene_writers``).
+"""
+
+from __future__ import annotations
+
+import atexit
+import itertools
+import mmap
+import os
+import shutil
+import tempfile
+import threading
+
+import numpy as np
+
+#: ``/dev/shm`` holds the scratch folder only with this much room, else the system temp folder.
+SHM_MIN_FREE = 1 << 30
+#: Bytes; each array in a slot starts on a cache line.
+ALIGN = 64
+
+# (name, offset in bytes, shape, dtype string) of each array in a slot
+Layout = list[tuple[str, int, tuple[int, ...], str]]
+
+_scratch_lock = threading.Lock()
+_scratch: dict[str, str] = {}  # {"pid": ..., "dir": ...} of this process
+_slot_ids = itertools.count()
+_maps: dict[str, mmap.mmap] = {}  # in a worker: slot path -> its mapping
+
+
+def scratch_dir() -> str:
+    """This process's private scratch folder (created on first use, removed at exit)."""
+    pid = str(os.getpid())
+    with _scratch_lock:
+        if _scratch.get("pid") != pid:
+            base = "/dev/shm" if free_bytes("/dev/shm") >= SHM_MIN_FREE else None
+            path = tempfile.mkdtemp(prefix="scenesplat-encode-", dir=base)
+            _scratch.update(pid=pid, dir=path)
+            atexit.register(shutil.rmtree, path, True)
+        return _scratch["dir"]
+
+
+def free_bytes(path: str) -> int:
+    """Bytes free to us in the file system of ``path`` (0 if it is missing or not writable)."""
+    if not os.access(path, os.W_OK):
+        return 0
+    st = os.statvfs(path)
+    return st.f_bavail * st.f_frsize
+
+
+class Slot:
+    """A shared buffer for one set of arrays at a time: a file in ``folder`` (default ``scratch_dir()``) mapped here
+    (grown as needed) and, by path, in the workers (``arrays_in``)."""
+
+    def __init__(self, folder: str | None = None) -> None:
+        self.folder, self.path, self.buf = folder or scratch_dir(), "", None
+
+    def put(self, arrays: dict[str, np.ndarray]) -> tuple[str, Layout]:
+        """Copy named ``arrays`` into the slot; returns (path, layout) for ``arrays_in``."""
+        layout, offset = [], 0
+        for name, a in arrays.items():
+            layout.append((name, offset, tuple(a.shape), a.dtype.str))
+            offset += -(-a.nbytes // ALIGN) * ALIGN
+        if self.buf is None or len(self.buf) < offset:
+            self._grow(offset)
+        for (name, off, shape, dtype) in layout:
+            np.copyto(np.ndarray(shape, dtype, buffer=self.buf, offset=off), arrays[name], casting="no")
+        return self.path, layout
+
+    def _grow(self, nbytes: int) -> None:
+        self.close()  # a new file (a new name): workers map it afresh and drop the old one
+        self.path = os.path.join(self.folder, f"slot-{os.getpid()}-{next(_slot_ids)}")
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.ftruncate(fd, max(nbytes, 1))
+            self.buf = mmap.mmap(fd, max(nbytes, 1))
+        finally:
+            os.close(fd)
+
+    def close(self) -> None:
+        if self.buf is not None:
+            self.buf.close()
+            self.buf = None
+        if self.path:
+            try:
+                os.remove(self.path)
+            except FileNotFoundError:
+                pass
+            self.path = ""
+
+
+def arrays_in(path: str, layout: Layout) -> dict[str, np.ndarray]:
+    """In a worker: views of the arrays ``Slot.put`` copied to ``path``. No view may outlive the task (the
+    mapping of a removed slot file is closed on a later miss)."""
+    buf = _maps.get(path)
+    if buf is None:
+        for old in [p for p in _maps if not os.path.exists(p)]:
+            _maps.pop(old).close()
+        with open(path, "r+b") as f:
+            buf = _maps[path] = mmap.mmap(f.fileno(), 0)
+    return {name: np.ndarray(shape, dtype, buffer=buf, offset=off) for name, off, shape, dtype in layout}
