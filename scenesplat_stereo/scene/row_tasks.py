@@ -13,8 +13,8 @@ stay in the CPU's last-level cache.
 
 The pool is created on first use with ``workers()`` threads and shared by every writer in the process; a forked
 child makes its own. A process that writes beside others (``sgmodel predict --video --frames``' writer processes,
-``sgmodel.predict.scene_writers``) pins its thread count (and the CPU) with ``pin`` before its first write. A task must
-never wait for another task of this pool (that could deadlock a full pool); writers wait in their own thread.
+``sgmodel.predict.scene_writers``) pins its thread count (and the CPU) with ``pin`` before its first write. A task
+must never wait for another task of this pool (that could deadlock a full pool); writers wait in their own thread.
 """
 
 from __future__ import annotations

@@ -120,5 +120,6 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
            f"End to end per frame: decode {stages['decode']:.1f} ms (reader thread), model {stages['model']:.1f} ms, "
            f"render {stages['render']:.1f} ms (main thread); encode in the writer thread, and the scenes (copy to "
            f"the host) in {args.scene_writers} threads and written in as many processes"
-           + ("" if start_s is None else f" (started in {start_s:.1f} s before the stream, the last time)") + ".\n", out)
+           + ("" if start_s is None else f" (started in {start_s:.1f} s before the stream, the last time)")
+           + ".\n", out)
     return 0

@@ -38,12 +38,11 @@ def to_scene(gaussians: dict, index: int = 0, keep: torch.Tensor | None = None) 
     degree = content_sh_degree(g["sh"])  # where the Gaussians live, before anything is copied
     quats = g["quats"].double()
     quats = quats / quats.norm(dim=-1, keepdim=True)
-    fields = [g["means"], quats, g["scales"], g["opacities"].clamp(0, 1)[:, None],
-              g["sh"][:, :(degree + 1) ** 2].flatten(1)]
-    table = torch.cat([f.float() for f in fields], 1).cpu().numpy()  # one copy to the host
-    edges = np.cumsum([0] + [f.shape[1] for f in fields])
-    means, quats, scales, opacities, sh = (np.ascontiguousarray(table[:, a:b]) for a, b in zip(edges, edges[1:]))
-    return GaussianScene(means, quats, scales, opacities[:, 0], sh.reshape(len(sh), -1, 3), sh_degree=degree)
+    fields = [g["means"], quats, g["scales"], g["opacities"].clamp(0, 1), g["sh"][:, :(degree + 1) ** 2]]
+    flat = torch.cat([f.float().reshape(-1) for f in fields]).cpu().numpy()  # one copy to the host, field after field
+    edges = np.cumsum([0] + [f.numel() for f in fields])
+    means, quats, scales, opacities, sh = (flat[a:b].reshape(f.shape) for f, a, b in zip(fields, edges, edges[1:]))
+    return GaussianScene(means, quats, scales, opacities, sh, sh_degree=degree)
 
 
 def _look_at(centre: np.ndarray, focus: np.ndarray) -> np.ndarray:

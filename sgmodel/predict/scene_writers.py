@@ -7,16 +7,17 @@ hold the GIL and the CUDA driver against each other and against the model's own 
 scenes a second at 448x256 where the model makes 80 (docs/benchmarks.md "Issue 35: the SOG writer's encodes
 queued as their texels are ready"). Each ``SceneWriters`` process has an interpreter of its own:
 
-* A scene reaches a process through a ``common.scratch.Slot`` (a file in RAM both map: one copy of its arrays,
-  14 float32 a Gaussian at SH degree 0, 38 at degree 2), not pickled through the pool's pipe: that way 12
+* Each process has a pipe and a ``common.scratch.Slot`` of its own (a file in RAM both map), and serves one
+  calling thread at a time: the thread copies the scene's arrays into the slot (14 float32 a Gaussian at SH degree
+  0, 38 at degree 2), sends their layout and waits for the answer. Pickled through a pool's pipe instead, 12
   processes wrote 15 scenes a second at 448x256 whatever the format, ``.ply`` included (docs/benchmarks.md).
   The file is the one ``write_scene`` writes in the parent, byte for byte.
 * The processes are spawned (a parent holding a CUDA context cannot fork), started together and waited for
-  when the pool is made, so the first frames do not wait for the imports. Each pins the writers' shared row
+  when ``SceneWriters`` is made, so the first frames do not wait for the imports. Each pins the writers' shared row
   pool to ``threads`` threads and their torch work to the CPU (``row_tasks.pin``): the processes stay off the GPU
   the model runs on (a CUDA context in each was no faster and costs GPU memory: docs/benchmarks.md).
-* Errors come back through each write's future as the writer raised them (a bad scene's ``ValueError`` stays
-  exit 2 on the command line); a process that dies breaks the pool (``BrokenProcessPool``, a ``RuntimeError``).
+* Errors come back as the writer raised them (a bad scene's ``ValueError`` stays exit 2 on the command line); a
+  process that dies is ``BrokenProcessPool`` (a ``RuntimeError``: exit 1) in the thread that waited for it.
   On Ctrl-C the processes end silently (``quiet_worker_interrupts``) and the command says its one line.
 """
 
@@ -26,11 +27,13 @@ import multiprocessing
 import queue
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 from scenesplat_stereo.common.commandline import quiet_worker_interrupts
-from scenesplat_stereo.common.scratch import Layout, Slot, arrays_in
+from scenesplat_stereo.common.scratch import Slot, arrays_in
 from scenesplat_stereo.scene import row_tasks
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import save_scene
@@ -47,78 +50,110 @@ def write_scene(scene: GaussianScene, path: str | Path, format: str = "ply") -> 
     return save_scene(scene, path, format, durable=False)
 
 
-_started = None  # in a writer process: the barrier of ``SceneWriters``' start
-
-
-def _start(threads: int, started) -> None:
-    """A writer process's initialiser: Ctrl-C left to the parent, torch imported, the row pool pinned."""
-    global _started
+def _serve(connection, threads: int) -> None:
+    """A writer process: Ctrl-C left to the parent, torch imported, the row pool pinned, then "ready"; then each
+    message (slot, layout, SH degree, path, format, write) answered with (True, (path, seconds)) or (False, the
+    error), until None."""
     quiet_worker_interrupts()
     import torch  # imported here, not by the first write
 
     torch.set_num_threads(threads)
     row_tasks.pin(threads)
-    _started = started
+    connection.send("ready")
+    while (message := connection.recv()) is not None:
+        slot, layout, sh_degree, path, format, write = message
+        start = time.perf_counter()
+        try:
+            path = write(GaussianScene(**arrays_in(slot, layout), sh_degree=sh_degree), path, format)
+            answer = (True, (path, time.perf_counter() - start))
+        except Exception as e:  # noqa: BLE001 - raised again in the parent
+            answer = (False, e)
+        try:
+            connection.send(answer)
+        except Exception as e:  # noqa: BLE001 - an error that cannot be pickled: its text
+            connection.send((False, RuntimeError(f"{type(e).__name__} in a scene writer process: {e}")))
 
 
-def _write_slot(slot: str, layout: Layout, sh_degree: int, path: Path, format: str, write) -> tuple[Path, float]:
-    """In a writer process: ``write`` the scene whose arrays ``SceneWriters.write`` put in ``slot`` to ``path``;
-    (the path, the seconds it took)."""
-    start = time.perf_counter()
-    path = write(GaussianScene(**arrays_in(slot, layout), sh_degree=sh_degree), path, format)
-    return path, time.perf_counter() - start
+@dataclass
+class _Writer:
+    """One writer process, the parent's end of its pipe and the slot that carries its scenes."""
 
-
-def _ready() -> None:
-    """The first task of each writer process: wait until every process has one (so each has started)."""
-    _started.wait(START_TIMEOUT)
+    process: multiprocessing.process.BaseProcess
+    connection: Connection
+    slot: Slot
 
 
 class SceneWriters:
     """``processes`` writer processes (module docstring), each with ``threads`` threads (default: this process's
-    usable CPUs shared out, at least 1) for its torch work. ``busy_s``: the seconds they have spent
-    writing, summed (busy_s / (processes x wall time) near 1: the writers are what holds a stream back)."""
+    usable CPUs shared out, at least 1) for its torch work. ``write`` may be called from that many threads at once;
+    each call has a process (and its slot) to itself. ``busy_s``: the seconds the processes have spent writing,
+    summed (busy_s / (processes x wall time) near 1: the writers are what holds a stream back)."""
 
     def __init__(self, processes: int, threads: int | None = None) -> None:
         context = multiprocessing.get_context("spawn")
-        self.processes = max(1, processes)
-        self.busy_s, self._lock = 0.0, threading.Lock()  # seconds the processes spent writing, summed
-        self.slots: queue.SimpleQueue[Slot] = queue.SimpleQueue()
-        for _ in range(self.processes):
-            self.slots.put(Slot())
-        threads = threads or max(1, row_tasks.workers() // self.processes)
-        started = context.Barrier(self.processes + 1)
-        self.pool = ProcessPoolExecutor(self.processes, mp_context=context, initializer=_start,
-                                        initargs=(threads, started))
-        try:  # the pool spawns a process for each task that finds none idle
-            ready = [self.pool.submit(_ready) for _ in range(self.processes)]
-            started.wait(START_TIMEOUT)
-            for f in ready:
-                f.result()
+        threads = threads or max(1, row_tasks.workers() // max(1, processes))
+        self.busy_s, self._lock = 0.0, threading.Lock()
+        self.writers: list[_Writer] = []
+        self._idle: queue.SimpleQueue[_Writer] = queue.SimpleQueue()
+        try:
+            for i in range(max(1, processes)):
+                parent, child = context.Pipe()
+                process = context.Process(target=_serve, args=(child, threads), name=f"scene-writer-{i}", daemon=True)
+                process.start()
+                child.close()
+                self.writers.append(_Writer(process, parent, Slot()))
+            for w in self.writers:  # started together, waited for together
+                if not w.connection.poll(START_TIMEOUT):
+                    raise RuntimeError(f"{w.process.name} did not start in {START_TIMEOUT:.0f} s")
+                self._answer(w, "starting")
         except BaseException:
-            self.pool.shutdown(wait=False, cancel_futures=True)
-            self._close_slots()
+            self.close()
             raise
+        for w in self.writers:
+            self._idle.put(w)
 
     def write(self, scene: GaussianScene, path: Path, format: str, write=write_scene) -> Path:
         """``write(scene, path, format)`` (``write_scene``, or another module-level function of that signature) in
-        a writer process; returns the path written. Blocks while every slot is in use (one per process)."""
-        slot = self.slots.get()
+        a writer process; returns the path written. Blocks while every process is busy."""
+        w = self._idle.get()
         try:
-            where, layout = slot.put({name: getattr(scene, name) for name in FIELDS})
-            path, seconds = self.pool.submit(_write_slot, where, layout, scene.sh_degree, path, format, write).result()
+            where, layout = w.slot.put({name: getattr(scene, name) for name in FIELDS})
+            try:
+                w.connection.send((where, layout, scene.sh_degree, path, format, write))
+            except OSError as e:  # the pipe is closed: the process has ended
+                self._answer(w, f"writing {path}", e)
+            ok, value = self._answer(w, f"writing {path}")
         finally:
-            self.slots.put(slot)
+            self._idle.put(w)
+        if not ok:
+            raise value
+        path, seconds = value
         with self._lock:
             self.busy_s += seconds
         return path
 
-    def close(self, cancel: bool = False) -> None:
-        """Wait for the queued writes (``cancel``: only for those already started), then end the processes and
-        remove the slots."""
-        self.pool.shutdown(wait=True, cancel_futures=cancel)
-        self._close_slots()
+    @staticmethod
+    def _answer(w: _Writer, doing: str, error: BaseException | None = None) -> object:
+        """The next message of ``w``'s process; ``BrokenProcessPool`` naming it when it has ended (or ``error``
+        says so)."""
+        try:
+            if error is None:
+                return w.connection.recv()
+        except (EOFError, OSError) as e:
+            error = e
+        w.process.join(5.0)
+        raise BrokenProcessPool(f"{w.process.name} ended (exit code {w.process.exitcode}) while {doing}") from error
 
-    def _close_slots(self) -> None:
-        while not self.slots.empty():
-            self.slots.get().close()
+    def close(self) -> None:
+        """End the processes (after the writes they have begun) and remove the slots."""
+        for w in self.writers:
+            try:
+                w.connection.send(None)
+            except OSError:  # it has ended already
+                pass
+        for w in self.writers:
+            w.process.join(START_TIMEOUT)
+            if w.process.is_alive():
+                w.process.kill()
+            w.connection.close()
+            w.slot.close()

@@ -237,7 +237,7 @@ class VideoSink:
         self.pool.shutdown(wait=True, cancel_futures=cancel)
         self.writer.release()
         if self.processes is not None:
-            self.processes.close(cancel)
+            self.processes.close()
 
 
 # ---------------------------------------------------------------- the stream

@@ -238,7 +238,8 @@ def test_a_raw_rigs_video_is_rectified_frame_by_frame_like_a_pair(raw_rig, tmp_p
 @pytest.mark.parametrize("fmt", sorted(FORMATS))
 def test_scene_writer_processes_write_the_serial_files(tmp_path, fmt):
     """Several scene writer processes at once (and the quantisation's row tasks) write each frame's scene byte for
-    byte as ``scene_writers.write_scene`` writes it alone in this process, named by frame number, whatever order they finish in."""
+    byte as ``scene_writers.write_scene`` writes it alone in this process, named by frame number, whatever order
+    they finish in; their slots are removed at the end."""
     rng = np.random.default_rng(7)
     scenes = [random_scene(rng, 3000 + 4099 * i, i % 3) for i in range(7)]
     folder = tmp_path / "frames"
@@ -297,14 +298,14 @@ def test_ctrl_c_while_scenes_are_written_leaves_no_file(clip, tmp_path, monkeypa
 
 
 def test_a_writer_process_that_dies_ends_the_stream(tmp_path):
-    """A writer process killed mid-stream (out of memory, say) breaks the pool: the batch's future raises
-    BrokenProcessPool (a RuntimeError: exit 1 on the command line) instead of waiting for ever."""
+    """A writer process killed mid-stream (out of memory, say): the batch's future raises BrokenProcessPool (a
+    RuntimeError: exit 1 on the command line) instead of waiting for ever."""
     folder = tmp_path / "frames"
     folder.mkdir()
     sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, folder, "spz", scene_writers=2)
     try:
-        for process in sink.processes.pool._processes.values():
-            process.kill()
+        for writer in sink.processes.writers:
+            writer.process.kill()
         scene = random_scene(np.random.default_rng(0), 100, 0)
         with pytest.raises(BrokenProcessPool):
             sink.submit(0, np.zeros((1, 16, 16, 3), np.uint8), lambda i: scene).result(timeout=60)
