@@ -42,7 +42,7 @@ def scratch_dir() -> str:
     with _scratch_lock:
         if _scratch.get("pid") != pid:
             base = "/dev/shm" if free_bytes("/dev/shm") >= SHM_MIN_FREE else None
-            path = tempfile.mkdtemp(prefix="scenesplat-encode-", dir=base)
+            path = tempfile.mkdtemp(prefix="scenesplat-scratch-", dir=base)
             _scratch.update(pid=pid, dir=path)
             atexit.register(shutil.rmtree, path, True)
         return _scratch["dir"]

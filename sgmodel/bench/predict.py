@@ -28,7 +28,7 @@ import torch
 from scenesplat_stereo.bench.scenes import COLUMNS, writer_rows
 from scenesplat_stereo.common.measure import synced_clock
 from scenesplat_stereo.common.ownership import OwnedFile
-from scenesplat_stereo.common.text import argtype, markdown_table, parse_size
+from scenesplat_stereo.common.text import argtype, markdown_table, parse_size, whole_number
 from scenesplat_stereo.scene.gaussians import GaussianScene
 from scenesplat_stereo.scene.scene_files import FORMATS
 from sgmodel.args import (add_device_argument, add_model_arguments, add_precision_argument, device_from_flag,
@@ -128,17 +128,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_device_argument(p)
     p.add_argument("--size", type=argtype(parse_size, "--size"), default=(320, 256),
                    help="input pair (video: one eye's frame) size WxH, multiples of 16 (default 320x256)")
-    p.add_argument("--warmup", type=int, default=3, help="untimed pairs (video: batches) first (default 3)")
-    p.add_argument("--repeats", type=int, default=10, help="timed pairs (video: model-alone batches) (default 10)")
+    p.add_argument("--warmup", type=whole_number("--warmup", 0), default=3,
+                   help="untimed pairs (video: batches) first (default 3)")
+    p.add_argument("--repeats", type=whole_number("--repeats"), default=10,
+                   help="timed pairs (video: model-alone batches) (default 10)")
     add_precision_argument(p)
     p.add_argument("--video", action="store_true", help="a synthetic side-by-side video instead: pairs/s and "
                    "latency of the model alone and end to end (decode, model, one novel view, encode)")
-    p.add_argument("--batch-size", type=int, default=1, help="video: pairs per model call (default 1)")
-    p.add_argument("--frames", type=int, default=120, help="video: frames of the synthetic video (default 120)")
+    p.add_argument("--batch-size", type=whole_number("--batch-size"), default=1,
+                   help="video: pairs per model call (default 1)")
+    p.add_argument("--frames", type=whole_number("--frames"), default=120,
+                   help="video: frames of the synthetic video (default 120)")
     p.add_argument("--scene-formats", nargs="*", choices=list(FORMATS), default=list(FORMATS),
                    help="video: also run end to end with a scene per frame in each of these formats, as "
                    "`predict --video --frames` does (default: every format; none: only without scenes)")
-    p.add_argument("--scene-writers", type=int, default=SCENE_WRITERS,
+    p.add_argument("--scene-writers", type=whole_number("--scene-writers"), default=SCENE_WRITERS,
                    help=f"video: processes writing those scenes (default as predict: the usable cores but 4, 2 to "
                    f"12; {SCENE_WRITERS} here)")
     p.add_argument("--out", type=Path, help="also write the markdown table here (a report of an earlier run of this "

@@ -219,6 +219,19 @@ def test_bench_predict_video_on_the_cpu(tmp_path):
     assert re.search(r"written in as many processes \(started in [\d.]+ s before the stream", text)
 
 
+@pytest.mark.parametrize("flag,value", [("--scene-writers", "0"), ("--repeats", "0"), ("--frames", "-1"),
+                                        ("--batch-size", "x"), ("--warmup", "-1")])
+def test_bench_predict_refuses_a_bad_count_in_one_line(tmp_path, capsys, flag, value):
+    out = tmp_path / "bench.md"
+    with pytest.raises(SystemExit) as refused:  # argparse's refusal
+        sgmodel_main(["bench", "predict", "--video", "--preset", "cpu-small", "--device", "cpu", flag, value,
+                      "--out", str(out)])
+    assert refused.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and flag in err[0] and value in err[0], err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("fmt,suffix", [("spz", ".spz"), ("compressed-ply", ".compressed.ply"), ("sog", ".sog")])
 def test_predict_writes_the_chosen_format_and_viewer_files(small_pair, capsys, monkeypatch, fmt, suffix):
     d = torch.full((1, 1, 32, 48), 2.0)
