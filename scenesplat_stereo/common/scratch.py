@@ -1,7 +1,8 @@
 """Scratch space in RAM: this process's private scratch folder, and the slots that carry arrays to worker processes.
 
 * ``scratch_dir``: a private folder in ``/dev/shm`` when it has ``SHM_MIN_FREE`` free (containers often give it
-  64 MB), else in the system's temporary folder; created on first use in each process, removed at its exit.
+  64 MB), else in the system's temporary folder; created on first use in each process, removed at its exit
+  (a multiprocessing worker's too, though it ends past ``atexit``; a killed process leaves its folder).
 * ``Slot``: a file in that folder mapped in the calling process (grown as needed) and, by path, in a worker
   process (``arrays_in``). The caller copies named arrays in (one ``memcpy`` each, without the GIL) and sends only
   the path and the layout through the pool's pipe; the worker reads them in place. Pickled through the pipe
@@ -12,9 +13,9 @@
 
 from __future__ import annotations
 
-import atexit
 import itertools
 import mmap
+import multiprocessing.util
 import os
 import shutil
 import tempfile
@@ -44,8 +45,15 @@ def scratch_dir() -> str:
             base = "/dev/shm" if free_bytes("/dev/shm") >= SHM_MIN_FREE else None
             path = tempfile.mkdtemp(prefix="scenesplat-scratch-", dir=base)
             _scratch.update(pid=pid, dir=path)
-            atexit.register(shutil.rmtree, path, True)
+            # at exit: atexit's in any process, multiprocessing's too in a worker it started (which ends with
+            # os._exit, past atexit); a forked child's copy of the parent's finaliser leaves the parent's folder
+            multiprocessing.util.Finalize(None, _remove, args=(path, pid), exitpriority=0)
         return _scratch["dir"]
+
+
+def _remove(path: str, pid: str) -> None:
+    if str(os.getpid()) == pid:
+        shutil.rmtree(path, ignore_errors=True)
 
 
 def free_bytes(path: str) -> int:

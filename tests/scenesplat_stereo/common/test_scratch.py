@@ -1,0 +1,61 @@
+"""``common.scratch``: each process's scratch folder is its own and goes at its exit, a multiprocessing worker's
+too (it ends with ``os._exit``, past ``atexit``); a slot's arrays read back in another process."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import subprocess
+import sys
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+import pytest
+
+from scenesplat_stereo.common import scratch
+from tests.support.paths import REPO
+
+
+def _child_folder(queue) -> None:
+    queue.put(scratch.scratch_dir())
+
+
+@pytest.mark.parametrize("method", ["fork", "spawn"])
+def test_a_worker_process_removes_its_own_scratch_folder_and_not_its_parents(method):
+    mine = scratch.scratch_dir()
+    context = multiprocessing.get_context(method)
+    queue = context.Queue()
+    child = context.Process(target=_child_folder, args=(queue,))
+    child.start()
+    theirs = queue.get(timeout=60)
+    child.join(60)
+    assert child.exitcode == 0
+    assert theirs != mine and not os.path.exists(theirs)  # the child's, gone with it
+    assert os.path.isdir(mine)  # the parent's, untouched by the child's exit
+
+
+def test_a_process_removes_its_scratch_folder_at_exit():
+    code = "from scenesplat_stereo.common import scratch; print(scratch.scratch_dir())"
+    folder = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO,
+                            env={**os.environ, "PYTHONPATH": str(REPO)}).stdout.strip()
+    assert folder and not os.path.exists(folder)
+
+
+def _sum_in_worker(path: str, layout: scratch.Layout) -> dict[str, float]:
+    return {name: float(a.astype(np.float64).sum()) for name, a in scratch.arrays_in(path, layout).items()}
+
+
+def test_a_slot_carries_arrays_to_a_worker_and_grows():
+    rng = np.random.default_rng(0)
+    slot = scratch.Slot()
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        try:
+            for n in (10, 100_000, 7):  # grows, then a smaller set in the larger file
+                arrays = {"a": rng.random((n, 3), np.float32), "b": rng.integers(0, 255, (n,), np.uint8)}
+                path, layout = slot.put(arrays)
+                assert all(offset % scratch.ALIGN == 0 for _, offset, _, _ in layout)
+                got = pool.submit(_sum_in_worker, path, layout).result(timeout=60)
+                assert got == {k: float(v.astype(np.float64).sum()) for k, v in arrays.items()}
+        finally:
+            slot.close()
+    assert not slot.path
