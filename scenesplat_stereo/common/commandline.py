@@ -122,8 +122,16 @@ def add_commands(parser: argparse.ArgumentParser, commands: tuple[Command, ...],
 def quiet_worker_interrupts(*_) -> None:
     """The initializer of every worker process of a pool (``ProcessPoolExecutor(initializer=...)``): Ctrl-C reaches
     the whole process group; the command (the parent) ends with its one line (exit 130), and a worker ends at
-    once, silently, instead of printing a ``KeyboardInterrupt`` traceback of its own."""
-    signal.signal(signal.SIGINT, lambda *_: os._exit(EXIT_INTERRUPTED))
+    once, silently, instead of printing a ``KeyboardInterrupt`` traceback of its own (its scratch folder removed
+    first: ``os._exit`` skips every exit handler)."""
+    signal.signal(signal.SIGINT, _end_quietly)
+
+
+def _end_quietly(*_) -> None:
+    scratch = sys.modules.get("scenesplat_stereo.common.scratch")  # loaded where this worker may have a folder
+    if scratch is not None:
+        scratch.remove_own()
+    os._exit(EXIT_INTERRUPTED)
 
 
 def debugging(args: argparse.Namespace | None = None) -> bool:

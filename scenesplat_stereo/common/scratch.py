@@ -2,7 +2,8 @@
 
 * ``scratch_dir``: a private folder in ``/dev/shm`` when it has ``SHM_MIN_FREE`` free (containers often give it
   64 MB), else in the system's temporary folder; created on first use in each process, removed at its exit
-  (a multiprocessing worker's too, though it ends past ``atexit``; a killed process leaves its folder).
+  (a multiprocessing worker's too, though it ends past ``atexit``, and a worker's ended by Ctrl-C; a killed
+  process leaves its folder).
 * ``Slot``: a file in that folder mapped in the calling process (grown as needed) and, by path, in a worker
   process (``arrays_in``). The caller copies named arrays in (one ``memcpy`` each, without the GIL) and sends only
   the path and the layout through the pool's pipe; the worker reads them in place. Pickled through the pipe
@@ -54,6 +55,14 @@ def scratch_dir() -> str:
 def _remove(path: str, pid: str) -> None:
     if str(os.getpid()) == pid:
         shutil.rmtree(path, ignore_errors=True)
+
+
+def remove_own() -> None:
+    """Remove this process's scratch folder now, if it made one: a process about to end with ``os._exit`` (a worker
+    on Ctrl-C, ``commandline.quiet_worker_interrupts``). Takes no lock, so a signal handler may call it."""
+    mine = dict(_scratch)
+    if mine.get("pid") == str(os.getpid()):
+        shutil.rmtree(mine["dir"], ignore_errors=True)
 
 
 def free_bytes(path: str) -> int:

@@ -1,18 +1,22 @@
 """``common.scratch``: each process's scratch folder is its own and goes at its exit, a multiprocessing worker's
-too (it ends with ``os._exit``, past ``atexit``); a slot's arrays read back in another process."""
+too (it ends with ``os._exit``, past ``atexit``), and a pool worker's ended by Ctrl-C; a slot's arrays read back in
+another process."""
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import subprocess
 import sys
+import time
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
 
 from scenesplat_stereo.common import scratch
+from scenesplat_stereo.common.commandline import quiet_worker_interrupts
 from tests.support.paths import REPO
 
 
@@ -32,6 +36,25 @@ def test_a_worker_process_removes_its_own_scratch_folder_and_not_its_parents(met
     assert child.exitcode == 0
     assert theirs != mine and not os.path.exists(theirs)  # the child's, gone with it
     assert os.path.isdir(mine)  # the parent's, untouched by the child's exit
+
+
+def _folder_and_pid() -> tuple[str, int]:
+    return scratch.scratch_dir(), os.getpid()
+
+
+def test_a_pool_worker_ended_by_ctrl_c_removes_its_scratch_folder():
+    """Ctrl-C ends a pool's worker with os._exit (``quiet_worker_interrupts``), past every exit handler."""
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=quiet_worker_interrupts)
+    try:
+        folder, pid = pool.submit(_folder_and_pid).result(timeout=60)
+        assert os.path.isdir(folder)
+        os.kill(pid, signal.SIGINT)
+        deadline = time.monotonic() + 30
+        while os.path.exists(folder):
+            assert time.monotonic() < deadline, f"{folder} is still there"
+            time.sleep(0.01)
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
 
 
 def test_a_process_removes_its_scratch_folder_at_exit():
