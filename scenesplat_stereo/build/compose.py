@@ -57,7 +57,7 @@ from scenesplat_stereo.common.text import (
     whole_number,
 )
 from scenesplat_stereo.scene.cameras import intrinsics_matrix, look_at
-from scenesplat_stereo.scene.gaussians import GaussianScene, save_ply
+from scenesplat_stereo.scene.gaussians import ARRAYS, GaussianScene, save_ply
 from scenesplat_stereo.scene.ply import PlyRepairWarning
 from scenesplat_stereo.scene.scene_files import load_scene
 from scenesplat_stereo.scene.transform import transform_scene
@@ -191,7 +191,7 @@ def read_capture(path: Path, up: str = "-y") -> Capture:
 
 def _merge(scenes: list[GaussianScene]) -> GaussianScene:
     return GaussianScene(*(np.concatenate([getattr(s, k) for s in scenes])
-                           for k in ("means", "quats", "scales", "opacities", "sh")), scenes[0].sh_degree)
+                           for k in ARRAYS), scenes[0].sh_degree)
 
 
 def orbit_frames(centre: np.ndarray, distance: tuple[float, float], n_frames: int,

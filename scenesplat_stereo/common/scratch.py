@@ -48,18 +48,14 @@ def scratch_dir() -> str:
             _scratch.update(pid=pid, dir=path)
             # at exit: atexit's in any process, multiprocessing's too in a worker it started (which ends with
             # os._exit, past atexit); a forked child's copy of the parent's finaliser leaves the parent's folder
-            multiprocessing.util.Finalize(None, _remove, args=(path, pid), exitpriority=0)
+            multiprocessing.util.Finalize(None, remove_own, exitpriority=0)
         return _scratch["dir"]
 
 
-def _remove(path: str, pid: str) -> None:
-    if str(os.getpid()) == pid:
-        shutil.rmtree(path, ignore_errors=True)
-
-
 def remove_own() -> None:
-    """Remove this process's scratch folder now, if it made one: a process about to end with ``os._exit`` (a worker
-    on Ctrl-C, ``commandline.quiet_worker_interrupts``). Takes no lock, so a signal handler may call it."""
+    """Remove this process's scratch folder now, if it made one: its exit finaliser, and a process about to end
+    with ``os._exit`` (a worker on Ctrl-C, ``commandline.quiet_worker_interrupts``). Takes no lock, so a signal
+    handler may call it."""
     mine = dict(_scratch)
     if mine.get("pid") == str(os.getpid()):
         shutil.rmtree(mine["dir"], ignore_errors=True)

@@ -38,6 +38,10 @@ OPACITY_EPS = 1e-7
 QUAT_UNIT_ATOL = 2.0**-20
 #: ``GaussianScene`` rejects quaternions whose norm is further than this from 1.
 QUAT_VALIDATE_ATOL = 1e-4
+#: The per-Gaussian arrays of a ``GaussianScene``, in its order.
+ARRAYS = ("means", "quats", "scales", "opacities", "sh")
+
+
 @dataclass(eq=False)
 class GaussianScene:
     """A 3D Gaussian scene in memory (numpy float32, row i is Gaussian i).

@@ -35,13 +35,11 @@ from pathlib import Path
 from scenesplat_stereo.common.commandline import quiet_worker_interrupts
 from scenesplat_stereo.common.scratch import Slot, arrays_in
 from scenesplat_stereo.scene import row_tasks
-from scenesplat_stereo.scene.gaussians import GaussianScene
+from scenesplat_stereo.scene.gaussians import ARRAYS, GaussianScene
 from scenesplat_stereo.scene.scene_files import save_scene
 
 #: Seconds the processes may take to start (spawn, then numpy, torch and OpenImageIO imported in each).
 START_TIMEOUT = 120.0
-#: The arrays of a ``GaussianScene``.
-FIELDS = ("means", "quats", "scales", "opacities", "sh")
 
 
 def write_scene(scene: GaussianScene, path: str | Path, format: str = "ply") -> Path:
@@ -117,7 +115,7 @@ class SceneWriters:
         a writer process; returns the path written. Blocks while every process is busy."""
         w = self._idle.get()
         try:
-            where, layout = w.slot.put({name: getattr(scene, name) for name in FIELDS})
+            where, layout = w.slot.put({name: getattr(scene, name) for name in ARRAYS})
             try:
                 w.connection.send((where, layout, scene.sh_degree, path, format, write))
             except OSError as e:  # the pipe is closed: the process has ended
