@@ -91,8 +91,9 @@ class Nearest:
         return labels.clamp_(max=len(self.mids)).to(torch.uint8).reshape(values.shape)
 
 
-def kmeans(x: np.ndarray, k: int, iterations: int = 5, fit_rows: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """k-means of rows x [N, D] (torch; CUDA when there): (centroids [k, D] float32, labels [N] int64 of every
+def kmeans(x: np.ndarray, k: int, dev: torch.device | None = None, iterations: int = 5,
+           fit_rows: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """k-means of rows x [N, D] (torch on ``dev``, default ``row_tasks.device()``: CUDA when there): (centroids [k, D] float32, labels [N] int64 of every
     row's nearest centroid). Lloyd's iterations run on a random ``fit_rows`` k of the rows (all when fewer),
     starting from k of them.
 
@@ -101,7 +102,7 @@ def kmeans(x: np.ndarray, k: int, iterations: int = 5, fit_rows: int = 8) -> tup
     (SH 2), the skull capture (SH 3) and the synthetic bench scene, at twice the time. Distances are |c|^2 - 2 x.c in
     blocks of rows (about 4 MiB on the CPU, 256 MiB on a GPU); on the CPU numpy takes the argmin (torch's is several
     times slower there)."""
-    dev = row_tasks.device()
+    dev = dev or row_tasks.device()
     X = torch.from_numpy(np.ascontiguousarray(x, np.float32)).to(dev)
     rows = torch.randperm(len(X), generator=torch.Generator().manual_seed(0)).to(dev)
     fit = X[rows[:fit_rows * k]]

@@ -38,15 +38,19 @@ threads. Sizes, times and errors of a round trip: docs/formats.md.
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import math
 import os
 import tempfile
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, wait
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -54,6 +58,9 @@ from scenesplat_stereo.common.files import atomic_write_bytes
 from scenesplat_stereo.scene import row_tasks
 from scenesplat_stereo.scene.compressed_ply import morton_order
 from scenesplat_stereo.scene.gaussians import GaussianScene, decoded_scene
+
+if TYPE_CHECKING:
+    import torch
 
 #: Coefficients above the DC term per SH degree (bands).
 SH_COEFFS = (0, 3, 8, 15)
@@ -300,19 +307,34 @@ def load_sog(path: str | os.PathLike) -> GaussianScene:
 IMAGES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp", "shN_labels.webp")
 
 
-def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
-               sh_palette_max: int = SH_PALETTE_MAX) -> bytes:
-    """The bundled ``.sog`` (zip) bytes of ``scene`` (module docstring).
+@dataclass
+class SogImage:
+    """One image of a SOG to encode: uint8 RGBA texels [m, 4] (in the scene's order when ``order`` is given: the
+    file's texel i is ``texels[order[i]]``), the image's width and height, libwebp's method."""
 
-    The SH palette is made in a task of the shared pool of ``row_tasks`` while this thread finds the Morton order
-    and then quantises the texels in the scene's order with ``sog_texels`` (all of it in torch on
-    ``row_tasks.device()``, a GPU where there is one): the colours, then the positions and quaternions, then the
-    scales, the order of their images' encode times, longest first. Each image is gathered into Morton order and
-    encoded in a pool task of its own as soon as its texels exist (``write_webp`` runs without the GIL), so the
-    encodes overlap the rest of the quantisation. On a GPU that work is bound by the host's kernel launches: in
-    one thread it takes as long as in three tasks side by side (docs/benchmarks.md "Issue 35: the SOG writer's
-    encodes queued as their texels are ready"). Not to be called from a task of that pool (this function waits
-    for tasks of it)."""
+    texels: np.ndarray
+    width: int
+    height: int
+    method: int = WEBP_METHOD
+    order: np.ndarray | None = None
+
+    def encode(self) -> bytes:
+        """The image's lossless WebP bytes (``write_webp``)."""
+        texels = self.texels if self.order is None else np.take(self.texels, self.order, axis=0)
+        return write_webp(texels, self.width, self.height, self.method)
+
+
+def image_names(degree: int) -> list[str]:
+    """The images of a SOG of SH ``degree``, in the zip's order."""
+    return [*IMAGES[:5], *(["shN_centroids.webp", IMAGES[5]] if degree else [])]
+
+
+def quantise_sog(scene: GaussianScene, ready: Callable[[str, SogImage], object], path: str | os.PathLike = "<memory>",
+                 sh_palette_max: int = SH_PALETTE_MAX, dev: torch.device | None = None) -> dict:
+    """The quantisation of ``encode_sog`` (its docstring), in torch on ``dev`` (default ``row_tasks.device()``):
+    ``ready(name, image)`` is called with each image as soon as its texels exist (in this thread, in the order of
+    their encode times, longest first); returns the ``meta.json`` dict. ``SogError`` naming ``path`` for a scene
+    a SOG cannot hold."""
     from scenesplat_stereo.scene import sog_texels  # torch: only for writing
 
     n = len(scene)
@@ -322,28 +344,22 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
     height = math.ceil(n / width / 4) * 4
     if max(width, height) > WEBP_MAX_SIDE:
         raise SogError(f"{path}: {n} Gaussians need {width}x{height} texels, beyond WebP's {WEBP_MAX_SIDE}")
-    degree, pool, futures = scene.sh_degree, row_tasks.pool(), []
-
-    def submit(fn: Callable[..., object], *args: object) -> Future:
-        futures.append(pool.submit(fn, *args))
-        return futures[-1]
-
-    def encode(rgba: np.ndarray, method: int = WEBP_METHOD) -> Future:  # texels in the scene's order
-        return submit(lambda: write_webp(np.take(rgba, order, axis=0), width, height, method))
-
+    degree, dev = scene.sh_degree, dev or row_tasks.device()
+    shn = None
     try:
-        dev = row_tasks.device()
         if degree:
             palette = min(64, 2 ** math.floor(math.log2(n / 1024))) * 1024 if n >= 1024 else n
             palette = max(1, min(palette, sh_palette_max, n))
-            shn = submit(sog_texels.sh_palette, scene.sh, degree, palette)
-        order = morton_order(scene.means)
+            shn = row_tasks.pool().submit(sog_texels.sh_palette, scene.sh, degree, palette, dev)
+        order = morton_order(scene.means, dev)
+        ordered = functools.partial(SogImage, width=width, height=height, order=order)  # in the scene's order
         colour_rgba, colour_book = sog_texels.colour_texels(scene, dev)
-        images = {IMAGES[4]: encode(colour_rgba)}
+        ready(IMAGES[4], ordered(colour_rgba))
         rgba, mins, maxs = sog_texels.placed(scene, dev)
-        images.update((name, encode(texels)) for name, texels in zip(IMAGES[:3], rgba))
+        for name, texels in zip(IMAGES[:3], rgba):
+            ready(name, ordered(texels))
         scale_rgba, scale_book = sog_texels.scale_texels(scene, dev)
-        images[IMAGES[3]] = encode(scale_rgba)
+        ready(IMAGES[3], ordered(scale_rgba))
         meta = {"version": 2, "asset": {"generator": "scenesplat_stereo.scene.sog"}, "count": n,
                 "means": {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": ["means_l.webp", "means_u.webp"]},
                 "scales": {"codebook": scale_book.tolist(), "files": ["scales.webp"]},
@@ -351,23 +367,72 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
                 "sh0": {"codebook": colour_book.tolist(), "files": ["sh0.webp"]}}
         if degree:
             book, px, centroid_rows, labels = shn.result()
-            images["shN_centroids.webp"] = submit(write_webp, px, 64 * SH_COEFFS[degree], centroid_rows,
-                                                  WEBP_PALETTE_METHOD)
-            images["shN_labels.webp"] = encode(labels, WEBP_PALETTE_METHOD)
+            ready("shN_centroids.webp", SogImage(px, 64 * SH_COEFFS[degree], centroid_rows, WEBP_PALETTE_METHOD))
+            ready(IMAGES[5], ordered(labels, method=WEBP_PALETTE_METHOD))
             meta["shN"] = {"count": palette, "bands": degree, "codebook": book.tolist(),
                            "files": ["shN_centroids.webp", "shN_labels.webp"]}
-        names = [*IMAGES[:5], *(["shN_centroids.webp", IMAGES[5]] if degree else [])]
-        files = {name: images[name].result() for name in names}
-    finally:  # after an error, no task is left running
-        for f in futures:
-            f.cancel()
-        wait(futures)
+    finally:  # after an error, the palette's task is not left running
+        if shn is not None:
+            shn.cancel()
+            wait([shn])
+    return meta
+
+
+def bundle_sog(files: dict[str, bytes], meta: dict) -> bytes:
+    """The bundled ``.sog`` (a zip, members stored, dated 1980-01-01) of the encoded images (in the zip's order,
+    ``image_names``) and ``meta.json``."""
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
         for name, data in files.items():
             z.writestr(zipfile.ZipInfo(name, (1980, 1, 1, 0, 0, 0)), data)
         z.writestr(zipfile.ZipInfo("meta.json", (1980, 1, 1, 0, 0, 0)), json.dumps(meta))
     return buf.getvalue()
+
+
+@contextmanager
+def _encodes() -> Iterator[dict[str, Future]]:
+    """A dict for the images' encode futures; on leaving, none is left running (after an error: cancelled)."""
+    futures: dict[str, Future] = {}
+    try:
+        yield futures
+    finally:
+        for f in futures.values():
+            f.cancel()
+        wait(list(futures.values()))
+
+
+def _bundled(futures: dict[str, Future], meta: dict) -> bytes:
+    """``bundle_sog`` of the images' encode futures, in the zip's order."""
+    return bundle_sog({name: futures[name].result() for name in image_names(meta.get("shN", {}).get("bands", 0))},
+                      meta)
+
+
+def encode_images(images: dict[str, SogImage], meta: dict) -> bytes:
+    """``bundle_sog`` of ``images`` encoded side by side in tasks of the shared pool (``row_tasks``)."""
+    pool = row_tasks.pool()
+    with _encodes() as futures:
+        futures.update((name, pool.submit(image.encode)) for name, image in images.items())
+        return _bundled(futures, meta)
+
+
+def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
+               sh_palette_max: int = SH_PALETTE_MAX) -> bytes:
+    """The bundled ``.sog`` (zip) bytes of ``scene`` (module docstring).
+
+    ``quantise_sog`` makes the SH palette in a task of the shared pool of ``row_tasks`` while this thread finds the
+    Morton order and then quantises the texels in the scene's order with ``sog_texels`` (all of it in torch on
+    ``row_tasks.device()``, a GPU where there is one): the colours, then the positions and quaternions, then the
+    scales, the order of their images' encode times, longest first. Each image is gathered into Morton order and
+    encoded in a pool task of its own as soon as its texels exist (``write_webp`` runs without the GIL), so the
+    encodes overlap the rest of the quantisation. On a GPU that work is bound by the host's kernel launches: in
+    one thread it takes as long as in three tasks side by side (docs/benchmarks.md "Issue 35: the SOG writer's
+    encodes queued as their texels are ready"). Not to be called from a task of that pool (this function waits
+    for tasks of it)."""
+    pool = row_tasks.pool()
+    with _encodes() as futures:
+        meta = quantise_sog(scene, lambda name, image: futures.__setitem__(name, pool.submit(image.encode)), path,
+                            sh_palette_max)
+        return _bundled(futures, meta)
 
 
 def save_sog(scene: GaussianScene, path: str | os.PathLike, durable: bool = True) -> Path:

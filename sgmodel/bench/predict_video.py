@@ -94,7 +94,7 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
                 frames.mkdir()
             started = time.perf_counter()
             sink = VideoSink(Path(tmp) / "novel_view.mp4", "mp4v", source.fps, w, h, frames, fmt or "spz",
-                             scene_writers=args.scene_writers)
+                             scene_writers=args.scene_writers, device=device)
             start_s = time.perf_counter() - started if frames is not None else start_s
             try:
                 runs[fmt] = stream(source, calib, None, prepare, reconstructor, Trajectory("offset", offset=OFFSET),

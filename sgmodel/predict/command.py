@@ -342,7 +342,8 @@ def _predict_video(args, source: video.StereoSource, first: Pair, reconstructor:
     log(f"{args.video or args.left_video}: {source.width}x{source.height} per eye, {source.fps:g} fps, "
         f"{source.frame_count or 'unknown'} frames; {reconstructor.name} at {w}x{h}, batches of {args.batch_size}")
     frame, c2w = _scene_frame(first)
-    sink = video.VideoSink(tmp / f"novel_view{codec.suffix}", args.codec, source.fps, w, h, frames, fmt, frame)
+    sink = video.VideoSink(tmp / f"novel_view{codec.suffix}", args.codec, source.fps, w, h, frames, fmt, frame,
+                           device=device)
 
     def on_first(pair: Pair, focus: float) -> None:
         _log_model_size(pair, short, log)

@@ -191,16 +191,20 @@ class VideoSink:
     ``scene_writers`` threads and written by one of as many processes (each file atomically,
     ``scene_writers.write_scene``), so a format whose writer takes longer than a frame's prediction still keeps
     up: the stream runs at the rate of the slower of the model and ``scene_writers`` writers, not of their sum.
+    With the model on a GPU (``device``), a format of ``scene_writers.QUANTISED_ON_DEVICE`` (SOG) is quantised
+    there by the copying thread and only encoded and written in the process.
     A batch counts as written when its frames and all its scenes are; the first error of a scene writer is raised
     from the batch's future, once (``close`` then drops the batches not yet started)."""
 
     def __init__(self, path: Path, codec: str, fps: float, width: int, height: int,
                  scene_folder: Path | None = None, scene_format: str = "spz",
-                 scene_frame: Callable[[dict], dict] | None = None, scene_writers: int = SCENE_WRITERS) -> None:
+                 scene_frame: Callable[[dict], dict] | None = None, scene_writers: int = SCENE_WRITERS,
+                 device: torch.device | None = None) -> None:
         self.writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*CODECS[codec].fourcc), fps, (width, height))
         if not self.writer.isOpened():
             raise PredictError(f"--codec {codec}: OpenCV cannot write {CODECS[codec].fourcc} to {path.name}")
         self.scene_folder, self.scene_format, self.scene_frame = scene_folder, scene_format, scene_frame
+        self.quantise_on = device if device is not None and device.type == "cuda" else None
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="video-writer")
         self.scene_writers = max(1, scene_writers)
         self.scene_pool = ThreadPoolExecutor(self.scene_writers, thread_name_prefix="scene-writer")
@@ -221,7 +225,7 @@ class VideoSink:
 
     def _write_scene(self, scene: Callable[[int], GaussianScene], i: int, number: int) -> Path:
         path = self.scene_folder / f"{number:06d}{FORMATS[self.scene_format].suffix}"
-        return self.processes.write(scene(i), path, self.scene_format, write_scene)
+        return self.processes.write(scene(i), path, self.scene_format, write_scene, self.quantise_on)
 
     def _write(self, frames: np.ndarray, scenes: list[Future]) -> float:
         for f in frames:

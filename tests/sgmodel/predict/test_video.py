@@ -235,17 +235,20 @@ def test_a_raw_rigs_video_is_rectified_frame_by_frame_like_a_pair(raw_rig, tmp_p
 
 # ---------------------------------------------------------------- scene writers beside the model
 
-@pytest.mark.parametrize("fmt", sorted(FORMATS))
-def test_scene_writer_processes_write_the_serial_files(tmp_path, fmt):
+@pytest.mark.parametrize("fmt,quantise_on", [(f, None) for f in sorted(FORMATS)] + [("sog", "cpu")])
+def test_scene_writer_processes_write_the_serial_files(tmp_path, fmt, quantise_on):
     """Several scene writer processes at once (and the quantisation's row tasks) write each frame's scene byte for
     byte as ``scene_writers.write_scene`` writes it alone in this process, named by frame number, whatever order
-    they finish in; their slots are removed at the end."""
+    they finish in; their slots are removed at the end. ``quantise_on``: a SOG quantised in the copying threads
+    (``scene_writers.QUANTISED_ON_DEVICE``, as with the model on a GPU; here on the CPU) and encoded in the
+    processes."""
     rng = np.random.default_rng(7)
     scenes = [random_scene(rng, 3000 + 4099 * i, i % 3) for i in range(7)]
     folder = tmp_path / "frames"
     folder.mkdir()
     slots_before = set(os.listdir(scratch.scratch_dir()))
     sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, folder, fmt, scene_writers=3)
+    sink.quantise_on = None if quantise_on is None else torch.device(quantise_on)
     futures = [sink.submit(first, np.zeros((n, 16, 16, 3), np.uint8), lambda i, first=first: scenes[first + i])
                for first, n in ((0, 3), (3, 1), (4, 3))]
     assert all(f.result() > 0 for f in futures)
@@ -295,6 +298,22 @@ def test_ctrl_c_while_scenes_are_written_leaves_no_file(clip, tmp_path, monkeypa
     monkeypatch.setattr(video.VideoSink, "submit", interrupt_second)
     assert run(_scene_frames_argv(clip, tmp_path / "out")) == 130
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_scene_the_quantisation_refuses_ends_the_stream_naming_the_file(tmp_path):
+    """A scene the format cannot hold, found by the quantisation in a copying thread (a SOG of no Gaussians): the
+    batch's future raises the writer's ValueError naming the frame's file (exit 2), and nothing is written."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, folder, "sog", scene_writers=2)
+    sink.quantise_on = torch.device("cpu")
+    try:
+        empty = random_scene(np.random.default_rng(0), 0, 0)
+        with pytest.raises(ValueError, match=r"000000\.sog: an empty scene has no SOG"):
+            sink.submit(0, np.zeros((1, 16, 16, 3), np.uint8), lambda i: empty).result(timeout=60)
+    finally:
+        sink.close(cancel=True)
+    assert list(folder.iterdir()) == []
 
 
 def test_a_writer_process_that_dies_ends_the_stream(tmp_path):
