@@ -335,7 +335,9 @@ def quantise_sog(scene: GaussianScene, ready: Callable[[str, SogImage], object],
     ``ready(name, image)`` is called with each image as soon as its texels exist (in this thread, in the order of
     their encode times, longest first); returns the ``meta.json`` dict. ``SogError`` naming ``path`` for a scene
     a SOG cannot hold."""
-    from scenesplat_stereo.scene import sog_texels  # torch: only for writing
+    import torch  # only for writing: the readers do without it
+
+    from scenesplat_stereo.scene import sog_texels
 
     n = len(scene)
     if n == 0:
@@ -350,7 +352,8 @@ def quantise_sog(scene: GaussianScene, ready: Callable[[str, SogImage], object],
         if degree:
             palette = min(64, 2 ** math.floor(math.log2(n / 1024))) * 1024 if n >= 1024 else n
             palette = max(1, min(palette, sh_palette_max, n))
-            shn = row_tasks.pool().submit(sog_texels.sh_palette, scene.sh, degree, palette, dev)
+            stream = torch.cuda.current_stream(dev) if dev.type == "cuda" else None  # this thread's, for the task
+            shn = row_tasks.pool().submit(sog_texels.sh_palette, scene.sh, degree, palette, dev, stream)
         order = morton_order(scene.means, dev)
         ordered = functools.partial(SogImage, width=width, height=height, order=order)  # in the scene's order
         colour_rgba, colour_book = sog_texels.colour_texels(scene, dev)

@@ -28,7 +28,8 @@ def to_scene(gaussians: dict, index: int = 0, keep: torch.Tensor | None = None) 
     all zero, as for naive-GS; ``gaussians.content_sh_degree``).
 
     Quaternions are normalised (in float64; the contract allows any non-zero norm); scales are linear metres
-    and opacities in [0, 1] as in the dict (the writers store what their format needs).
+    and opacities in [0, 1] as in the dict (the writers store what their format needs). From a GPU, the work and
+    the copy run on the current stream, which this waits for (not for the device).
     """
     check_gaussians(gaussians)
     g = {k: v[index].detach() for k, v in gaussians.items()}
@@ -39,7 +40,13 @@ def to_scene(gaussians: dict, index: int = 0, keep: torch.Tensor | None = None) 
     quats = g["quats"].double()
     quats = quats / quats.norm(dim=-1, keepdim=True)
     fields = [g["means"], quats, g["scales"], g["opacities"].clamp(0, 1), g["sh"][:, :(degree + 1) ** 2]]
-    flat = torch.cat([f.float().reshape(-1) for f in fields]).cpu().numpy()  # one copy to the host, field after field
+    flat = torch.cat([f.float().reshape(-1) for f in fields])  # one copy to the host, field after field
+    if flat.is_cuda:  # into page-locked memory: a DMA at the bus's rate, on this thread's stream alone
+        host = torch.empty(flat.shape, dtype=flat.dtype, pin_memory=True)
+        host.copy_(flat, non_blocking=True)
+        torch.cuda.current_stream(flat.device).synchronize()
+        flat = host
+    flat = flat.numpy()  # (its arrays keep the tensor, and so the page-locked block, alive)
     edges = np.cumsum([0] + [f.numel() for f in fields])
     means, quats, scales, opacities, sh = (flat[a:b].reshape(f.shape) for f, a, b in zip(fields, edges, edges[1:]))
     return GaussianScene(means, quats, scales, opacities, sh, sh_degree=degree)

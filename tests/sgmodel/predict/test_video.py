@@ -25,7 +25,7 @@ from scenesplat_stereo.shards.encode import encode_png, to_uint8
 from scripts.figures.video_demo import read_frames, render_clip
 from sgmodel.model.render import render_views
 from sgmodel.predict import command as predict_mod
-from sgmodel.predict import video
+from sgmodel.predict import export, video
 from sgmodel.predict.export import offset_camera, orbit_camera
 from sgmodel.predict.scene_writers import write_scene
 from tests.support import scene_writer_faults as faults
@@ -260,6 +260,40 @@ def test_scene_writer_processes_write_the_serial_files(tmp_path, fmt, quantise_o
     for i, scene in enumerate(scenes):
         serial = write_scene(scene, tmp_path / f"serial{suffix}", fmt)
         assert (folder / f"{i:06d}{suffix}").read_bytes() == serial.read_bytes(), i
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the copying threads' streams, page-locked copies "
+                    "and the SOG quantised on the GPU)")
+@pytest.mark.parametrize("fmt", ["sog", "ply"])
+def test_scenes_copied_on_the_threads_streams_are_the_serial_files(tmp_path, fmt):
+    """With the model on a GPU: each copying thread's stream waits for its batch (the Gaussians below are made by
+    kernels queued just before ``submit``, with later batches' kernels queued behind them), copies through page-locked
+    memory and (SOG) quantises there; every file equals ``write_scene`` of ``to_scene`` in this thread (the SOG
+    quantised on the same GPU)."""
+    dev = torch.device("cuda")
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, folder, fmt, scene_writers=3, device=dev)
+    batches, futures = [], []
+    for first in (0, 3, 6):
+        g = torch.Generator(device=dev).manual_seed(first)
+        n = 20_000 + 999 * first
+        base = torch.randn(3, n, 3 + 4 + 3 + 1 + 27, device=dev, generator=g)
+        big = torch.randn(4096, 4096, device=dev)
+        for _ in range(20):  # the model's stream busy well past submit
+            big = big @ big / 64.0
+        gaussians = {"means": base[..., :3] * 3, "quats": base[..., 3:7], "scales": base[..., 7:10].exp() * 0.05,
+                     "opacities": base[..., 10].sigmoid(), "sh": base[..., 11:].reshape(3, n, 9, 3) * 0.3}
+        batches.append(gaussians)
+        futures.append(sink.submit(first, np.zeros((3, 16, 16, 3), np.uint8),
+                                   lambda i, g=gaussians: export.to_scene(g, i)))
+    assert all(f.result() > 0 for f in futures)
+    sink.close()
+    suffix = FORMATS[fmt].suffix
+    for b, gaussians in enumerate(batches):
+        for i in range(3):
+            serial = write_scene(export.to_scene(gaussians, i), tmp_path / f"serial{suffix}", fmt)
+            assert (folder / f"{3 * b + i:06d}{suffix}").read_bytes() == serial.read_bytes(), (b, i)
 
 
 def _scene_frames_argv(clip: Path, out: Path) -> list:
