@@ -14,7 +14,8 @@ the pair transform, the model, one novel view per frame, encode (mp4v, writer th
   Then again for each of ``--scene-formats`` with a scene per frame written as ``predict --video --frames``
   writes them (``--scene-writers`` processes beside the model; a batch is done when its scenes are written;
   the processes' start, before the stream, is timed apart); "writers busy" is the processes' summed write time
-  over their number times the wall time (near 100%: the writers hold the stream back).
+  over their number times the wall time (near 100%: the writers hold the stream back). "CPU ms a frame" is this
+  process's CPU time (every thread's, not the writer processes') over the stream, per frame.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from sgmodel.predict.video import CODECS, StereoSource, Trajectory, VideoSink, s
 
 #: The novel view of the end-to-end run: the left camera moved 5 cm to the right.
 OFFSET = (0.05, 0.0, 0.0)
+COLUMNS = ["measure", "batch", "pairs/s", "latency median ms", "latency p99 ms", "CPU ms a frame (this process)"]
 
 
 def write_synthetic_video(path: Path, width: int, height: int, frames: int, fps: float = 30.0) -> Calibration:
@@ -86,7 +88,7 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
             if i >= args.warmup:
                 model_times.append(now() - t)
         w, h = pair.left.shape[-1], pair.left.shape[-2]
-        runs, busy, start_s = {}, {}, None
+        runs, busy, cpu, start_s = {}, {}, {}, None
         for fmt in [None, *args.scene_formats]:
             source = StereoSource(str(video))
             frames = None if fmt is None else Path(tmp) / f"frames_{fmt}"
@@ -96,27 +98,29 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
             sink = VideoSink(Path(tmp) / "novel_view.mp4", "mp4v", source.fps, w, h, frames, fmt or "spz",
                              scene_writers=args.scene_writers, device=device)
             start_s = time.perf_counter() - started if frames is not None else start_s
+            cpu_start = time.process_time()
             try:
                 runs[fmt] = stream(source, calib, None, prepare, reconstructor, Trajectory("offset", offset=OFFSET),
                                    sink, device, b, progress=False)
             finally:
                 source.close()
+            cpu[fmt] = (time.process_time() - cpu_start) / max(runs[fmt].frames, 1)
             if frames is not None:
                 busy[fmt] = sink.processes.busy_s / (args.scene_writers * runs[fmt].wall)
-    rows = [["model alone (encoder to Gaussians)", b, *_stats(model_times, b)]]
+    rows = [["model alone (encoder to Gaussians)", b, *_stats(model_times, b), ""]]
     for fmt, run in runs.items():
         latency = [x.latency for x in run.batches for _ in range(x.frames)]
         scenes = "" if fmt is None else f", a {FORMATS[fmt].suffix} scene per frame (writers busy {busy[fmt]:.0%})"
         rows.append([f"end to end (decode, model, one novel view, encode{scenes})", b,
                      _rate(run.frames / run.wall), f"{1e3 * np.median(latency):.1f}",
-                     f"{1e3 * np.percentile(latency, 99):.1f}"])
+                     f"{1e3 * np.percentile(latency, 99):.1f}", f"{1e3 * cpu[fmt]:.0f}"])
     result = runs[None]
     stages = {k: sum(getattr(x, e) - getattr(x, s) for x in result.batches) / result.frames * 1e3
               for k, s, e in (("decode", "decode_start", "decode_end"), ("model", "model_start", "model_end"),
                               ("render", "model_end", "render_end"))}
     report(f"Stereo video of {width}x{height} per eye on {describe(args, predictor, device)}, {result.frames} frames in batches of {b}; model alone: {args.repeats} batches after "
            f"{args.warmup} warm-up.\n\n"
-           f"{markdown_table(['measure', 'batch', 'pairs/s', 'latency median ms', 'latency p99 ms'], rows)}\n\n"
+           f"{markdown_table(COLUMNS, rows)}\n\n"
            f"End to end per frame: decode {stages['decode']:.1f} ms (reader thread), model {stages['model']:.1f} ms, "
            f"render {stages['render']:.1f} ms (main thread); encode in the writer thread, and the scenes (copy to "
            f"the host) in {args.scene_writers} threads and written in as many processes"

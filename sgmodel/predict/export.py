@@ -42,9 +42,10 @@ def to_scene(gaussians: dict, index: int = 0, keep: torch.Tensor | None = None) 
     fields = [g["means"], quats, g["scales"], g["opacities"].clamp(0, 1), g["sh"][:, :(degree + 1) ** 2]]
     flat = torch.cat([f.float().reshape(-1) for f in fields])  # one copy to the host, field after field
     if flat.is_cuda:  # into page-locked memory: a DMA at the bus's rate, on this thread's stream alone
-        host = torch.empty(flat.shape, dtype=flat.dtype, pin_memory=True)
+        host, copied = torch.empty(flat.shape, dtype=flat.dtype, pin_memory=True), torch.cuda.Event(blocking=True)
         host.copy_(flat, non_blocking=True)
-        torch.cuda.current_stream(flat.device).synchronize()
+        copied.record(torch.cuda.current_stream(flat.device))
+        copied.synchronize()  # asleep, not spinning on a core the scene writers need
         flat = host
     flat = flat.numpy()  # (its arrays keep the tensor, and so the page-locked block, alive)
     edges = np.cumsum([0] + [f.numel() for f in fields])
