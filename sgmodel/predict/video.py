@@ -70,6 +70,10 @@ MAX_QUEUED = 2
 #: but 4 (the model's thread, the reader, the encoder and one spare), 2 to 12. A compact writer takes longer than
 #: a frame's prediction (a .spz's deflate alone 100-250 ms a 200K-Gaussian scene), so several write side by side.
 SCENE_WRITERS = max(2, min(12, row_tasks.workers() - 4))
+#: torch's CPU threads in this process while a stream runs on a GPU (the pair transform of a batch needs few, and
+#: idle OpenMP threads spin between parallel regions: 16 of them took some 4.3 of a 16-core host's cores beside the
+#: 12 writer processes, docs/benchmarks.md "Issue 35: the shipped model's scenes per frame").
+GPU_STREAM_CPU_THREADS = 4
 
 
 # ---------------------------------------------------------------- input
@@ -336,7 +340,9 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
         left, right = source.read(n)
         return start, time.perf_counter(), left, right
 
-    start, finished = time.perf_counter(), False
+    start, finished, threads = time.perf_counter(), False, torch.get_num_threads()
+    if torch.device(device).type == "cuda":
+        torch.set_num_threads(min(threads, GPU_STREAM_CPU_THREADS))
     bar = tqdm(total=total, unit="frame", disable=not progress, desc="video", dynamic_ncols=True)
     try:
         ahead = reader.submit(read, batch_size if total is None else min(batch_size, total))
@@ -376,6 +382,7 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
             batch.written = future.result()
         finished = True
     finally:
+        torch.set_num_threads(threads)
         bar.close()
         reader.shutdown(wait=True)
         sink.close(cancel=not finished)  # after an error or Ctrl-C: only the writes already started end
