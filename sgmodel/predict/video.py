@@ -45,7 +45,7 @@ from sgmodel.pairs.rectify import Rectification
 from sgmodel.pairs.stereo_pair import Pair, PredictError, to_tensor
 from sgmodel.predict.export import offset_camera, orbit_camera
 from sgmodel.predict.inference import Reconstructor
-from sgmodel.predict.scene_writers import SceneWriters, write_scene
+from sgmodel.predict.scene_writers import QUANTISED_ON_DEVICE, SceneWriters, write_scene
 
 
 @dataclass(frozen=True)
@@ -72,7 +72,8 @@ MAX_QUEUED = 2
 SCENE_WRITERS = max(2, min(12, row_tasks.workers() - 4))
 #: torch's CPU threads in this process while a stream runs on a GPU (the pair transform of a batch needs few, and
 #: idle OpenMP threads spin between parallel regions: 16 of them took some 4.3 of a 16-core host's cores beside the
-#: 12 writer processes, docs/benchmarks.md "Issue 35: the shipped model's scenes per frame").
+#: 12 writer processes), except while SOG scenes are quantised in this process (there 4 threads measured slower).
+#: docs/benchmarks.md "Issue 35: the shipped model's scenes per frame".
 GPU_STREAM_CPU_THREADS = 4
 
 
@@ -215,6 +216,9 @@ class VideoSink:
             raise PredictError(f"--codec {codec}: OpenCV cannot write {CODECS[codec].fourcc} to {path.name}")
         self.scene_folder, self.scene_format, self.scene_frame = scene_folder, scene_format, scene_frame
         self.quantise_on = device if device is not None and device.type == "cuda" else None
+        quantising = scene_folder is not None and scene_format in QUANTISED_ON_DEVICE
+        #: torch's CPU threads for the stream (None: as they are).
+        self.cpu_threads = GPU_STREAM_CPU_THREADS if self.quantise_on is not None and not quantising else None
         self._streams = threading.local()  # each copying thread's CUDA stream
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="video-writer")
         self.scene_writers = max(1, scene_writers)
@@ -341,8 +345,7 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
         return start, time.perf_counter(), left, right
 
     start, finished, threads = time.perf_counter(), False, torch.get_num_threads()
-    if torch.device(device).type == "cuda":
-        torch.set_num_threads(min(threads, GPU_STREAM_CPU_THREADS))
+    torch.set_num_threads(min(threads, sink.cpu_threads or threads))
     bar = tqdm(total=total, unit="frame", disable=not progress, desc="video", dynamic_ncols=True)
     try:
         ahead = reader.submit(read, batch_size if total is None else min(batch_size, total))
