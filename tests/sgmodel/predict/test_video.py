@@ -296,6 +296,43 @@ def test_scenes_copied_on_the_threads_streams_are_the_serial_files(tmp_path, fmt
             assert (folder / f"{3 * b + i:06d}{suffix}").read_bytes() == serial.read_bytes(), (b, i)
 
 
+def test_the_streams_cpu_threads(clip, tmp_path, monkeypatch):
+    """On a GPU a stream runs with ``GPU_STREAM_CPU_THREADS`` torch threads, except while SOG scenes are quantised in
+    this process; on the CPU as they are. The count in force during a stream (here 1, as a GPU stream would set it)
+    is set back when the stream ends, after an error too."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    gpu = torch.device("cuda")  # (nothing runs there: only the rule is read)
+    rule = {(None, "spz"): video.GPU_STREAM_CPU_THREADS, (folder, "compressed-ply"): video.GPU_STREAM_CPU_THREADS,
+            (folder, "sog"): None}
+    for (scene_folder, fmt), threads in rule.items():
+        sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, scene_folder, fmt, scene_writers=2, device=gpu)
+        sink.close()
+        assert sink.cpu_threads == threads, (scene_folder, fmt)
+    assert video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, device=torch.device("cpu")).cpu_threads is None
+
+    class OneThread(video.VideoSink):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.cpu_threads = 1
+
+        def submit(self, *args):
+            seen.append(torch.get_num_threads())
+            if len(seen) == 2:
+                raise RuntimeError("the second batch fails")
+            return super().submit(*args)
+
+    seen, original = [], torch.get_num_threads()
+    monkeypatch.setattr(video, "VideoSink", OneThread)
+    argv = ["--video", clip / "sbs.mkv", "--calib", clip / "K.txt", "--batch-size", 2, *COMMON]
+    torch.set_num_threads(2)
+    try:
+        assert run([*argv, "--out", tmp_path / "out"]) == 1
+        assert seen == [1, 1] and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(original)
+
+
 def _scene_frames_argv(clip: Path, out: Path) -> list:
     return ["--video", clip / "sbs.mkv", "--calib", clip / "K.txt", "--out", out, "--frames", "--format", "spz",
             "--batch-size", 2, *COMMON]
