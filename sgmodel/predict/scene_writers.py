@@ -16,6 +16,9 @@ queued as their texels are ready"). Each ``SceneWriters`` process has an interpr
   when ``SceneWriters`` is made, so the first frames do not wait for the imports. Each pins the writers' shared row
   pool to ``threads`` threads and their torch work to the CPU (``row_tasks.pin``): the processes stay off the GPU
   the model runs on (a CUDA context in each was no faster and costs GPU memory: docs/benchmarks.md).
+* A SOG's quantisation (``QUANTISED_ON_DEVICE``) runs in the calling thread when the model is on a GPU
+  (``write``'s ``dev``): there its torch work takes milliseconds; on a writer process's CPU it took 3.5 s of CPU
+  for 202,752 Gaussians at SH 2, mostly the SH palette's k-means (``sgmodel bench predict`` on a 2-core machine). The process gets the texels and encodes them (``SceneWriters.run``).
 * Errors come back as the writer raised them (a bad scene's ``ValueError`` stays exit 2 on the command line); a
   process that dies is ``BrokenProcessPool`` (a ``RuntimeError``: exit 1) in the thread that waited for it.
   On Ctrl-C the processes end silently (``quiet_worker_interrupts``) and the command says its one line.
@@ -103,7 +106,7 @@ def _sog_file(arrays: dict[str, np.ndarray], path: Path, sizes: dict[str, tuple[
 
 #: Formats whose quantisation runs in the model's process, on its GPU (``SceneWriters.write``'s ``dev``), and the
 #: rest in a writer process: (the quantisation, the rest). A SOG's torch work (the Morton order, the codebooks and
-#: the SH palette's k-means: some 3.5 s of one core at SH 2 on 276,480 Gaussians) is milliseconds there.
+#: the SH palette's k-means) is milliseconds there (module docstring).
 QUANTISED_ON_DEVICE = {"sog": (_sog_parts, _sog_file)}
 
 
