@@ -151,10 +151,10 @@ def morton_order(means: np.ndarray, dev: torch.device | None = None) -> np.ndarr
     Each axis of the points' bounding box is cut into 2^10 cells, the 30-bit codes (z highest, then y,
     then x in each bit triple) are sorted stably, and every run of more than 256 equal codes is sorted
     again within its own box. (The stable sort is a plain sort of the 64-bit keys code << 32 | position.)
-    In torch on ``dev`` (default ``row_tasks.device()``; the sort in numpy on the CPU, ``_sorted``): on a GPU the sort of 202,752 keys
-    takes well under a millisecond, where numpy's keys and sort took 24 ms of a 16-core host beside the writers' other
-    threads; every step is exact
-    (float64 differences and products, integer bit operations), so the order is the same on any device."""
+    In torch on ``dev`` (default ``row_tasks.device()``; the sort in numpy on the CPU, ``_sorted``): on a GPU the
+    sort of 202,752 keys takes well under a millisecond, where numpy's keys and sort took 24 ms of a 16-core host
+    beside the writers' other threads; every step is exact (float64 differences and products, integer bit
+    operations), so the order is the same on any device."""
     import torch  # only for writing: the reader does without it
 
     dev = dev or row_tasks.device()

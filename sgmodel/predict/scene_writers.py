@@ -18,7 +18,8 @@ queued as their texels are ready"). Each ``SceneWriters`` process has an interpr
   the model runs on (a CUDA context in each was no faster and costs GPU memory: docs/benchmarks.md).
 * A SOG's quantisation (``QUANTISED_ON_DEVICE``) runs in the calling thread when the model is on a GPU
   (``write``'s ``dev``): there its torch work takes milliseconds; on a writer process's CPU it took 3.5 s of CPU
-  for 202,752 Gaussians at SH 2, mostly the SH palette's k-means (``sgmodel bench predict`` on a 2-core machine). The process gets the texels and encodes them (``SceneWriters.run``).
+  for 202,752 Gaussians at SH 2, mostly the SH palette's k-means (``sgmodel bench predict`` on a 2-core machine).
+  The process gets the texels and encodes them (``SceneWriters.run``).
 * Errors come back as the writer raised them (a bad scene's ``ValueError`` stays exit 2 on the command line); a
   process that dies is ``BrokenProcessPool`` (a ``RuntimeError``: exit 1) in the thread that waited for it.
   On Ctrl-C the processes end silently (``quiet_worker_interrupts``) and the command says its one line.

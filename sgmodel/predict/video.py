@@ -200,7 +200,7 @@ class VideoSink:
     With the model on a GPU (``device``), each copying thread works on a CUDA stream of its own, which waits for
     its batch's Gaussians (an event recorded by ``submit``) and not for the model's later batches, and copies through
     page-locked memory (``export.to_scene``): on the model's stream, the copies of 276,480 Gaussians at SH 2
-    (42 MB a frame) queued behind the model and held a 448x256 stream to 16-20 frames/s. A format of
+    (42 MB a frame) queued behind the model and held a 448x256 stream to 14-19 frames/s. A format of
     ``scene_writers.QUANTISED_ON_DEVICE`` (SOG) is also quantised there by the copying thread, and only encoded and
     written in the process. The batch's Gaussians are kept (the ``scene`` callable holds them) until every thread
     that reads them has waited for its stream, so the model's stream never reuses their memory too early.

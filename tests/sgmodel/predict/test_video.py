@@ -262,8 +262,8 @@ def test_scene_writer_processes_write_the_serial_files(tmp_path, fmt, quantise_o
         assert (folder / f"{i:06d}{suffix}").read_bytes() == serial.read_bytes(), i
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the copying threads' streams, page-locked copies "
-                    "and the SOG quantised on the GPU)")
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="needs CUDA (the copying threads' streams, page-locked copies and the SOG quantised there)")
 @pytest.mark.parametrize("fmt", ["sog", "ply"])
 def test_scenes_copied_on_the_threads_streams_are_the_serial_files(tmp_path, fmt):
     """With the model on a GPU: each copying thread's stream waits for its batch (the Gaussians below are made by
@@ -309,7 +309,9 @@ def test_the_streams_cpu_threads(clip, tmp_path, monkeypatch):
         sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, scene_folder, fmt, scene_writers=2, device=gpu)
         sink.close()
         assert sink.cpu_threads == threads, (scene_folder, fmt)
-    assert video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, device=torch.device("cpu")).cpu_threads is None
+    sink = video.VideoSink(tmp_path / "v.mkv", "ffv1", 30.0, 16, 16, device=torch.device("cpu"))
+    sink.close()
+    assert sink.cpu_threads is None
 
     class OneThread(video.VideoSink):
         def __init__(self, *args, **kwargs):
