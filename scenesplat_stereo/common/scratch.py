@@ -2,8 +2,10 @@
 
 * ``scratch_dir``: a private folder in ``/dev/shm`` when it has ``SHM_MIN_FREE`` free (containers often give it
   64 MB), else in the system's temporary folder; created on first use in each process, removed at its exit
-  (a multiprocessing worker's too, though it ends past ``atexit``, and a worker's ended by Ctrl-C; a killed
-  process leaves its folder).
+  (a multiprocessing worker's too, though it ends past ``atexit``, and a worker's ended by Ctrl-C). A process that
+  ends past every handler (killed, or a crash) leaves its folder, slot files and all: the next process to make
+  one removes it (``reap``). Each folder holds ``OWNER``, locked (``flock``) by its process while it lives: the
+  kernel drops the lock with the process however it ends, and in any PID namespace sharing the folder.
 * ``Slot``: a file in that folder mapped in the calling process (grown as needed) and, by path, in a worker
   process (``arrays_in``). The caller copies named arrays in (one ``memcpy`` each, without the GIL) and sends only
   the path and the layout through the pool's pipe; the worker reads them in place. Pickled through the pipe
@@ -14,6 +16,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import mmap
 import multiprocessing.util
@@ -21,6 +24,7 @@ import os
 import shutil
 import tempfile
 import threading
+import time
 
 import numpy as np
 
@@ -28,12 +32,16 @@ import numpy as np
 SHM_MIN_FREE = 1 << 30
 #: Bytes; each array in a slot starts on a cache line.
 ALIGN = 64
+#: Scratch folders' name prefix, and the file in each that its process keeps locked while it lives.
+PREFIX, OWNER = "scenesplat-scratch-", ".owner"
+#: A folder without ``OWNER`` (made by an earlier version, or its process just starting) is left alone this long.
+UNOWNED_GRACE_S = 3600.0
 
 # (name, offset in bytes, shape, dtype string) of each array in a slot
 Layout = list[tuple[str, int, tuple[int, ...], str]]
 
 _scratch_lock = threading.Lock()
-_scratch: dict[str, str] = {}  # {"pid": ..., "dir": ...} of this process
+_scratch: dict[str, object] = {}  # {"pid": ..., "dir": ..., "owner": the locked file's descriptor} of this process
 _slot_ids = itertools.count()
 _maps: dict[str, mmap.mmap] = {}  # in a worker: slot path -> its mapping
 
@@ -43,9 +51,14 @@ def scratch_dir() -> str:
     pid = str(os.getpid())
     with _scratch_lock:
         if _scratch.get("pid") != pid:
+            if "owner" in _scratch:  # a forked child's copy of its parent's: the parent's lock is the parent's
+                os.close(_scratch.pop("owner"))
             base = "/dev/shm" if free_bytes("/dev/shm") >= SHM_MIN_FREE else None
-            path = tempfile.mkdtemp(prefix="scenesplat-scratch-", dir=base)
-            _scratch.update(pid=pid, dir=path)
+            path = tempfile.mkdtemp(prefix=PREFIX, dir=base)
+            owner = os.open(os.path.join(path, OWNER), os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+            fcntl.flock(owner, fcntl.LOCK_EX)  # a new file: no one else holds it
+            _scratch.update(pid=pid, dir=path, owner=owner)
+            reap(os.path.dirname(path))
             # at exit: atexit's in any process, multiprocessing's too in a worker it started (which ends with
             # os._exit, past atexit); a forked child's copy of the parent's finaliser leaves the parent's folder
             multiprocessing.util.Finalize(None, remove_own, exitpriority=0)
@@ -59,6 +72,45 @@ def remove_own() -> None:
     mine = dict(_scratch)
     if mine.get("pid") == str(os.getpid()):
         shutil.rmtree(mine["dir"], ignore_errors=True)
+
+
+def reap(base: str) -> list[str]:
+    """Remove the scratch folders in ``base`` whose process has ended (their ``OWNER`` lock is free), and those
+    without ``OWNER`` older than ``UNOWNED_GRACE_S``; returns their paths. Another user's folders, and any that
+    cannot be read or locked, are left alone."""
+    removed = []
+    try:
+        names = [n for n in os.listdir(base) if n.startswith(PREFIX)]
+    except OSError:
+        return removed
+    for name in names:
+        path = os.path.join(base, name)
+        if path == _scratch.get("dir"):
+            continue
+        try:
+            fd = os.open(os.path.join(path, OWNER), os.O_RDWR)
+        except FileNotFoundError:
+            try:
+                st = os.stat(path)
+            except OSError:
+                continue
+            if st.st_uid == os.getuid() and time.time() - st.st_mtime > UNOWNED_GRACE_S:
+                shutil.rmtree(path, ignore_errors=True)
+                removed.append(path)
+            continue
+        except OSError:  # another user's, or not a folder
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # held while its process lives
+        except OSError:
+            os.close(fd)
+            continue
+        try:
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+        finally:
+            os.close(fd)
+    return removed
 
 
 def free_bytes(path: str) -> int:

@@ -1,6 +1,7 @@
 """``common.scratch``: each process's scratch folder is its own and goes at its exit, a multiprocessing worker's
-too (it ends with ``os._exit``, past ``atexit``), and a pool worker's ended by Ctrl-C; a slot's arrays read back in
-another process."""
+too (it ends with ``os._exit``, past ``atexit``), and a pool worker's ended by Ctrl-C; a killed process's folder is
+removed by the next process that makes one, a living process's never; a slot's arrays read back in another
+process."""
 
 from __future__ import annotations
 
@@ -62,6 +63,48 @@ def test_a_process_removes_its_scratch_folder_at_exit():
     folder = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO,
                             env={**os.environ, "PYTHONPATH": str(REPO)}).stdout.strip()
     assert folder and not os.path.exists(folder)
+
+
+_HOLD = ("import sys, time; from scenesplat_stereo.common import scratch; s = scratch.Slot(); "
+         "s.put({'a': __import__('numpy').ones(1000)}); print(scratch.scratch_dir(), flush=True); time.sleep(60)")
+
+
+def _holder() -> tuple[subprocess.Popen, str]:
+    """A process that made its scratch folder (and a slot file in it) and lives on; its folder."""
+    proc = subprocess.Popen([sys.executable, "-c", _HOLD], stdout=subprocess.PIPE, text=True, cwd=REPO,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})
+    return proc, proc.stdout.readline().strip()
+
+
+def test_a_killed_processs_folder_goes_with_the_next_and_a_living_ones_stays():
+    killed, dead_folder = _holder()
+    living, live_folder = _holder()
+    try:
+        killed.kill()  # SIGKILL: no handler runs
+        killed.wait(30)
+        assert os.path.isdir(dead_folder) and len(os.listdir(dead_folder)) == 2  # the lock file and a slot
+        code = "from scenesplat_stereo.common import scratch; print(scratch.scratch_dir())"
+        subprocess.run([sys.executable, "-c", code], check=True, cwd=REPO, capture_output=True,
+                       env={**os.environ, "PYTHONPATH": str(REPO)})
+        assert not os.path.exists(dead_folder)  # removed by that process's first scratch_dir
+        assert os.path.isdir(live_folder)  # its process holds the lock
+        assert live_folder not in scratch.reap(os.path.dirname(live_folder))
+    finally:
+        living.kill()
+        living.wait(30)
+    assert live_folder in scratch.reap(os.path.dirname(live_folder))  # now its lock is free
+
+
+def test_a_folder_without_an_owner_goes_only_when_old(tmp_path):
+    old, new = tmp_path / f"{scratch.PREFIX}old", tmp_path / f"{scratch.PREFIX}new"
+    other = tmp_path / "not-ours"
+    for folder in (old, new, other):
+        folder.mkdir()
+    stale = time.time() - scratch.UNOWNED_GRACE_S - 60
+    for folder in (old, other):
+        os.utime(folder, (stale, stale))
+    assert scratch.reap(str(tmp_path)) == [str(old)]
+    assert not old.exists() and new.is_dir() and other.is_dir()
 
 
 def _sum_in_worker(path: str, layout: scratch.Layout) -> dict[str, float]:
