@@ -2,15 +2,16 @@
 
 A synthetic side-by-side video (``--frames`` frames of one eye's ``--size``, a smooth texture panning by
 one pixel a frame with a 4-pixel disparity; MPEG-4 part 2 in ``.mp4``, the codec OpenCV's wheel encodes)
-goes through the path of ``sgmodel predict --video`` (``sgmodel.predict.video.stream``): decode (reader thread),
-the pair transform, the model, one novel view per frame, encode (mp4v, writer thread).
+goes through the path of ``sgmodel predict --video`` (``sgmodel.predict.video.stream``): decode and the pair
+transform (reader thread), the model, one novel view per frame, encode (mp4v, writer thread).
 
 * model alone: ``Reconstructor`` on a batch of ``--batch-size`` model-ready pairs already on the device
   (encoder to Gaussians, with their validity), synchronised; ``--repeats`` batches after ``--warmup``;
   pairs/s = batch size / median time, latency = a batch's time.
 * end to end: the whole video through ``stream``; frames/s = frames / wall time, latency of a frame = its
-  batch's decode time plus the time from the batch's model start to the end of its encode (a frame waits for
-  its batch; the wait of frames decoded ahead for the model to finish the batch before is not counted).
+  batch's decode and transform time plus the time from the batch's model start to the end of its encode (a frame
+  waits for its batch; the wait of frames made ready ahead for the model to finish the batch before is not
+  counted).
   Then again for each of ``--scene-formats`` with a scene per frame written as ``predict --video --frames``
   writes them (``--scene-writers`` processes beside the model; a batch is done when its scenes are written;
   the processes' start, before the stream, is timed apart); "writers busy" is the processes' summed write time
@@ -116,12 +117,13 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
                      f"{1e3 * np.percentile(latency, 99):.1f}", f"{1e3 * cpu[fmt]:.0f}"])
     result = runs[None]
     stages = {k: sum(getattr(x, e) - getattr(x, s) for x in result.batches) / result.frames * 1e3
-              for k, s, e in (("decode", "decode_start", "decode_end"), ("model", "model_start", "model_end"),
-                              ("render", "model_end", "render_end"))}
+              for k, s, e in (("decode", "decode_start", "decode_end"), ("transform", "decode_end", "transform_end"),
+                              ("model", "model_start", "model_end"), ("render", "model_end", "render_end"))}
     report(f"Stereo video of {width}x{height} per eye on {describe(args, predictor, device)}, {result.frames} frames in batches of {b}; model alone: {args.repeats} batches after "
            f"{args.warmup} warm-up.\n\n"
            f"{markdown_table(COLUMNS, rows)}\n\n"
-           f"End to end per frame: decode {stages['decode']:.1f} ms (reader thread), model {stages['model']:.1f} ms, "
+           f"End to end per frame: decode {stages['decode']:.1f} ms and pair transform {stages['transform']:.1f} ms "
+           f"(reader thread), model {stages['model']:.1f} ms, "
            f"render {stages['render']:.1f} ms (main thread); encode in the writer thread, and the scenes (copy to "
            f"the host) in {args.scene_writers} threads and written in as many processes"
            + ("" if start_s is None else f" (started in {start_s:.1f} s before the stream, the last time)")

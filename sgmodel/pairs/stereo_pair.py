@@ -59,7 +59,7 @@ def to_tensor(rgb: np.ndarray) -> torch.Tensor:
     """uint8 (or float in [0,1]) RGB [H,W,3] or [B,H,W,3] -> [B,3,H,W] float32 in [0,1]."""
     img = torch.from_numpy(np.ascontiguousarray(rgb))
     img = (img if img.ndim == 4 else img[None]).permute(0, 3, 1, 2)
-    return img.float() / 255.0 if rgb.dtype == np.uint8 else img.float().clamp(0, 1)
+    return img.float().div_(255.0) if rgb.dtype == np.uint8 else img.float().clamp(0, 1)  # (a new tensor: in place)
 
 
 def read_image(path: str, flag: str) -> torch.Tensor:

@@ -1,7 +1,7 @@
 """Stereo video to a rendered novel-view video (and one scene per frame): ``sgmodel predict --video``.
 
-    decode (reader thread) -> batches of raw ``Pair`` s -> the pair transform (``sgmodel.pairs.prepare``) ->
-    ``inference.Reconstructor`` (the path of a still pair) -> one novel view per frame -> encode (writer thread)
+    decode -> batches of raw ``Pair`` s -> the pair transform (``sgmodel.pairs.prepare``; both in the reader
+    thread) -> ``inference.Reconstructor`` (the path of a still pair) -> one novel view per frame -> encode (writer thread)
     and, with ``--frames``, each frame's scene to the host (``SCENE_WRITERS`` threads) and its file
     (``SCENE_WRITERS`` writer processes, ``scene_writers.SceneWriters``)
 
@@ -274,13 +274,14 @@ class VideoSink:
 
 @dataclass
 class BatchTimes:
-    """One batch's frames and times (perf_counter seconds): decode start and end (reader thread, ahead of
-    the model), model start and end (pair transform and prediction), render end (the frames on the host),
+    """One batch's frames and times (perf_counter seconds): decode start and end and the pair transform's end
+    (reader thread, ahead of the model), model start and end (prediction), render end (the frames on the host),
     written (encoded, writer thread, and its scenes written, scene writer threads)."""
 
     frames: int
     decode_start: float
     decode_end: float
+    transform_end: float
     model_start: float
     model_end: float
     render_end: float
@@ -288,9 +289,9 @@ class BatchTimes:
 
     @property
     def latency(self) -> float:
-        """Seconds the batch's frames were worked on: decode, then model start to written (the wait of
-        decoded frames for the model to finish the batch before, a read-ahead, is not counted)."""
-        return (self.decode_end - self.decode_start) + (self.written - self.model_start)
+        """Seconds the batch's frames were worked on: decode and transform, then model start to written (the wait
+        of model-ready frames for the model to finish the batch before, a read-ahead, is not counted)."""
+        return (self.transform_end - self.decode_start) + (self.written - self.model_start)
 
 
 @dataclass
@@ -314,7 +315,8 @@ class StreamReport:
         latency = [x.latency for x in b] or [0.0]
         rows = [("frames", f"{self.frames}"), ("batches", f"{len(b)}"), ("model size", f"{size[0]}x{size[1]}"),
                 ("decode s", f"{stage(lambda x: x.decode_end - x.decode_start):.2f}"),
-                ("model s (transform + prediction)", f"{stage(lambda x: x.model_end - x.model_start):.2f}"),
+                ("pair transform s", f"{stage(lambda x: x.transform_end - x.decode_end):.2f}"),
+                ("model s (prediction)", f"{stage(lambda x: x.model_end - x.model_start):.2f}"),
                 ("render s", f"{stage(lambda x: x.render_end - x.model_end):.2f}"),
                 ("wall s", f"{self.wall:.2f}"), ("frames/s end to end", f"{self.frames / max(self.wall, 1e-9):.2f}"),
                 ("batch latency median / max ms", f"{1e3 * statistics.median(latency):.0f} / {1e3 * max(latency):.0f}"),
@@ -330,7 +332,8 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
            on_first: Callable[[Pair, float], None] | None = None) -> StreamReport:
     """Decode, predict, render and encode the whole video (module docstring): each batch of frames becomes a raw
     ``Pair`` (``calib``, and ``rectification`` for a raw rig's frames), ``prepare`` makes it model-ready (on the
-    CPU), then it goes to ``device``. ``on_first(pair, focus)`` is called once with the first model-ready
+    CPU, in the reader thread: beside the model's work on the batch before, where a batch of four 1920x1080 pairs
+    took 0.35 s of the 2-core CPU machine), then it goes to ``device``. ``on_first(pair, focus)`` is called once with the first model-ready
     batch and the focus (e.g. to write the viewer files)."""
     now = synced_clock(device)
     total = min(x for x in (source.frame_count, max_frames) if x is not None) \
@@ -339,10 +342,13 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
     queued = max(MAX_QUEUED, -(-sink.scene_writers // batch_size) + 1)  # keep every scene writer busy
     reader = ThreadPoolExecutor(1, thread_name_prefix="video-reader")
 
-    def read(n: int) -> tuple[float, float, np.ndarray, np.ndarray]:
+    def read(n: int) -> tuple[tuple[float, float, float], int, Pair | None]:
+        """((start, decoded, transformed) times, frames, the model-ready pair) of up to n next frames."""
         start = time.perf_counter()
         left, right = source.read(n)
-        return start, time.perf_counter(), left, right
+        decoded = time.perf_counter()
+        pair = prepare(Pair(to_tensor(left), to_tensor(right), calib, rectification)) if len(left) else None
+        return (start, decoded, time.perf_counter()), len(left), pair
 
     start, finished, threads = time.perf_counter(), False, torch.get_num_threads()
     torch.set_num_threads(min(threads, sink.cpu_threads or threads))
@@ -350,15 +356,13 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
     try:
         ahead = reader.submit(read, batch_size if total is None else min(batch_size, total))
         while ahead is not None:
-            t0, t1, left, right = ahead.result()
+            (t0, t1, t2), n, pair = ahead.result()
             t_start = now()
-            n = len(left)
             if n == 0:
                 break
             rest = None if total is None else total - done - n
             ahead = reader.submit(read, batch_size if rest is None else min(batch_size, rest)) \
                 if rest is None or rest > 0 else None
-            pair = prepare(Pair(to_tensor(left), to_tensor(right), calib, rectification))
             left, right, K, baseline = pair.model_inputs(device)
             scenes = reconstructor(left, right, K, baseline, pair.calib.doffs)
             t_model = now()
@@ -374,7 +378,7 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
             t_render = time.perf_counter()
             kept, produced = scenes.counts()
             report.kept, report.produced = report.kept + kept, report.produced + produced
-            report.batches.append(BatchTimes(n, t0, t1, t_start, t_model, t_render))
+            report.batches.append(BatchTimes(n, t0, t1, t2, t_start, t_model, t_render))
             pending.append(sink.submit(done, frames, scenes.in_frame(sink.scene_frame).scene
                                        if sink.scene_folder is not None else None))
             done += n
