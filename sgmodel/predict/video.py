@@ -1,7 +1,8 @@
 """Stereo video to a rendered novel-view video (and one scene per frame): ``sgmodel predict --video``.
 
     decode -> batches of raw ``Pair`` s -> the pair transform (``sgmodel.pairs.prepare``; both in the reader
-    thread) -> ``inference.Reconstructor`` (the path of a still pair) -> one novel view per frame -> encode (writer thread)
+    thread) -> ``inference.Reconstructor`` (the path of a still pair) -> one novel view per frame -> encode
+    (writer thread)
     and, with ``--frames``, each frame's scene to the host (``SCENE_WRITERS`` threads) and its file
     (``SCENE_WRITERS`` writer processes, ``scene_writers.SceneWriters``)
 
@@ -333,8 +334,8 @@ def stream(source: StereoSource, calib: Calibration, rectification: Rectificatio
     """Decode, predict, render and encode the whole video (module docstring): each batch of frames becomes a raw
     ``Pair`` (``calib``, and ``rectification`` for a raw rig's frames), ``prepare`` makes it model-ready (on the
     CPU, in the reader thread: beside the model's work on the batch before, where a batch of four 1920x1080 pairs
-    took 0.35 s of the 2-core CPU machine), then it goes to ``device``. ``on_first(pair, focus)`` is called once with the first model-ready
-    batch and the focus (e.g. to write the viewer files)."""
+    took 0.29-0.38 s of the 2-core CPU machine), then it goes to ``device``. ``on_first(pair, focus)`` is called
+    once with the first model-ready batch and the focus (e.g. to write the viewer files)."""
     now = synced_clock(device)
     total = min(x for x in (source.frame_count, max_frames) if x is not None) \
         if (source.frame_count or max_frames) else None
