@@ -24,7 +24,6 @@ import os
 import shutil
 import tempfile
 import threading
-import time
 
 import numpy as np
 
@@ -34,8 +33,6 @@ SHM_MIN_FREE = 1 << 30
 ALIGN = 64
 #: Scratch folders' name prefix, and the file in each that its process keeps locked while it lives.
 PREFIX, OWNER = "scenesplat-scratch-", ".owner"
-#: A folder without ``OWNER`` (made by an earlier version, or its process just starting) is left alone this long.
-UNOWNED_GRACE_S = 3600.0
 
 # (name, offset in bytes, shape, dtype string) of each array in a slot
 Layout = list[tuple[str, int, tuple[int, ...], str]]
@@ -75,9 +72,9 @@ def remove_own() -> None:
 
 
 def reap(base: str) -> list[str]:
-    """Remove the scratch folders in ``base`` whose process has ended (their ``OWNER`` lock is free), and those
-    without ``OWNER`` older than ``UNOWNED_GRACE_S``; returns their paths. Another user's folders, and any that
-    cannot be read or locked, are left alone."""
+    """Remove the scratch folders in ``base`` whose process has ended (their ``OWNER`` lock is free); returns their
+    paths. A folder without ``OWNER`` (its process just starting, or of an earlier version, which may still run),
+    another user's, and any that cannot be read or locked are left alone."""
     removed = []
     try:
         names = [n for n in os.listdir(base) if n.startswith(PREFIX)]
@@ -89,16 +86,7 @@ def reap(base: str) -> list[str]:
             continue
         try:
             fd = os.open(os.path.join(path, OWNER), os.O_RDWR)
-        except FileNotFoundError:
-            try:
-                st = os.stat(path)
-            except OSError:
-                continue
-            if st.st_uid == os.getuid() and time.time() - st.st_mtime > UNOWNED_GRACE_S:
-                shutil.rmtree(path, ignore_errors=True)
-                removed.append(path)
-            continue
-        except OSError:  # another user's, or not a folder
+        except OSError:  # no owner file, another user's, or not a folder
             continue
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # held while its process lives
