@@ -75,8 +75,9 @@ VIEW_RADIUS = 0.15
 #: Frames in the orbit animation.
 ORBIT_FRAMES = 24
 #: Scene format of a still pair and of video frames when --format is not given. Video frames: the compact format
-#: whose writers keep up with a 448x256 video at 30 frames/s on a 16-core GPU host (33.5-34.6 frames/s, 4.2x
-#: smaller than .ply; .spz 28, SOG 21-24: docs/benchmarks.md "Issue 35: the scene writers in processes").
+#: whose writers keep up with a 448x256 video at 30 frames/s on a 16-core GPU host (the shipped model's SH-2
+#: scenes: 40.1-42.4 frames/s, 4.2x smaller than .ply; .spz 24-25, SOG 16-21: docs/benchmarks.md "Issue 35: the
+#: shipped model's scenes per frame").
 DEFAULT_FORMAT, DEFAULT_FRAME_FORMAT = "ply", "compressed-ply"
 #: Pairs per model call in a video.
 DEFAULT_BATCH = 4

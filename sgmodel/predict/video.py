@@ -246,12 +246,13 @@ class VideoSink:
     def _write_scene(self, scene: Callable[[int], GaussianScene], i: int, number: int,
                      ready: torch.cuda.Event | None) -> Path:
         path = self.scene_folder / f"{number:06d}{FORMATS[self.scene_format].suffix}"
-        if ready is None:
-            return self.processes.write(scene(i), path, self.scene_format, write_scene, self.quantise_on)
-        if not hasattr(self._streams, "stream"):
-            self._streams.stream = torch.cuda.Stream(self.quantise_on)
-        with torch.cuda.stream(self._streams.stream):
-            self._streams.stream.wait_event(ready)
+        stream = None  # (torch.cuda.stream(None) changes nothing)
+        if ready is not None:
+            if not hasattr(self._streams, "stream"):
+                self._streams.stream = torch.cuda.Stream(self.quantise_on)
+            stream = self._streams.stream
+            stream.wait_event(ready)
+        with torch.cuda.stream(stream):
             return self.processes.write(scene(i), path, self.scene_format, write_scene, self.quantise_on)
 
     def _write(self, frames: np.ndarray, scenes: list[Future]) -> float:
