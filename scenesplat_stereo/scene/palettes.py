@@ -7,6 +7,8 @@ depends on the order of the values except which rows the palette's k-means sampl
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -91,11 +93,12 @@ class Nearest:
         return labels.clamp_(max=len(self.mids)).to(torch.uint8).reshape(values.shape)
 
 
-def kmeans(x: np.ndarray, k: int, dev: torch.device | None = None, iterations: int = 5,
+def kmeans(x: np.ndarray | torch.Tensor, k: int, dev: torch.device | None = None, iterations: int = 5,
            fit_rows: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """k-means of rows x [N, D] (torch on ``dev``, default ``row_tasks.device()``: CUDA when there): (centroids
-    [k, D] float32, labels [N] int64 of every row's nearest centroid). Lloyd's iterations run on a random
-    ``fit_rows`` k of the rows (all when fewer), starting from k of them.
+    """k-means of rows x [N, D] (an array, or a tensor already on ``dev``; torch on ``dev``, default
+    ``row_tasks.device()``: CUDA when there): (centroids [k, D] float32, labels [N] int64 of every row's nearest
+    centroid). Lloyd's iterations run on a random ``fit_rows`` k of the rows (all when fewer; the same rows for
+    every x of N rows: ``permutation``), starting from k of them.
 
     The centroids' sums are taken on the CPU (at most ``fit_rows`` k rows), so the palette is the same from run to
     run on a GPU too. 5 iterations: 10 (the earlier count) gave 0.2-0.9% smaller RMS errors on a real prediction
@@ -103,8 +106,8 @@ def kmeans(x: np.ndarray, k: int, dev: torch.device | None = None, iterations: i
     blocks of rows (about 4 MiB on the CPU, 256 MiB on a GPU); on the CPU numpy takes the argmin (torch's is several
     times slower there)."""
     dev = dev or row_tasks.device()
-    X = torch.from_numpy(np.ascontiguousarray(x, np.float32)).to(dev)
-    rows = torch.randperm(len(X), generator=torch.Generator().manual_seed(0)).to(dev)
+    X = torch.as_tensor(x, dtype=torch.float32, device=dev).contiguous()
+    rows = permutation(len(X)).to(dev)
     fit = X[rows[:fit_rows * k]]
     C = fit[:k].clone()
     block = max(1, (1 << (26 if dev.type == "cuda" else 20)) // k)  # rows a block of distances
@@ -121,6 +124,13 @@ def kmeans(x: np.ndarray, k: int, dev: torch.device | None = None, iterations: i
     for _ in range(iterations):  # the sums on the CPU: a GPU's index_add_ adds in no fixed order
         labels = assign(fit).cpu()
         count = torch.zeros(k).index_add_(0, labels, torch.ones(len(fit)))
-        total = torch.zeros(k, x.shape[1]).index_add_(0, labels, fit_cpu)
+        total = torch.zeros(k, X.shape[1]).index_add_(0, labels, fit_cpu)
         C = torch.where(count[:, None] > 0, total / count.clamp(min=1)[:, None], C.cpu()).to(dev)
     return C.cpu().numpy(), assign(X).cpu().numpy()
+
+
+@functools.lru_cache(maxsize=4)
+def permutation(n: int) -> torch.Tensor:
+    """The k-means' random order of n rows (int64 [n] on the CPU; seeded, so the same in every call; kept for the
+    last few n: a video's scenes share one n, and drawing it took 3 ms at 202,752 rows). Read only."""
+    return torch.randperm(n, generator=torch.Generator().manual_seed(0))

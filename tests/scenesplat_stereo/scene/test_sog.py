@@ -190,6 +190,32 @@ def test_kmeans_labels_are_each_rows_nearest_centroid() -> None:
     assert d[np.arange(3000), labels].mean() < random_error
 
 
+def test_kmeans_takes_a_tensor_and_draws_one_order_per_row_count() -> None:
+    """A tensor gives the palette its array gives; the fit's random order is the seeded ``randperm`` of the row
+    count, drawn once for every call with that count."""
+    rng = np.random.default_rng(8)
+    x = rng.normal(0, 0.1, (5000, 9)).astype(np.float32)
+    want = palettes.kmeans(x, 64)
+    for got in (palettes.kmeans(torch.from_numpy(x), 64), palettes.kmeans(x.astype(np.float64), 64)):
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+    assert torch.equal(palettes.permutation(5000), torch.randperm(5000, generator=torch.Generator().manual_seed(0)))
+    assert palettes.permutation(5000) is palettes.permutation(5000)
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3])
+def test_sh_palette_rows_are_channel_major(degree: int) -> None:
+    """The palette's k-means sees each Gaussian's coefficients above the DC term channel by channel (R's, then G's,
+    then B's: f_rest's order), as numpy's transposition puts them; its labels are the label texels' two bytes."""
+    rng = np.random.default_rng(degree)
+    sh = rng.normal(0, 0.05, (3000, (degree + 1) ** 2, 3)).astype(np.float32)
+    rest = np.ascontiguousarray(sh[:, 1:].transpose(0, 2, 1).reshape(3000, -1))
+    _, labels = palettes.kmeans(rest, 1024)
+    _, _, _, texels = sog_texels.sh_palette(sh, degree, 1024, torch.device("cpu"))
+    assert labels.max() >= 256  # both bytes in use
+    np.testing.assert_array_equal(texels[:, 0] + 256 * texels[:, 1].astype(np.int64), labels)
+
+
 def reference_pack_quats(quats: np.ndarray) -> np.ndarray:
     """The quaternion texels row by row (the writer's earlier numpy version): normalised by the float32 row norm,
     negated when the largest |component| (np.argmax: the first of equals) is negative, the other three as
