@@ -1,9 +1,9 @@
 """Every GPU kernel of the model, and the one place that says whether they run.
 
-The Triton kernels (``bias_gelu``, ``concat``, ``group_norm``, ``lpips_tap``, ``ssim``, ``upsample``) and the
-Warp soft-argmin of PSMNet's disparity regression (``soft_argmin``): each module holds a forward and, where
-training needs one, a backward; the operation that dispatches to it (``sgmodel.model.layers``,
-``sgmodel.metrics``) keeps its PyTorch path as the reference it is tested against in float64. Public names
+The Triton kernels (``bias_gelu``, ``composer``, ``concat``, ``group_norm``, ``lpips_tap``, ``ssim``,
+``upsample``) and the Warp soft-argmin of PSMNet's disparity regression (``soft_argmin``): each module holds a
+forward and, where training needs one, a backward; the operation that dispatches to it (``sgmodel.model.layers``,
+``sgmodel.model.composer``, ``sgmodel.metrics``) keeps its PyTorch path as the reference it is tested against. Public names
 here: ``triton_installed``, ``triton_kernels_run``, ``channels_last_kernels_run``, ``CAT_KERNEL_SOURCES``.
 This package and ``scenesplat_stereo.raster`` are the only ones that import Warp or Triton
 (tests/test_import_cycles.py); importing this package itself imports neither.

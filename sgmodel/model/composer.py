@@ -27,6 +27,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from sgmodel.kernels import triton_kernels_run
+
 # --- Constants (paper appendix A "Attribute composition" unless noted) -------------------------------------
 Z_MIN, Z_MAX = 0.1, 10.0  # eq. 1 and appendix A: depth clip in metres, applied BEFORE the composer
 S_MIN, S_MAX = 1e-10, 3.0  # appendix A "Scale and rotation": scale clip, metres
@@ -58,6 +60,11 @@ SH_COEFFS = 9  # degree 2
 _SPLIT = tuple(s.stop - s.start for s in CHANNELS.values())  # the ranges are contiguous and in this order
 _SH_DEGREE = (0, 1, 1, 1, 2, 2, 2, 2, 2)  # degree j of SH coefficient k
 _QUAT_EPS = 1e-12  # norms below this give the identity quaternion (a zero vector has no direction)
+#: The constants above as the fused kernels' compile-time arguments (``sgmodel.kernels.composer``).
+KERNEL_CONSTANTS = dict(S_MIN=S_MIN, S_MAX=S_MAX, KAPPA=KAPPA, R_QUAT=R_QUAT, EPS2=_QUAT_EPS**2,
+                        LOGIT=math.log(ALPHA0 / (1.0 - ALPHA0)), C0=C0, PHI_RANGE=PHI_RANGE, PHI_MIN=PHI_MIN,
+                        PHI_SLOPE=PHI_SLOPE, PHI_SHIFT=PHI_SHIFT, DECAY1=SH_DECAY_BASE * SH_DECAY_RATE,
+                        DECAY2=SH_DECAY_BASE * SH_DECAY_RATE**2)
 
 
 def scale_cap(s_cap: float) -> float:
@@ -217,6 +224,52 @@ def _layer(branch: torch.Tensor, depth: torch.Tensor, rgb: torch.Tensor, K: torc
                 sh=sh(coeffs, rgb, composer))
 
 
+class _FusedLayers(torch.autograd.Function):
+    """The paper's model's attributes of the front and (if given) back layer through ``sgmodel.kernels.composer``:
+    the layers' ``compose`` outputs, concatenated, from the branches in their own dtype. Gradients reach the
+    branches and the back layer's depth; z~ and RGB~ get none (``compose`` sends here only inputs that need none)."""
+
+    @staticmethod
+    def forward(ctx, front: torch.Tensor, back: torch.Tensor | None, depth_back: torch.Tensor | None, z: torch.Tensor,
+                rgb: torch.Tensor, K: torch.Tensor, band: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        from sgmodel.kernels import composer as kernels
+
+        kinv = torch.linalg.inv(K).contiguous()
+        rs = torch.sqrt(K[:, 0, 0] * K[:, 1, 1]).contiguous()
+        band = band.to(torch.uint8).contiguous()
+        ctx.save_for_backward(front, back, depth_back, z, kinv, rs, band)
+        branches, depths, caps = _fused_layers(front, back, z, depth_back)
+        return kernels.forward(branches, depths, rgb, kinv, rs, band, caps, KERNEL_CONSTANTS)
+
+    @staticmethod
+    def backward(ctx, *grads: torch.Tensor):
+        from sgmodel.kernels import composer as kernels
+
+        front, back, depth_back, z, kinv, rs, band = ctx.saved_tensors
+        branches, depths, caps = _fused_layers(front, back, z, depth_back)
+        d_branches, d_depths = kernels.backward([g.contiguous() for g in grads], branches, depths,
+                                                [False, ctx.needs_input_grad[2]][:len(branches)], kinv, rs, band,
+                                                caps, KERNEL_CONSTANTS)
+        d_back, d_depth_back = (d_branches[1], d_depths[1]) if back is not None else (None, None)
+        return d_branches[0], d_back, d_depth_back, None, None, None, None
+
+
+def _fused_layers(front: torch.Tensor, back: torch.Tensor | None, z: torch.Tensor, depth_back: torch.Tensor | None
+                  ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[tuple[float, float, bool]]]:
+    """(branches, depths, (cap in the edge band, cap elsewhere, whether the band applies) of each layer)."""
+    front_caps = (scale_cap(S_CAP_FRONT_EDGE), math.inf, True)
+    if back is None:
+        return [front], [z], [front_caps]
+    return [front, back], [z, depth_back], [front_caps, (0.0, scale_cap(S_CAP_BACK), False)]
+
+
+def _fused_runs(front: torch.Tensor, z: torch.Tensor, rgb: torch.Tensor, composer: bool, edge_mask: str) -> bool:
+    """Whether ``compose`` runs through ``_FusedLayers``: the paper's model (the composer on, no edge gate) on CUDA
+    with Triton, branches in float32 or half precision, and no gradient wanted for z~ or RGB~."""
+    return (composer and edge_mask == "none" and triton_kernels_run(front) and z.is_cuda
+            and not (z.requires_grad or rgb.requires_grad))
+
+
 def _check(name: str, t: object, shape: tuple[int | None, ...]) -> None:
     if not isinstance(t, torch.Tensor):
         raise TypeError(f"compose: {name} must be a torch.Tensor, got {type(t).__name__}")
@@ -247,8 +300,11 @@ def compose(front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | N
       (1,0,0,0) base, no R_QUAT); opacity = sigmoid(delta_alpha) (no ALPHA0 base); SH DC = delta_c0 (no
       reference-colour base); higher SH = delta_cj (no 0.1 * 0.25^j scaling). Edge masks still gate opacity.
 
-    Works in float32 and float64 on any device; differentiable w.r.t. front, back, dz, z and rgb (the edge
-    band is a non-differentiable selection)."""
+    Works in float32 and float64 on any device, and on branches in float16 or bfloat16 (composed in float32);
+    differentiable w.r.t. front, back, dz, z and rgb (the edge band is a non-differentiable selection). The
+    paper's model on CUDA, with no gradient wanted for z or rgb (training and inference), runs in the fused
+    kernels of ``sgmodel.kernels.composer`` (``_fused_runs``); everything else in the PyTorch operations here,
+    which are what those kernels are tested against."""
     if edge_mask not in EDGE_MASKS:
         raise ValueError(f"compose: edge_mask must be one of {EDGE_MASKS}, got {edge_mask!r}")
     if edge_mask != "none" and not back_layer:
@@ -263,15 +319,30 @@ def compose(front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | N
         _check("back", back, (B, LAYER_CHANNELS, H, W))
         _check("dz", dz, (B, 1, H, W))
 
-    K, baseline = K.to(front.dtype), baseline.to(front.dtype)
+    with torch.autocast("cuda" if front.is_cuda else "cpu", enabled=False):  # float32 under bf16 autocast too
+        return _compose(front, back if back_layer else None, dz, z, rgb, K, baseline, edge_mask, composer)
+
+
+def _compose(front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | None, z: torch.Tensor,
+             rgb: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor, edge_mask: str, composer: bool
+             ) -> dict[str, torch.Tensor]:
+    """``compose`` of checked inputs, autocast off (``back`` None: the front layer alone)."""
+    dtype = torch.float32 if front.dtype in (torch.float16, torch.bfloat16) else front.dtype
+    K, baseline = K.to(dtype), baseline.to(dtype)
     band = edge_band(z, K, baseline) if (composer or edge_mask != "none") else None  # caps and/or gates
+    if _fused_runs(front, z, rgb, composer, edge_mask):
+        depth_back = None if back is None else back_depth(z, dz.to(dtype))
+        out = _FusedLayers.apply(front, back, depth_back, z.to(dtype).contiguous(), rgb.to(dtype).contiguous(), K,
+                                 band)
+        return dict(zip(("means", "quats", "scales", "opacities", "sh"), out))
+    front = front.to(dtype)
     if composer:
         front_cap = torch.where(band, scale_cap(S_CAP_FRONT_EDGE), float("inf")).to(front.dtype)
         back_cap = scale_cap(S_CAP_BACK)
     else:
         front_cap = back_cap = None
     layers = [_layer(front, z, rgb, K, front_cap, None, composer)]
-    if back_layer:
+    if back is not None:
         gate = None if band is None or edge_mask == "none" else edge_gate(band, edge_mask, front.dtype)
-        layers.append(_layer(back, back_depth(z, dz), rgb, K, back_cap, gate, composer))
+        layers.append(_layer(back.to(dtype), back_depth(z, dz), rgb, K, back_cap, gate, composer))
     return {k: torch.cat([layer[k] for layer in layers], dim=1) for k in layers[0]}

@@ -110,12 +110,12 @@ class StereoGaussians(nn.Module):
 
     def compose(self, front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | None, c: canvas.Canvas,
                 baseline: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The composer in float32 (the predictor may run in bf16), eager: through ``torch.compile`` on CUDA it
-        computed the back layer's depth wrong at some batch shapes (docs/benchmarks.md "Issue 34, fifth
-        lease")."""
+        """The composer in float32 (the predictor may run in bf16: its branches are read as they are and composed
+        in float32), not through ``torch.compile``: on CUDA it computed the back layer's depth wrong at some batch
+        shapes (docs/benchmarks.md "Issue 34, fifth lease")."""
         p = self.params.composer
-        back, dz = (None, None) if back is None else (back.float(), dz.float())
-        return compose(front.float(), back, dz, c.depth, c.rgb.float(), c.K, baseline, back_layer=p.back_layer,
+        dz = None if dz is None else dz.float()
+        return compose(front, back, dz, c.depth, c.rgb.float(), c.K, baseline, back_layer=p.back_layer,
                        edge_mask=p.edge_mask, composer=p.composer)
 
     def forward(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor,
