@@ -3,10 +3,11 @@
 The Triton kernels (``bias_gelu``, ``composer``, ``concat``, ``group_norm``, ``lpips_tap``, ``ssim``,
 ``upsample``) and the Warp soft-argmin of PSMNet's disparity regression (``soft_argmin``): each module holds a
 forward and, where training needs one, a backward; the operation that dispatches to it (``sgmodel.model.layers``,
-``sgmodel.model.composer``, ``sgmodel.metrics``) keeps its PyTorch path as the reference it is tested against. Public names
-here: ``triton_installed``, ``triton_kernels_run``, ``channels_last_kernels_run``, ``CAT_KERNEL_SOURCES``.
-This package and ``scenesplat_stereo.raster`` are the only ones that import Warp or Triton
-(tests/test_import_cycles.py); importing this package itself imports neither.
+``sgmodel.model.composer``, ``sgmodel.metrics``) keeps its PyTorch path as the reference it is tested against
+(in float64, or against that path tested in float64). Public names here: ``triton_installed``,
+``triton_kernels_run``, ``channels_last_kernels_run``, ``CAT_KERNEL_SOURCES``. This package and
+``scenesplat_stereo.raster`` are the only ones that import Warp or Triton (tests/test_import_cycles.py);
+importing this package itself imports neither.
 """
 
 from __future__ import annotations
