@@ -14,7 +14,8 @@ CPU kernels prefer. The blocks below work in either layout and compute the same 
   difference, whose gradients are added into the convolution's in place. With ``multiple`` > 1 the
   output channels are computed padded to that multiple (zero filters, cut off again) and extra input
   channels of ``x`` (``cat_channels``) meet zero weights: cuDNN's NHWC kernels want channel counts in
-  multiples of 8 and otherwise pad with copies of their own. The first extra channel is all ones and
+  multiples of 8 (and are faster at some larger multiples: ``CUDA_INPUT_MULTIPLE``) and otherwise pad with
+  copies of their own. The first extra channel is all ones and
   carries the bias inside the convolution. Same parameters and state_dict keys as
   ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
 - ``cat_channels``: the channel concatenation of the convolutions' inputs, each source edge-replicated by
@@ -42,10 +43,13 @@ from torch import nn
 
 from sgmodel.kernels import CAT_KERNEL_SOURCES, channels_last_kernels_run, triton_installed
 
-#: channel counts of concatenated inputs and convolution outputs are padded to this multiple on CUDA
-#: (cuDNN's NHWC tensor-core kernels; a 259 -> 384 channel 3x3 convolution at the canvas size took 36.6 ms
-#: forward + backward with 259 input channels and 28.9 ms with 264, H100, bf16, batch 32).
-CUDA_CHANNEL_MULTIPLE = 8
+#: on CUDA, channel counts of concatenated inputs are padded to a multiple of ``CUDA_INPUT_MULTIPLE`` and
+#: convolution outputs to one of ``CUDA_OUTPUT_MULTIPLE``: the multiples whose cuDNN NHWC kernels were fastest
+#: (`scripts/profile/gpu_conv_channels.py`, H100, bf16, batch 32 at the canvas size, forward + backward: the
+#: stacked branches' 259 -> 384 convolution 31.1 ms with 264 input channels, 27.8 with 288, 28.5 with 320; a
+#: 37-channel final conv 2.66 ms computing 40 outputs, 2.27 with 48; 36.6 ms unpadded, 259 channels, earlier).
+CUDA_INPUT_MULTIPLE = 32
+CUDA_OUTPUT_MULTIPLE = 16
 
 
 def amp_autocast(x: torch.Tensor, amp: bool = True) -> torch.autocast:
@@ -60,9 +64,14 @@ def activation_format(x: torch.Tensor) -> torch.memory_format:
     return torch.channels_last if x.is_cuda else torch.contiguous_format
 
 
-def channel_multiple(x: torch.Tensor) -> int:
-    """Channel counts are padded to this multiple on ``x``'s device (1: none)."""
-    return CUDA_CHANNEL_MULTIPLE if x.is_cuda else 1
+def input_multiple(x: torch.Tensor) -> int:
+    """Concatenated inputs' channel counts are padded to this multiple on ``x``'s device (1: none)."""
+    return CUDA_INPUT_MULTIPLE if x.is_cuda else 1
+
+
+def output_multiple(x: torch.Tensor) -> int:
+    """Convolutions compute their output channels padded to this multiple on ``x``'s device (1: none)."""
+    return CUDA_OUTPUT_MULTIPLE if x.is_cuda else 1
 
 
 def _round_up(n: int, multiple: int) -> int:
@@ -260,13 +269,13 @@ def replicate_conv3x3(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor 
 
 class ReplicateConv2d(nn.Conv2d):
     """3x3 convolution of the input padded by edge replication to keep its size (``replicate_conv3x3``,
-    output channels padded to ``channel_multiple`` inside)."""
+    output channels padded to ``output_multiple`` inside)."""
 
     def __init__(self, cin: int, cout: int) -> None:
         super().__init__(cin, cout, 3, padding=1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return replicate_conv3x3(x, self.weight, self.bias, channel_multiple(x))
+        return replicate_conv3x3(x, self.weight, self.bias, output_multiple(x))
 
 
 def compute_dtype(device: torch.device) -> torch.dtype:

@@ -24,8 +24,8 @@ from torch import nn
 
 from sgmodel.config import ConfigurationError, PredictorParams
 from sgmodel.model.composer import CHANNELS, LAYER_CHANNELS
-from sgmodel.model.layers import (GroupNorm, ReplicateConv2d, activation_format, cat_channels, channel_multiple,
-                                  compute_dtype, group_norm_gelu_parts, replicate_conv3x3)
+from sgmodel.model.layers import (GroupNorm, ReplicateConv2d, activation_format, cat_channels, compute_dtype,
+                                  group_norm_gelu_parts, input_multiple, output_multiple, replicate_conv3x3)
 
 ZERO_INIT = ("scale", "sh")  # exactly zero at initialisation (appendix A)
 
@@ -62,9 +62,8 @@ def fused_branches(branches: list[Branch], x: torch.Tensor) -> list[torch.Tensor
     firsts, norms = [b.first for b in branches], [b.norm for b in branches]
     if len({(c.out_channels, n.num_groups) for c, n in zip(firsts, norms)}) != 1:
         raise ValueError("fused branches need the same hidden width and groups")
-    multiple = channel_multiple(x)
     hidden = replicate_conv3x3(x, torch.cat([c.weight for c in firsts]), torch.cat([c.bias for c in firsts]),
-                               multiple)
+                               output_multiple(x))
     hidden = group_norm_gelu_parts(hidden, sum(n.num_groups for n in norms), torch.cat([n.weight for n in norms]),
                                    torch.cat([n.bias for n in norms]), norms[0].eps, parts=len(branches))
     return [b.final(h) for b, h in zip(branches, hidden)]
@@ -107,11 +106,11 @@ class GaussianPredictor(nn.Module):
         p = ``phi_padding``: phi is edge-replicated onto the canvas by the concatenations that read it
         (``layers.cat_channels``), with no padded copy of its own. back and dz are None without a back
         layer. Activations in ``layers.activation_format``; the concatenated inputs carry zero channels up
-        to ``layers.channel_multiple``."""
+        to ``layers.input_multiple``."""
         dtype, fmt = compute_dtype(rgb.device), activation_format(rgb)  # cast once, in the convolutions' dtype
         rgb, z = rgb.to(dtype, memory_format=fmt), z.to(dtype, memory_format=fmt)
         phi = None if phi is None else phi.to(dtype, memory_format=fmt)
-        multiple = channel_multiple(rgb)
+        multiple = input_multiple(rgb)
         desc = [phi] if self.use_descriptor else []
 
         def on_canvas(tensors: list[torch.Tensor]) -> torch.Tensor:  # phi extended on the way

@@ -205,9 +205,11 @@ def test_group_norm_gelu_is_pytorch_off_cuda():
                                rtol=0, atol=0)
 
 
-def test_cuda_layout_computes_the_same_model_on_the_cpu(monkeypatch):
-    """The decoder and predictor with CUDA's layout (channels-last activations, channels padded to 8) give
-    the NCHW results and gradients, in float64 on the CPU."""
+@pytest.mark.parametrize("inputs,outputs", [(8, 8), (layers.CUDA_INPUT_MULTIPLE, layers.CUDA_OUTPUT_MULTIPLE)])
+def test_cuda_layout_computes_the_same_model_on_the_cpu(monkeypatch, inputs, outputs):
+    """The decoder and predictor with CUDA's layout (channels-last activations, concatenated inputs and
+    convolution outputs padded to multiples of their own) give the NCHW results and gradients, in float64
+    on the CPU."""
     model, left, z, features, K = layers_case()
     for module in (decoder, predictor):  # float64 convolutions (compute_dtype says float32 off autocast)
         monkeypatch.setattr(module, "compute_dtype", lambda device: torch.float64)
@@ -221,8 +223,9 @@ def test_cuda_layout_computes_the_same_model_on_the_cpu(monkeypatch):
     nchw = run()
     for module in (layers, decoder, predictor):
         monkeypatch.setattr(module, "activation_format", lambda x: CL)
-    monkeypatch.setattr(layers, "channel_multiple", lambda x: 8)
-    monkeypatch.setattr(predictor, "channel_multiple", lambda x: 8)
+    monkeypatch.setattr(layers, "output_multiple", lambda x: outputs)
+    monkeypatch.setattr(predictor, "output_multiple", lambda x: outputs)
+    monkeypatch.setattr(predictor, "input_multiple", lambda x: inputs)
     padded = run()
     for a, b in zip(nchw[0] + list(nchw[1]), padded[0] + list(padded[1])):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
