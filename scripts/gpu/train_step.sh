@@ -9,7 +9,7 @@
 # Device call 1 (carry .gpukit/a):                 bash .gpukit/a/stash.sh
 # Device call 2 (carry .devdata):                  mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
 # Device call 3 (carry .gpukit/b, .whl; one call carries at most 64 MiB, each within 30 s of the one before):
-#   SGMODEL_CACHE=/root/sgcache bash scripts/gpu/train_step.sh [tests] [bench] [profile] [big] [curve] [lpips]
+#   SGMODEL_CACHE=/root/sgcache bash scripts/gpu/train_step.sh [tests] [bench] [profile] [big] [curve] [lpips] [convs]
 #   tests:   the CUDA tests of the layers, concatenation, SSIM term, LPIPS (its
 #            tap-distance kernels), soft-argmin, rasteriser
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
@@ -24,6 +24,8 @@
 #   cachestep: the step from the cache (real batches, both loss terms); with BASE the code before too,
 #            interleaved, twice ($OUT/cache_step.md)
 #   cachecurve: training runs with the encoder run and read from the cache, SEEDS each ($OUT/cache_curves.md)
+#   convs:   the predictor's convolutions alone with their channels padded to 8, 16, 32 and 64
+#            (scripts/profile/gpu_conv_channels.py; $OUT/conv_channels.md)
 #   lpips:   the step with the LPIPS term's VGG16 eager (--no-compile-lpips; `bench` times the compiled default),
 #            then training runs with the LPIPS term (random VGG16) compiled and eager, SEEDS each
 #            ($OUT/lpips_curves.md)
@@ -168,6 +170,8 @@ cachecurve)  # training runs with the encoder run and read from the cache, SEEDS
     done
   done
   curves "$OUT/cache_curves.md" "${runs[@]}" ;;
+convs)
+  run python3 scripts/profile/gpu_conv_channels.py --out "$OUT/conv_channels.md" ;;
 *) echo "unknown phase $what"; rc=2 ;;
 esac; done
 exit $rc
