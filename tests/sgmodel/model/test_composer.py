@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from sgmodel.model import composer as comp
+from tests.support.composer_inputs import make_inputs
 
 C0 = 0.28209479177387814
 
@@ -120,25 +121,6 @@ def ref_compose(front, back, dz, z, rgb, K, baseline, back_layer=True, edge_mask
 # ---------------------------------------------------------------------------------------------------------
 # Fixtures
 # ---------------------------------------------------------------------------------------------------------
-def make_inputs(B=2, H=6, W=24, seed=0, scale=3.0, dtype=torch.float64):
-    """Random residuals and depth maps with one vertical step edge each (smooth elsewhere), so that the
-    dilated band covers part of the canvas only."""
-    g = torch.Generator().manual_seed(seed)
-    front = scale * torch.randn(B, 37, H, W, generator=g, dtype=torch.float64)
-    back = scale * torch.randn(B, 37, H, W, generator=g, dtype=torch.float64)
-    dz = 2.0 * torch.randn(B, 1, H, W, generator=g, dtype=torch.float64)
-    u = torch.arange(W, dtype=torch.float64)
-    v = torch.arange(H, dtype=torch.float64)[:, None]
-    z = torch.empty(B, 1, H, W, dtype=torch.float64)
-    z[0, 0] = torch.where(u <= 2, 1.0, 3.0 + 0.01 * u) + 0.005 * v  # step between columns 2 and 3
-    z[1, 0] = torch.where(u <= 18, 6.0 - 0.02 * u, 0.5) + 0.01 * v  # step between columns 18 and 19
-    rgb = torch.rand(B, 3, H, W, generator=g, dtype=torch.float64)
-    K = torch.tensor([[[60.0, 0.0, 11.0], [0.0, 55.0, 3.2], [0.0, 0.0, 1.0]],
-                      [[40.0, 0.0, 12.5], [0.0, 44.0, 2.7], [0.0, 0.0, 1.0]]], dtype=torch.float64)[:B]
-    baseline = torch.tensor([0.12, 0.3], dtype=torch.float64)[:B]
-    return [t.to(dtype) for t in (front, back, dz, z, rgb, K, baseline)]
-
-
 OPTIONS = [dict(), dict(back_layer=False), dict(edge_mask="hard"), dict(edge_mask="soft"), dict(composer=False),
            dict(composer=False, back_layer=False), dict(composer=False, edge_mask="soft")]
 
@@ -445,90 +427,6 @@ def test_half_precision_branches_are_composed_in_float32(inputs64):
     for k in want:
         assert got[k].dtype == torch.float32
         torch.testing.assert_close(got[k], want[k], rtol=0, atol=0)
-
-
-# ---------------------------------------------------------------------------------------------------------
-# The fused kernels (CUDA)
-# ---------------------------------------------------------------------------------------------------------
-def _fused_case(dtype: torch.dtype, H: int = 40, W: int = 56):
-    """Inputs as the model gives them on CUDA: the branches as 37-channel views of 40-channel channels-last conv
-    outputs in ``dtype`` (leaves: the wide tensors), extreme residuals, zero quaternion vectors, clipped scales."""
-    g = torch.Generator().manual_seed(3)
-    B = 2
-    _, _, dz, z, rgb, K, baseline = make_inputs(B=B, H=H, W=W, dtype=torch.float32)
-    wide = [3.0 * torch.randn(B, 40, H, W, generator=g) for _ in range(2)]
-    for w in wide:
-        w[:, :, 0, :4] *= 3e3  # huge residuals: saturated sigmoids, clipped scales
-        w[:, 6:10, 1, 0] = torch.tensor([-10.0, 0.0, 0.0, 0.0])  # (1,0,0,0) + 0.1 dq = 0: the identity
-        w[:, 3:6, 1, 1] = -200.0  # below S_MIN after phi
-    z = z.clone()
-    z[:, :, 2, :3] = 1e-6
-    wide = [w.to(dtype).contiguous(memory_format=torch.channels_last).cuda().requires_grad_() for w in wide]
-    rest = [t.cuda() for t in (dz, z, rgb, K, baseline)]
-    rest[0].requires_grad_()
-    return wide, rest
-
-
-def _cotangents(out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    g = torch.Generator(device=next(iter(out.values())).device).manual_seed(4)
-    return {k: torch.randn(v.shape, generator=g, device=v.device, dtype=torch.float32) for k, v in out.items()}
-
-
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the fused composer kernels)")
-@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
-@pytest.mark.parametrize("back_layer", [True, False])
-def test_fused_kernels_match_the_float64_composer_on_cuda(dtype: torch.dtype, back_layer: bool) -> None:
-    """The fused kernels' attributes and gradients (of the branches, in their dtype, and of dz) against the PyTorch
-    composer in float64 on the same values."""
-    wide, (dz, z, rgb, K, baseline) = _fused_case(dtype)
-    branches = [w[:, :37] for w in wide]
-    assert comp._fused_runs(branches[0], z, rgb, True, "none")
-    out = comp.compose(branches[0], branches[1], dz, z, rgb, K, baseline, back_layer=back_layer)
-    leaves64 = [b.detach().double().requires_grad_() for b in branches] + [dz.detach().double().requires_grad_()]
-    ref = comp.compose(leaves64[0], leaves64[1], leaves64[2], z.double(), rgb.double(), K.double(),
-                       baseline.double(), back_layer=back_layer)
-    cot = _cotangents(out)
-    for k in ref:
-        assert out[k].dtype == torch.float32 and out[k].shape == ref[k].shape, k
-        torch.testing.assert_close(out[k].double(), ref[k], rtol=2e-6, atol=2e-6, msg=k)
-    sum((out[k] * cot[k]).sum() for k in out).backward()
-    sum((ref[k] * cot[k].double()).sum() for k in ref).backward()
-    layers = 2 if back_layer else 1
-    # float32: a saturated sigmoid's slope a (1 - a) has 1 - a below 1e-3, where an ulp of a (the kernels' exp and
-    # PyTorch's differ by one or two) moves it by 1e-4 relative: up to 3.3e-7 apart on the H100 in 9 of 165,760
-    tol = dict(rtol=1e-2, atol=1e-6) if dtype == torch.bfloat16 else dict(rtol=1e-4, atol=1e-6)
-    for i in range(layers):
-        assert wide[i].grad.dtype == dtype
-        torch.testing.assert_close(wide[i].grad[:, :37].double(), leaves64[i].grad.to(dtype).double(), **tol)
-        assert not wide[i].grad[:, 37:].any()
-    if back_layer:
-        torch.testing.assert_close(dz.grad.double(), leaves64[2].grad, rtol=1e-4, atol=1e-6)
-    else:
-        assert wide[1].grad is None and dz.grad is None
-
-
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the fused composer kernels)")
-def test_fused_kernels_match_the_pytorch_composer_in_float32_on_cuda() -> None:
-    """Against the PyTorch path in float32 on CUDA (z~ wanting a gradient sends compose there), with residuals
-    exactly on the scale caps: ``minimum`` halves the gradient on a tie, and so do the kernels."""
-    wide, (dz, z, rgb, K, baseline) = _fused_case(torch.float32)
-    with torch.no_grad():
-        wide[0][:, 3:6] = comp.scale_cap(comp.S_CAP_FRONT_EDGE)  # ties where the band is, below the cap elsewhere
-        wide[1][:, 3, :, :5] = comp.scale_cap(comp.S_CAP_BACK)
-    band = comp.edge_band(z, K, baseline)
-    assert band.any() and not band.all()
-    out = comp.compose(wide[0][:, :37], wide[1][:, :37], dz, z, rgb, K, baseline)
-    eager_leaves = [w.detach().clone().requires_grad_() for w in wide] + [dz.detach().clone().requires_grad_()]
-    z_grad = z.clone().requires_grad_()
-    assert not comp._fused_runs(eager_leaves[0], z_grad, rgb, True, "none")
-    ref = comp.compose(eager_leaves[0][:, :37], eager_leaves[1][:, :37], eager_leaves[2], z_grad, rgb, K, baseline)
-    cot = _cotangents(out)
-    for k in ref:
-        torch.testing.assert_close(out[k], ref[k], rtol=2e-6, atol=2e-6, msg=k)
-    sum((out[k] * cot[k]).sum() for k in out).backward()
-    sum((ref[k] * cot[k]).sum() for k in ref).backward()
-    for mine, theirs in zip([*wide, dz], eager_leaves):
-        torch.testing.assert_close(mine.grad, theirs.grad, rtol=1e-4, atol=1e-6)  # (the slopes above)
 
 
 @pytest.mark.parametrize("options", OPTIONS, ids=[str(o) or "default" for o in OPTIONS])
