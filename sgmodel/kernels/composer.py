@@ -3,9 +3,9 @@ composer on, no edge gate), forward and backward, one pass each per layer.
 
 Imported only on CUDA with Triton present; ``composer.compose``'s PyTorch path runs everywhere else, and that
 path (itself tested against the float64 reference of appendix A) is what the kernels are tested against
-(tests/sgmodel/kernels/test_composer_kernels.py). Why: in PyTorch the attributes are some 60 elementwise operations over
-[B, 37, Hc, Wc] float32 copies of the branches, each a pass through memory, and as many again backward (about
-7 ms forward at the paper's batch of 32 on an H100). Here a program reads a block of pixels' 37 branch
+(tests/sgmodel/kernels/test_composer_kernels.py). Why: in PyTorch the attributes are some 60 elementwise
+operations over [B, 37, Hc, Wc] float32 copies of the branches, each a pass through memory, and as many again
+backward (about 7 ms forward at the paper's batch of 32 on an H100). Here a program reads a block of pixels' 37 branch
 channels once (in the branch's dtype and strides, a bf16 channels-last view included), computes every
 attribute in float32 registers and writes them to their rows of the outputs (an SH row of 27 floats and a
 quaternion in one store each: separate stores 108 bytes apart made the forward slower than PyTorch's); the

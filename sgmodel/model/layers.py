@@ -15,9 +15,8 @@ CPU kernels prefer. The blocks below work in either layout and compute the same 
   output channels are computed padded to that multiple (zero filters, cut off again) and extra input
   channels of ``x`` (``cat_channels``) meet zero weights: cuDNN's NHWC kernels want channel counts in
   multiples of 8 (and are faster at some larger multiples: ``CUDA_INPUT_MULTIPLE``) and otherwise pad with
-  copies of their own. The first extra channel is all ones and
-  carries the bias inside the convolution. Same parameters and state_dict keys as
-  ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
+  copies of their own. The first extra channel is all ones and carries the bias inside the convolution.
+  Same parameters and state_dict keys as ``nn.Conv2d(..., padding=1, padding_mode="replicate")``.
 - ``cat_channels``: the channel concatenation of the convolutions' inputs, each source edge-replicated by
   its own padding on the way (the descriptor onto the canvas), with the ones channel and zeros appended; on
   CUDA one Triton pass (``sgmodel.kernels.concat``) instead of a padded copy and PyTorch's per-source copies.
