@@ -1,18 +1,17 @@
 """Triton kernels of the composer's attributes (``sgmodel.model.composer.compose``, the paper's model: the
 composer on, no edge gate), forward and backward, one pass each per layer.
 
-Imported only on CUDA with Triton present; ``composer.compose``'s PyTorch path runs everywhere else, and that
-path (itself tested against the float64 reference of appendix A) is what the kernels are tested against
-(tests/sgmodel/kernels/test_composer_kernels.py). Why: in PyTorch the attributes are some 60 elementwise
-operations over [B, 37, Hc, Wc] float32 copies of the branches, each a pass through memory, and as many again
-backward (about 7 ms forward at the paper's batch of 32 on an H100). Here a program reads a block of pixels' 37 branch
-channels once (in the branch's dtype and strides, a bf16 channels-last view included), computes every
-attribute in float32 registers and writes them to their rows of the outputs (an SH row of 27 floats and a
-quaternion in one store each: separate stores 108 bytes apart made the forward slower than PyTorch's); the
-backward recomputes what it needs from the branch and writes the branch's gradient in its dtype, and the
-depth's. Floating-point contraction is off, so every multiply and add rounds as PyTorch's separate operations
-do. 3.2 against 7.3 ms forward on an H100 at the paper's batch (docs/benchmarks.md "Issue 37: the composer in
-two kernels").
+Imported only on CUDA with Triton present; ``composer.compose``'s PyTorch path runs everywhere else, and that path
+(itself tested against the float64 reference of appendix A) is what the kernels are tested against
+(tests/sgmodel/kernels/test_composer_kernels.py). Why: in PyTorch the attributes are some 60 elementwise operations
+over [B, 37, Hc, Wc] float32 copies of the branches, each a pass through memory, and as many again backward (about
+7 ms forward at the paper's batch of 32 on an H100). Here a program reads a block of pixels' 37 branch channels once
+(in the branch's dtype and strides, a bf16 channels-last view included), computes every attribute in float32
+registers and writes them to their rows of the outputs (an SH row of 27 floats and a quaternion in one store each:
+separate stores 108 bytes apart made the forward slower than PyTorch's); the backward recomputes what it needs from
+the branch and writes the branch's gradient in its dtype, and the depth's. Floating-point contraction is off, so
+every multiply and add rounds as PyTorch's separate operations do. 3.2 against 7.3 ms forward on an H100 at the
+paper's batch (docs/benchmarks.md "Issue 37: the composer in two kernels").
 
 Per pixel (u the column, v the row, z_l the layer's depth in metres; ``composer``'s docstring):
 means = z_l K~^-1 (u + 1/2 + sigmoid(o_u) - 1/2, v + 1/2 + sigmoid(o_v) - 1/2, 1); quats = normalise((1, 0,
