@@ -93,7 +93,7 @@ tests)
   run python3 -m pytest -q -p no:cacheprovider tests/sgmodel/model/test_layers.py tests/sgmodel/kernels/test_ssim_kernels.py tests/sgmodel/model/test_model.py \
     tests/sgmodel/kernels/test_concat_kernels.py tests/sgmodel/kernels/test_lpips_kernels.py tests/sgmodel/kernels/test_composer_kernels.py \
     tests/sgmodel/metrics/test_lpips.py tests/sgmodel/kernels/test_soft_argmin.py tests/scenesplat_stereo/raster/test_raster_backward.py tests/scenesplat_stereo/raster/test_raster_forward.py \
-    tests/scenesplat_stereo/raster/test_raster_variants.py tests/scenesplat_stereo/raster/test_raster_batch.py tests/scenesplat_stereo/raster/test_raster_stability.py -k "cuda" 2>&1 \
+    tests/scenesplat_stereo/raster/test_raster_variants.py tests/scenesplat_stereo/raster/test_raster_batch.py tests/scenesplat_stereo/raster/test_raster_stability.py -k "cuda or kernels" 2>&1 \
     | tee "$OUT/tests.txt" | tail -5 ;;
 bench)
   run "${bench[@]}" --lpips-random-vgg --out /tmp/bench_new.md && cat /tmp/bench_new.md >> "$OUT/bench.md"

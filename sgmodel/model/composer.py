@@ -27,7 +27,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from sgmodel.kernels import triton_kernels_run
+from sgmodel.kernels import triton_kernels_run, triton_runs_on
 
 # --- Constants (paper appendix A "Attribute composition" unless noted) -------------------------------------
 Z_MIN, Z_MAX = 0.1, 10.0  # eq. 1 and appendix A: depth clip in metres, applied BEFORE the composer
@@ -264,9 +264,10 @@ def _fused_layers(front: torch.Tensor, back: torch.Tensor | None, z: torch.Tenso
 
 
 def _fused_runs(front: torch.Tensor, z: torch.Tensor, rgb: torch.Tensor, composer: bool, edge_mask: str) -> bool:
-    """Whether ``compose`` runs through ``_FusedLayers``: the paper's model (the composer on, no edge gate) on CUDA
-    with Triton, branches in float32 or half precision, and no gradient wanted for z~ or RGB~."""
-    return (composer and edge_mask == "none" and triton_kernels_run(front) and z.is_cuda
+    """Whether ``compose`` runs through ``_FusedLayers``: the paper's model (the composer on, no edge gate) where
+    Triton runs (``triton_runs_on``: CUDA), branches in float32 or half precision, and no gradient wanted for z~
+    or RGB~."""
+    return (composer and edge_mask == "none" and triton_kernels_run(front) and triton_runs_on(z)
             and not (z.requires_grad or rgb.requires_grad))
 
 

@@ -1,6 +1,6 @@
-"""The composer's Triton kernels (``sgmodel.kernels.composer``, CUDA) against the composer's PyTorch path: in
-float64 (itself tested against the float64 reference of appendix A in tests/sgmodel/model/test_composer.py), and
-in float32 with residuals exactly on the scale caps."""
+"""The composer's Triton kernels (``sgmodel.kernels.composer``; where they run: tests/support/kernels.py) against
+the composer's PyTorch path: in float64 (itself tested against the float64 reference of appendix A in
+tests/sgmodel/model/test_composer.py), and in float32 with residuals exactly on the scale caps."""
 
 from __future__ import annotations
 
@@ -10,13 +10,14 @@ import torch
 from sgmodel.model import composer as comp
 from sgmodel.model.layers import CUDA_OUTPUT_MULTIPLE
 from tests.support.composer_inputs import make_inputs
+from tests.support.kernels import KERNEL_DEVICE, kernel_test
 
 #: the final convs' output channels as the model computes them on CUDA (37 rounded up)
 WIDE = -(-37 // CUDA_OUTPUT_MULTIPLE) * CUDA_OUTPUT_MULTIPLE
 
 
 def _fused_case(dtype: torch.dtype, H: int = 40, W: int = 56):
-    """Inputs as the model gives them on CUDA: the branches as 37-channel views of ``WIDE``-channel channels-last
+    """Inputs as the model gives them on CUDA, on ``KERNEL_DEVICE``: the branches as 37-channel views of ``WIDE``-channel channels-last
     conv outputs in ``dtype`` (leaves: the wide tensors), extreme residuals, zero quaternion vectors, clipped
     scales."""
     g = torch.Generator().manual_seed(3)
@@ -29,8 +30,8 @@ def _fused_case(dtype: torch.dtype, H: int = 40, W: int = 56):
         w[:, 3:6, 1, 1] = -200.0  # below S_MIN after phi
     z = z.clone()
     z[:, :, 2, :3] = 1e-6
-    wide = [w.to(dtype).contiguous(memory_format=torch.channels_last).cuda().requires_grad_() for w in wide]
-    rest = [t.cuda() for t in (dz, z, rgb, K, baseline)]
+    wide = [w.to(dtype).contiguous(memory_format=torch.channels_last).to(KERNEL_DEVICE).requires_grad_() for w in wide]
+    rest = [t.to(KERNEL_DEVICE) for t in (dz, z, rgb, K, baseline)]
     rest[0].requires_grad_()
     return wide, rest
 
@@ -40,10 +41,10 @@ def _cotangents(out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return {k: torch.randn(v.shape, generator=g, device=v.device, dtype=torch.float32) for k, v in out.items()}
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the fused composer kernels)")
+@kernel_test
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 @pytest.mark.parametrize("back_layer", [True, False])
-def test_fused_kernels_match_the_float64_composer_on_cuda(dtype: torch.dtype, back_layer: bool) -> None:
+def test_fused_kernels_match_the_float64_composer(dtype: torch.dtype, back_layer: bool) -> None:
     """The fused kernels' attributes and gradients (of the branches, in their dtype, and of dz) against the PyTorch
     composer in float64 on the same values."""
     wide, (dz, z, rgb, K, baseline) = _fused_case(dtype)
@@ -73,9 +74,9 @@ def test_fused_kernels_match_the_float64_composer_on_cuda(dtype: torch.dtype, ba
         assert wide[1].grad is None and dz.grad is None
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the fused composer kernels)")
-def test_fused_kernels_match_the_pytorch_composer_in_float32_on_cuda() -> None:
-    """Against the PyTorch path in float32 on CUDA (z~ wanting a gradient sends compose there), with residuals
+@kernel_test
+def test_fused_kernels_match_the_pytorch_composer_in_float32() -> None:
+    """Against the PyTorch path in float32 on the same device (z~ wanting a gradient sends compose there), with residuals
     exactly on the scale caps: ``minimum`` halves the gradient on a tie, and so do the kernels."""
     wide, (dz, z, rgb, K, baseline) = _fused_case(torch.float32)
     with torch.no_grad():

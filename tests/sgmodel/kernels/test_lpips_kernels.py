@@ -1,7 +1,8 @@
 """LPIPS's tap distance on CUDA (``sgmodel.metrics.lpips._KernelTapDistance``, the Triton kernels of
 ``sgmodel.kernels.lpips_tap``) against the float64 ``_TapDistance`` (itself checked against autograd through the
-plain operations in tests/sgmodel/metrics/test_lpips.py), and the LPIPS term built on it against the PyTorch path. CUDA only
-(Triton's GPU kernels); the CPU's path is ``_TapDistance``, tested there."""
+plain operations in tests/sgmodel/metrics/test_lpips.py), and the LPIPS term built on it against the PyTorch path. The
+kernels run where tests/support/kernels.py says; the dispatch and the LPIPS term on CUDA only (the CPU's path is
+``_TapDistance``, tested there)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import torch.nn.functional as F
 
 from sgmodel.metrics import lpips as lpips_module
 from sgmodel.metrics.lpips import _KernelTapDistance, _TapDistance, random_lpips, tap_distance
+from tests.support.kernels import KERNEL_DEVICE, interpret_only_if, kernel_test
 
 CL = torch.channels_last
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (the Triton tap-distance kernels)")
@@ -20,8 +22,8 @@ ROUNDING = {torch.float32: (2e-6, 0.0), torch.bfloat16: (2 ** -8, 0.0), torch.fl
 
 
 def features(n, c, h, w, layout, dtype, seed, zero_pixels=True):
-    """ReLU-like features a, b [n, c, h, w] on CUDA in ``dtype`` and ``layout`` ("channels_last", "nchw", or
-    "slice": a channel slice of a wider channels-last map); with ``zero_pixels`` some pixels all zero on one
+    """ReLU-like features a, b [n, c, h, w] on ``KERNEL_DEVICE`` in ``dtype`` and ``layout`` ("channels_last",
+    "nchw", or "slice": a channel slice of a wider channels-last map); with ``zero_pixels`` some pixels all zero on one
     side and one on both (ReLU outputs have them), else none."""
     g = torch.Generator().manual_seed(seed)
     a, b = (torch.relu(torch.randn(n, c + (3 if layout == "slice" else 0), h, w, generator=g)) for _ in range(2))
@@ -34,29 +36,30 @@ def features(n, c, h, w, layout, dtype, seed, zero_pixels=True):
         a[0, :, h // 2, w // 2] = b[0, :, h // 2, w // 2] = 0
     out = []
     for t in (a, b):
-        t = t.to("cuda", dtype)
+        t = t.to(KERNEL_DEVICE, dtype)
         if layout != "nchw":
             t = t.contiguous(memory_format=CL)
         out.append(t[:, 1:c + 1] if layout == "slice" else t)
     return out
 
 
-@needs_cuda
+@kernel_test
 @pytest.mark.parametrize("shape", [(1, 64, 1, 1), (2, 64, 9, 13), (3, 100, 7, 5), (2, 3, 6, 6), (1, 512, 8, 8),
                                    (4, 128, 32, 32)])
 @pytest.mark.parametrize("layout", ["channels_last", "nchw", "slice"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16, torch.float16])
 @pytest.mark.parametrize("need", [(False, True), (True, False), (True, True), (False, False)])
-def test_tap_distance_kernels_match_float64_on_cuda(shape, layout, dtype, need):
+def test_tap_distance_kernels_match_float64(shape, layout, dtype, need):
     """The map and each gradient wanted, for a random and an expanded (a mean's) incoming gradient: the map
     within float32 rounding of the float64 one on the same feature values, each gradient within one rounding
     of its dtype, in the feature's dtype and memory format (a channel slice's: dense channels-last); all-zero
     feature pixels included (their gradient
     is the 1 / eps one of ``_TapDistance``, beyond float16's range: float16 cases have none)."""
+    interpret_only_if(dtype == torch.float32, "the interpreter's half-precision arithmetic is not the GPU's")
     a, b = features(*shape, layout, dtype, seed=shape[1] + shape[2], zero_pixels=dtype != torch.float16)
-    w = torch.rand(1, shape[1], 1, 1, generator=torch.Generator().manual_seed(2)).cuda()
+    w = torch.rand(1, shape[1], 1, 1, generator=torch.Generator().manual_seed(2)).to(KERNEL_DEVICE)
     n, _, h, wd = shape
-    up = torch.rand(n, 1, h, wd, generator=torch.Generator().manual_seed(3), dtype=torch.float64).cuda()
+    up = torch.rand(n, 1, h, wd, generator=torch.Generator().manual_seed(3), dtype=torch.float64).to(KERNEL_DEVICE)
     for upstream in (up, None):
         results = []
         for fn, xs in ((_KernelTapDistance.apply, (a, b)), (_TapDistance.apply, (a.double(), b.double()))):
@@ -89,14 +92,14 @@ def first_term(f, o, w, grad):
     return 2 * grad.abs() * size.amax(dim=1, keepdim=True) / norm[0]
 
 
-@needs_cuda
-def test_tap_distance_of_identical_features_vanishes_on_cuda():
+@kernel_test
+def test_tap_distance_of_identical_features_vanishes():
     """The same features on both sides (a render equal to its target): the map and the gradient vanish up to
     float32's rounding of the difference of the two (equal) normalisations (the compiler may contract one
     product into a fused multiply-add), and are exactly 0 at all-zero pixels."""
     a, _ = features(2, 64, 5, 6, "channels_last", torch.bfloat16, seed=1)
     b = a.clone().requires_grad_(True)
-    w = torch.rand(1, 64, 1, 1, device="cuda")
+    w = torch.rand(1, 64, 1, 1, device=KERNEL_DEVICE)
     d = tap_distance(a, b, w)
     (g,) = torch.autograd.grad(d.sum(), b)
     assert (d.abs() <= 1e-12).all(), d.abs().max().item()
