@@ -9,9 +9,10 @@ forward and, where training needs one, a backward; the operation that dispatches
 and ``scenesplat_stereo.raster`` are the only ones that import Warp or Triton (tests/test_import_cycles.py);
 importing this package itself imports neither.
 
-The Triton kernels run on CUDA tensors, and on CPU tensors in a process started with ``TRITON_INTERPRET=1``:
-Triton's interpreter then runs each kernel program in numpy (some thousand times slower than a GPU; the same
-arithmetic in float32, as IEEE operations). That is how the kernels are tested on a machine without a GPU
+The Triton kernels run on CUDA tensors, and (but for ``concat``'s and ``ssim``'s, which Triton's interpreter cannot
+run as written) on CPU tensors in a process started with ``TRITON_INTERPRET=1``: the interpreter then runs each
+kernel program in numpy (some thousand times slower than a GPU; float32 arithmetic as IEEE operations, half
+precision rounded its own way). That is how the kernels are tested on a machine without a GPU
 (``TRITON_INTERPRET=1 python -m pytest -m kernels``); the variable must be set before Triton is imported, since
 Triton decides at import which of its own functions are interpreted.
 """

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from scenesplat_stereo.common.measure import psnr_from_mse
-from sgmodel.kernels import triton_runs_on
+from sgmodel.kernels import triton_installed
 from sgmodel.metrics.lpips import LPIPS
 
 #: SSIM constants of Wang et al. 2004 as skimage uses them (SPEC section 7 "Metrics").
@@ -203,7 +203,7 @@ def ssim_map(pred: Tensor, target: Tensor, border: bool = True) -> Tensor:
     y = target.reshape(-1, 3, h, w)
     if border:
         s = _ssim_terms(_moments(x, y, border=True))[0]
-    elif x.dtype == y.dtype == torch.float32 and triton_runs_on(x):
+    elif x.is_cuda and x.dtype == y.dtype == torch.float32 and triton_installed():
         s = _KernelSSIM.apply(x, y)
     else:
         s = _InteriorSSIM.apply(x, y)

@@ -265,8 +265,8 @@ def _fused_layers(front: torch.Tensor, back: torch.Tensor | None, z: torch.Tenso
 
 def _fused_runs(front: torch.Tensor, z: torch.Tensor, rgb: torch.Tensor, composer: bool, edge_mask: str) -> bool:
     """Whether ``compose`` runs through ``_FusedLayers``: the paper's model (the composer on, no edge gate) where
-    Triton runs (``triton_runs_on``: CUDA), branches in float32 or half precision, and no gradient wanted for z~
-    or RGB~."""
+    Triton runs (``triton_runs_on``: CUDA, or the CPU under Triton's interpreter), branches in float32 or half
+    precision, and no gradient wanted for z~ or RGB~."""
     return (composer and edge_mask == "none" and triton_kernels_run(front) and triton_runs_on(z)
             and not (z.requires_grad or rgb.requires_grad))
 

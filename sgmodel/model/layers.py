@@ -40,7 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sgmodel.kernels import CAT_KERNEL_SOURCES, channels_last_kernels_run, triton_installed, triton_runs_on
+from sgmodel.kernels import CAT_KERNEL_SOURCES, channels_last_kernels_run, triton_installed
 
 #: on CUDA, channel counts of concatenated inputs are padded to a multiple of ``CUDA_INPUT_MULTIPLE`` and
 #: convolution outputs to one of ``CUDA_OUTPUT_MULTIPLE``: the multiples whose cuDNN NHWC kernels were fastest
@@ -93,7 +93,7 @@ def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int]
                          f"pads {pads}")
     total = sum(t.shape[1] for t in tensors)
     width = _round_up(total, multiple)
-    if triton_runs_on(x) and len(tensors) <= CAT_KERNEL_SOURCES and x.dtype.is_floating_point:
+    if x.is_cuda and len(tensors) <= CAT_KERNEL_SOURCES and triton_installed() and x.dtype.is_floating_point:
         return _CatChannels.apply(width, tuple(pads), *tensors)
     tensors = [replicate_pad(t, p) for t, p in zip(tensors, pads)]
     if width > total:
