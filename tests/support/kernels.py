@@ -1,7 +1,7 @@
 """Where the tests of our Triton kernels run them: on CUDA where there is a GPU, else on the CPU under Triton's
 interpreter in a process started with ``TRITON_INTERPRET=1`` (``sgmodel.kernels``' docstring), else nowhere (the
 tests skip, saying how to run them). Marked ``kernels``: ``TRITON_INTERPRET=1 python -m pytest -m kernels`` runs
-every one on a machine without a GPU."""
+them on a machine without a GPU (the concatenation's and SSIM's kernel tests are not marked: CUDA only)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from sgmodel.kernels import triton_installed, triton_interpreted
 
 #: the device the kernel tests put their tensors on
 KERNEL_DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
-#: the most elements a tested tensor has under the interpreter (larger cases run on CUDA only: the interpreter
-#: takes about a second per million elements a kernel reads)
+#: the most elements a tested tensor has under the interpreter (larger cases run on CUDA only, which keeps the
+#: interpreter's run near a minute on 2 cores)
 INTERPRETED_ELEMENTS = 1 << 20
 
 
