@@ -53,6 +53,27 @@ def _ray(kinv_ptr, b, u, v, du, dv):
 
 
 @triton.jit
+def _quat(src, sc, m, R_QUAT: tl.constexpr):
+    """The quaternion (1, 0, 0, 0) + R_QUAT dq of the branch's channels 6 to 9 at ``src``, and its squared norm
+    (summed left to right, as PyTorch's): (q0, q1, q2, q3, |q|^2), float32."""
+    q0 = 1.0 + R_QUAT * tl.load(src + 6 * sc, mask=m, other=0.0).to(tl.float32)
+    q1 = R_QUAT * tl.load(src + 7 * sc, mask=m, other=0.0).to(tl.float32)
+    q2 = R_QUAT * tl.load(src + 8 * sc, mask=m, other=0.0).to(tl.float32)
+    q3 = R_QUAT * tl.load(src + 9 * sc, mask=m, other=0.0).to(tl.float32)
+    return q0, q1, q2, q3, ((q0 * q0 + q1 * q1) + q2 * q2) + q3 * q3
+
+
+@triton.jit
+def _cap(band_ptr, b, HW, p, m, cap_edge, cap_all, HAS_BAND: tl.constexpr):
+    """The scale residuals' cap at the block's pixels: ``cap_edge`` in the edge band (when the layer has one),
+    ``cap_all`` elsewhere."""
+    cap = cap_all
+    if HAS_BAND:
+        cap = tl.where(tl.load(band_ptr + b.to(tl.int64) * HW + p, mask=m, other=0) != 0, cap_edge, cap_all)
+    return cap
+
+
+@triton.jit
 def _forward_kernel(br_ptr, sb, sc, sh, sw, z_ptr, rgb_ptr, rgb_sb, rgb_sc, band_ptr, kinv_ptr, rs_ptr,
                     means_ptr, quats_ptr, scales_ptr, opac_ptr, sh_ptr, HW, W, N, row0,
                     cap_edge, cap_all, S_MIN: tl.constexpr, S_MAX: tl.constexpr, KAPPA: tl.constexpr,
@@ -71,11 +92,7 @@ def _forward_kernel(br_ptr, sb, sc, sh, sw, z_ptr, rgb_ptr, rgb_sb, rgb_sc, band
     tl.store(means_ptr + row * 3 + 1, z * ry, mask=m)
     tl.store(means_ptr + row * 3 + 2, z * rz, mask=m)
     # rotations
-    q0 = 1.0 + R_QUAT * tl.load(src + 6 * sc, mask=m, other=0.0).to(tl.float32)
-    q1 = R_QUAT * tl.load(src + 7 * sc, mask=m, other=0.0).to(tl.float32)
-    q2 = R_QUAT * tl.load(src + 8 * sc, mask=m, other=0.0).to(tl.float32)
-    q3 = R_QUAT * tl.load(src + 9 * sc, mask=m, other=0.0).to(tl.float32)
-    n2 = ((q0 * q0 + q1 * q1) + q2 * q2) + q3 * q3
+    q0, q1, q2, q3, n2 = _quat(src, sc, m, R_QUAT)
     ok = n2 > EPS2
     norm = tl.sqrt(tl.maximum(n2, EPS2))
     q = tl.join(tl.join(tl.where(ok, q0 / norm, 1.0), tl.where(ok, q2 / norm, 0.0)),  # [p, i, j]: component 2i + j
@@ -83,9 +100,7 @@ def _forward_kernel(br_ptr, sb, sc, sh, sw, z_ptr, rgb_ptr, rgb_sb, rgb_sc, band
     tl.store(quats_ptr + row[:, None] * 4 + tl.arange(0, 4)[None, :], q, mask=m[:, None])
     # scales
     s0 = KAPPA * z / tl.load(rs_ptr + b)
-    cap = cap_all
-    if HAS_BAND:
-        cap = tl.where(tl.load(band_ptr + b.to(tl.int64) * HW + p, mask=m, other=0) != 0, cap_edge, cap_all)
+    cap = _cap(band_ptr, b, HW, p, m, cap_edge, cap_all, HAS_BAND)
     for i in tl.static_range(3):
         t = tl.minimum(tl.load(src + (3 + i) * sc, mask=m, other=0.0).to(tl.float32), cap)
         s = s0 * (PHI_RANGE * _sigmoid(PHI_SLOPE * t + PHI_SHIFT) + PHI_MIN)
@@ -143,11 +158,7 @@ def _backward_kernel(br_ptr, sb, sc, sh, sw, d_ptr, dsb, dsc, dsh, dsw, z_ptr, d
     tl.store(dst + 1 * dsc, (dpx * (su * (1.0 - su))).to(ty), mask=m)
     tl.store(dst + 2 * dsc, (dpy * (sv * (1.0 - sv))).to(ty), mask=m)
     # rotations: d q = (g - unit (unit . g)) / |q| where |q|^2 > EPS2, else nothing
-    q0 = 1.0 + R_QUAT * tl.load(src + 6 * sc, mask=m, other=0.0).to(tl.float32)
-    q1 = R_QUAT * tl.load(src + 7 * sc, mask=m, other=0.0).to(tl.float32)
-    q2 = R_QUAT * tl.load(src + 8 * sc, mask=m, other=0.0).to(tl.float32)
-    q3 = R_QUAT * tl.load(src + 9 * sc, mask=m, other=0.0).to(tl.float32)
-    n2 = ((q0 * q0 + q1 * q1) + q2 * q2) + q3 * q3
+    q0, q1, q2, q3, n2 = _quat(src, sc, m, R_QUAT)
     norm = tl.sqrt(tl.maximum(n2, EPS2))
     scale = tl.where(n2 > EPS2, R_QUAT / norm, 0.0)
     g0 = tl.load(g_quats + row * 4, mask=m, other=0.0)
@@ -162,9 +173,7 @@ def _backward_kernel(br_ptr, sb, sc, sh, sw, d_ptr, dsb, dsc, dsh, dsw, z_ptr, d
     # scales
     rs = tl.load(rs_ptr + b)
     s0 = KAPPA * z / rs
-    cap = cap_all
-    if HAS_BAND:
-        cap = tl.where(tl.load(band_ptr + b.to(tl.int64) * HW + p, mask=m, other=0) != 0, cap_edge, cap_all)
+    cap = _cap(band_ptr, b, HW, p, m, cap_edge, cap_all, HAS_BAND)
     ds0 = tl.zeros_like(z)
     for i in tl.static_range(3):
         x = tl.load(src + (3 + i) * sc, mask=m, other=0.0).to(tl.float32)

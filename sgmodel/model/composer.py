@@ -331,8 +331,8 @@ def _compose(front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | 
     dtype = torch.float32 if front.dtype in (torch.float16, torch.bfloat16) else front.dtype
     K, baseline = K.to(dtype), baseline.to(dtype)
     band = edge_band(z, K, baseline) if (composer or edge_mask != "none") else None  # caps and/or gates
+    depth_back = None if back is None else back_depth(z, dz.to(dtype))
     if _fused_runs(front, z, rgb, composer, edge_mask):
-        depth_back = None if back is None else back_depth(z, dz.to(dtype))
         out = _FusedLayers.apply(front, back, depth_back, z.to(dtype).contiguous(), rgb.to(dtype).contiguous(), K,
                                  band)
         return dict(zip(("means", "quats", "scales", "opacities", "sh"), out))
@@ -345,5 +345,5 @@ def _compose(front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | 
     layers = [_layer(front, z, rgb, K, front_cap, None, composer)]
     if back is not None:
         gate = None if band is None or edge_mask == "none" else edge_gate(band, edge_mask, front.dtype)
-        layers.append(_layer(back.to(dtype), back_depth(z, dz), rgb, K, back_cap, gate, composer))
+        layers.append(_layer(back.to(dtype), depth_back, rgb, K, back_cap, gate, composer))
     return {k: torch.cat([layer[k] for layer in layers], dim=1) for k in layers[0]}
