@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -102,6 +103,35 @@ def test_a_folder_without_an_owner_is_left_alone(tmp_path):
         (folder / "slot").mkdir(parents=True)
     assert scratch.reap(str(tmp_path)) == []
     assert (unowned / "slot").is_dir() and (other / "slot").is_dir()
+
+
+def test_a_folder_being_made_is_left_alone_by_another_processs_reap(monkeypatch):
+    """Another process reaps while this one has made its folder and owner file but not locked it yet (two ranks
+    of a distributed run start together): the folder stays, as its owner file is not there under its name until
+    it is locked."""
+    reaped, real_flock = [], scratch.fcntl.flock
+
+    class Fcntl:  # the real fcntl, with another process's reap run just before this process's first lock
+        LOCK_EX, LOCK_NB = scratch.fcntl.LOCK_EX, scratch.fcntl.LOCK_NB
+
+        @staticmethod
+        def flock(fd, op):
+            if not reaped:
+                base = os.path.dirname(os.path.dirname(os.readlink(f"/proc/self/fd/{fd}")))
+                code = f"from scenesplat_stereo.common import scratch; print(scratch.reap({base!r}))"
+                reaped.append(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                                             cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}).stdout)
+            real_flock(fd, op)
+
+    monkeypatch.setattr(scratch, "_scratch", {})  # this process makes a new folder
+    monkeypatch.setattr(scratch, "fcntl", Fcntl)
+    folder = scratch.scratch_dir()
+    try:
+        assert reaped and folder not in reaped[0]
+        assert os.path.isdir(folder) and os.path.exists(os.path.join(folder, scratch.OWNER))
+    finally:
+        os.close(scratch._scratch["owner"])
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def _sum_in_worker(path: str, layout: scratch.Layout) -> dict[str, float]:
