@@ -5,6 +5,8 @@ time by kind, and the GPU's idle gaps (first kernel to last) with the host opera
 each of the largest began; then the PyTorch operations with the most GPU time of their own, by input shape
 (which elementwise kernel, copy or reduction comes from where). Used by scripts/gpu/train_step.sh
 (profile). ``--cached-encoder``: the encoder's outputs given with the batch, as ``--encoder-cache`` gives them.
+Last, the host synchronisations of one more step, each with where our code called it (torch's sync debug mode:
+PyTorch's own operations only; Warp's, the binning's read of its sizes, are not seen there).
 
     python scripts/profile/gpu_train_profile.py [--steps 3] [--lpips-random-vgg] [--cached-encoder] [--top 40] [--out FILE]
 """
@@ -13,8 +15,11 @@ from __future__ import annotations
 
 import argparse
 import bisect
+import collections
 import sys
 import time
+import traceback
+import warnings
 from pathlib import Path
 
 import torch
@@ -113,6 +118,7 @@ def main() -> int:
     lines += ["", "| operation | input shapes | self GPU ms / step | calls / step |", "|---|---|---:|---:|"]
     lines += [f"| `{e.key[:100]}` | `{str(e.input_shapes)[:90]}` | {e.self_device_time_total / 1e3 / n:.2f} | "
               f"{e.count / n:.0f} |" for e in ops[:args.top]]
+    lines += [""] + host_syncs(lambda: train_step(model, batches[0], objective, optimizer, scheduler, True))
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
@@ -148,6 +154,30 @@ def gaps(kernels, host_ops, n: int) -> list[str]:
             j -= 1
         out.append(f"- {g:.0f} us, host in: {', '.join(reversed(names))}")
     return out
+
+
+def host_syncs(step) -> list[str]:
+    """Each PyTorch operation of ``step()`` that waits for the GPU, by where our code called it (its three
+    innermost frames in sgmodel or scenesplat_stereo), with its count."""
+    seen: collections.Counter = collections.Counter()
+
+    def note(message, *_):
+        ours = [f for f in traceback.extract_stack()[:-1] if "/sgmodel/" in f.filename or "/scenesplat_stereo/" in f.filename]
+        where = " <- ".join(f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in reversed(ours[-3:]))
+        seen[(str(message).splitlines()[0][:70], where or "outside our code")] += 1
+
+    torch.cuda.synchronize()
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = note
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            step()
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    rows = [f"| {n} | {what} | {where} |" for (what, where), n in seen.most_common()]
+    return [f"Host synchronisations in one step (torch's sync debug mode): {sum(seen.values())}", "",
+            "| count | operation | called from |", "|---:|---|---|", *rows]
 
 
 if __name__ == "__main__":

@@ -29,7 +29,11 @@ import torch
 import triton
 import triton.language as tl
 
-_TILE_ELEMENTS = 4096  # pixels x channels of one program's tile
+#: (pixels x channels of one program's tile, warps of a program) of the forward's kernels (statistics, apply) and
+#: of the backward's (sums, dx); any tile of at least 16 pixels computes the same function up to float32 summation
+#: order. ``python scripts/profile/gpu_group_norm_tiles.py`` times the choices (docs/benchmarks.md).
+FORWARD_LAUNCH = (4096, 4)
+BACKWARD_LAUNCH = (4096, 4)
 
 
 @triton.jit
@@ -164,11 +168,11 @@ def _backward_dx_kernel(x_ptr, dy0_ptr, dy1_ptr, dy2_ptr, dx_ptr, mean_ptr, rstd
     tl.store(dx_ptr + offs, dx.to(dx_ptr.dtype.element_ty), mask=mask)
 
 
-def _launch_shape(x: torch.Tensor, groups: int) -> tuple[int, int, int, int, int, int, int]:
+def _launch_shape(x: torch.Tensor, groups: int, tile: int) -> tuple[int, int, int, int, int, int, int]:
     B, C, H, W = x.shape
     gs = C // groups
     gs_p2 = triton.next_power_of_2(gs)
-    block = max(16, _TILE_ELEMENTS // gs_p2)
+    block = max(16, tile // gs_p2)
     P = H * W
     return B, C, P, gs, gs_p2, block, triton.cdiv(P, block)
 
@@ -192,12 +196,13 @@ def forward(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.Tens
             parts: int = 1) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]:
     """([y] or y's ``parts`` channel blocks, each channels-last [B, C / parts, H, W]; mean [B, G] float32,
     rstd [B, G] float32) of a channels-last x."""
-    B, C, P, gs, gs_p2, block, T = _launch_shape(x, groups)
+    tile, warps = FORWARD_LAUNCH
+    B, C, P, gs, gs_p2, block, T = _launch_shape(x, groups, tile)
     _check_parts(C, groups, parts)
     tile_mean = torch.empty(B, T, groups, device=x.device, dtype=torch.float32)
     tile_m2 = torch.empty_like(tile_mean)
     grid = (groups, T, B)
-    _stats_kernel[grid](x, tile_mean, tile_m2, P, C, T, G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block)
+    _stats_kernel[grid](x, tile_mean, tile_m2, P, C, T, G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block, num_warps=warps)
     counts = (P - torch.arange(T, device=x.device) * block).clamp(max=block) * gs
     mean, var = _combine(tile_mean, tile_m2, counts)
     rstd = torch.rsqrt(var + eps).float()
@@ -205,7 +210,7 @@ def forward(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.Tens
     H, W = x.shape[2:]
     y = torch.empty(parts, B, H, W, C // parts, device=x.device, dtype=x.dtype)
     _apply_kernel[grid](x, y, mean, rstd, weight, bias, P, C, C // parts, y[0].numel(), G=groups, GS=gs,
-                        GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts)
+                        GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts, num_warps=warps)
     return [part.permute(0, 3, 1, 2) for part in y], mean, rstd
 
 
@@ -214,7 +219,8 @@ def backward(dys: list[torch.Tensor], x: torch.Tensor, mean: torch.Tensor, rstd:
              ) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
     """(dx or None, dgamma, dbeta) in x's, the weight's and the bias's dtypes, from dL/dy as ``forward``
     gave y: one tensor or its parts."""
-    B, C, P, gs, gs_p2, block, T = _launch_shape(x, groups)
+    tile, warps = BACKWARD_LAUNCH
+    B, C, P, gs, gs_p2, block, T = _launch_shape(x, groups, tile)
     parts = len(dys)
     _check_parts(C, groups, parts)
     dys = [dy.contiguous(memory_format=torch.channels_last) for dy in dys]
@@ -225,10 +231,11 @@ def backward(dys: list[torch.Tensor], x: torch.Tensor, mean: torch.Tensor, rstd:
     db = torch.empty_like(dw)
     grid = (groups, T, B)
     _backward_sums_kernel[grid](x, *dys, mean, rstd, weight, bias, s1, s2, dw, db, P, C, C // parts, T, G=groups,
-                                GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts)
+                                GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts, num_warps=warps)
     dx = None
     if need_x:
         dx = torch.empty_like(x, memory_format=torch.channels_last)
         _backward_dx_kernel[grid](x, *dys, dx, mean, rstd, weight, bias, s1.sum(1), s2.sum(1), P, C, C // parts,
-                                  1.0 / (P * gs), G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts)
+                                  1.0 / (P * gs), G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts,
+                                  num_warps=warps)
     return dx, dw.sum((0, 1)).to(weight.dtype), db.sum((0, 1)).to(bias.dtype)

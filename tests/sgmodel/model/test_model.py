@@ -133,9 +133,22 @@ def test_ablation_variants_build_and_run(change):
     assert all(torch.isfinite(v).all() for v in g.values())
 
 
+def _K_with(item: int, row: int, col: int, value: float) -> torch.Tensor:
+    K = textured_batch(B=2, S=32)["K"].clone()
+    K[item, row, col] = value
+    return K
+
+
 @pytest.mark.parametrize("field,value,match", [
-    ("baseline", torch.zeros(2), "baseline"), ("baseline", torch.tensor([0.1, float("nan")]), "baseline"),
-    ("K", torch.zeros(2, 3, 3), "focal"), ("left", torch.rand(2, 3, 8, 8), "too small|same"),
+    ("baseline", torch.zeros(2), r"baseline must be finite and > 0 metres: not so for batch items \[0, 1\]"),
+    ("baseline", torch.tensor([0.1, float("nan")]), r"baseline .* batch items \[1\]"),
+    ("baseline", torch.tensor([float("inf"), 0.1]), r"baseline .* batch items \[0\]"),
+    ("baseline", torch.full((3,), 0.1), r"baseline must be \[B\] = \[2\], got \[3\]"),
+    ("K", torch.zeros(2, 3, 3), r"positive focal lengths: not so for batch items \[0, 1\]"),
+    ("K", _K_with(1, 1, 1, -5.0), r"focal lengths: not so for batch items \[1\]"),
+    ("K", _K_with(0, 0, 2, float("nan")), r"K must be finite.* batch items \[0\]"),
+    ("K", torch.eye(3).expand(1, 3, 3), r"K must be \[B, 3, 3\] = \[2, 3, 3\], got \[1, 3, 3\]"),
+    ("left", torch.rand(2, 3, 8, 8), "too small|same"),
 ])
 def test_bad_inputs_are_named(field, value, match):
     batch = textured_batch(B=2, S=32)

@@ -50,6 +50,37 @@ def test_overfitting_one_batch_raises_psnr_by_10db():
     assert last >= first + 10.0, (first, last)
 
 
+@pytest.mark.parametrize("fused", [True, False])
+def test_a_non_finite_loss_changes_no_weight_with_a_fused_or_a_plain_optimiser(fused):
+    """``skip_unless_finite``: a fused AdamW (as on CUDA; fused runs on the CPU too) is told by ``found_inf`` to
+    leave weights, moments and step counts as they were, a plain one is never stepped; either way the step
+    raises ``TrainingDiverged`` naming the loss, and the next finite step updates as usual."""
+    torch.manual_seed(0)
+    batch = textured_batch(B=2, T=2, S=32)
+    model = create_model(tiny_model_params(), encoder=StandInEncoder())
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=1e-3, fused=fused)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0)
+    objective = create_objective(None, device="cpu")
+    train_mod.train_step(model, batch, objective, opt, sched, amp=False)  # the moments exist and are not zero
+
+    def held():
+        return [t.clone() for p in params for t in (p.detach(), *opt.state[p].values())]
+
+    before = held()
+    def nan(render, target):
+        loss, parts = objective(render, target)
+        return loss * float("nan"), parts
+
+    with pytest.raises(train_mod.TrainingDiverged, match="the loss is nan"):
+        train_mod.train_step(model, batch, nan, opt, sched, amp=False)
+    assert all(torch.equal(a, b) for a, b in zip(before, held()))
+    assert getattr(opt, "found_inf", None) is None or opt.found_inf.item() == 1.0
+    train_mod.train_step(model, batch, objective, opt, sched, amp=False)
+    after = held()
+    assert not torch.equal(before[0], after[0]) and opt.state[params[0]]["step"].item() == 2
+
+
 def test_a_step_in_shares_is_the_step_on_the_whole_batch():
     """``train_step(accumulate=N)``: N shares' losses, each over its pairs, averaged, the weights after the step
     and the logged values those of the whole batch (float32 summation order apart); the same shares cut
