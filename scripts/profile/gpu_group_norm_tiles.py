@@ -25,8 +25,8 @@ from sgmodel.kernels import group_norm  # noqa: E402
 from sgmodel.model.layers import amp_autocast  # noqa: E402
 from sgmodel.model.network import create_model  # noqa: E402
 
-TILES = (2048, 4096, 8192, 16384)
-WARPS = (2, 4, 8)
+TILES = (1024, 2048, 4096, 8192)
+WARPS = (1, 2, 4, 8)
 
 
 def recorded_calls(batch_size: int) -> collections.Counter:

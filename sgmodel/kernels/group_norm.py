@@ -32,8 +32,8 @@ import triton.language as tl
 #: (pixels x channels of one program's tile, warps of a program) of the forward's kernels (statistics, apply) and
 #: of the backward's (sums, dx); any tile of at least 16 pixels computes the same function up to float32 summation
 #: order. ``python scripts/profile/gpu_group_norm_tiles.py`` times the choices (docs/benchmarks.md).
-FORWARD_LAUNCH = (4096, 4)
-BACKWARD_LAUNCH = (4096, 4)
+FORWARD_LAUNCH = (2048, 2)
+BACKWARD_LAUNCH = (2048, 4)
 
 
 @triton.jit

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from sgmodel.kernels import triton_kernels_run, triton_runs_on
+from sgmodel.model.geometry import inverse_intrinsics
 
 # --- Constants (paper appendix A "Attribute composition" unless noted) -------------------------------------
 Z_MIN, Z_MAX = 0.1, 10.0  # eq. 1 and appendix A: depth clip in metres, applied BEFORE the composer
@@ -143,7 +144,7 @@ def means(depth: torch.Tensor, offset_logits: torch.Tensor, K: torch.Tensor) -> 
                           torch.arange(W, device=depth.device, dtype=depth.dtype), indexing="ij")
     du, dv = off.unbind(1)
     pix = torch.stack([u + 0.5 + du, v + 0.5 + dv, torch.ones_like(du)], dim=-1)
-    rays = torch.einsum("bij,bhwj->bhwi", torch.linalg.inv(K), pix)  # [B,H,W,3]
+    rays = torch.einsum("bij,bhwj->bhwi", inverse_intrinsics(K), pix)  # [B,H,W,3]
     return (depth[:, 0, ..., None] * rays).reshape(B, H * W, 3)
 
 
@@ -234,7 +235,7 @@ class _FusedLayers(torch.autograd.Function):
                 rgb: torch.Tensor, K: torch.Tensor, band: torch.Tensor) -> tuple[torch.Tensor, ...]:
         from sgmodel.kernels import composer as kernels
 
-        kinv = torch.linalg.inv(K).contiguous()
+        kinv = inverse_intrinsics(K).contiguous()
         rs = torch.sqrt(K[:, 0, 0] * K[:, 1, 1]).contiguous()
         band = band.to(torch.uint8).contiguous()
         ctx.save_for_backward(front, back, depth_back, z, kinv, rs, band)

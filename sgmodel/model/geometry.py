@@ -16,9 +16,12 @@ Z_MIN, Z_MAX = 0.1, 10.0
 
 
 def _per_batch(like: torch.Tensor):
-    """x (scalar or [B]) -> a tensor of ``like``'s dtype and device that broadcasts over [B,1,H,W]."""
+    """x (a number, or a tensor: scalar or [B]) -> what broadcasts over [B,1,H,W] in ``like``'s dtype: a number
+    stays a number (made a tensor on a GPU, it would be copied there with a host synchronisation)."""
     def convert(x):
-        x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+        if not torch.is_tensor(x):
+            return float(x)
+        x = x.to(dtype=like.dtype, device=like.device)
         return x.reshape(-1, 1, 1, 1) if x.ndim else x
     return convert
 
@@ -59,7 +62,13 @@ def pixel_rays(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
     v, u = torch.meshgrid(torch.arange(height, dtype=K.dtype, device=K.device) + 0.5,
                           torch.arange(width, dtype=K.dtype, device=K.device) + 0.5, indexing="ij")
     pix = torch.stack([u, v, torch.ones_like(u)]).reshape(3, -1)              # [3, HW]
-    return (torch.linalg.inv(K) @ pix).reshape(K.shape[0], 3, height, width)
+    return (inverse_intrinsics(K) @ pix).reshape(K.shape[0], 3, height, width)
+
+
+def inverse_intrinsics(K: torch.Tensor) -> torch.Tensor:
+    """K^-1 [B,3,3] of intrinsics K [B,3,3] (``network.check_inputs``: positive focal lengths, last row 0 0 1, so
+    det K = fx fy > 0), without the host synchronisation of ``torch.linalg.inv``'s check for singular matrices."""
+    return torch.linalg.inv_ex(K).inverse
 
 
 def unproject(z: torch.Tensor, K: torch.Tensor) -> torch.Tensor:

@@ -61,11 +61,13 @@ def check_inputs(left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, basel
         raise ValueError(f"K must be [B, 3, 3] = [{B}, 3, 3], got {list(K.shape)}")
     if baseline.shape != (B,):
         raise ValueError(f"baseline must be [B] = [{B}], got {list(baseline.shape)}")
-    bad_K = ~torch.isfinite(K).flatten(1).all(1) | (K[:, 0, 0] <= 0) | (K[:, 1, 1] <= 0)
+    bad_K = (~torch.isfinite(K).flatten(1).all(1) | (K[:, 0, 0] <= 0) | (K[:, 1, 1] <= 0)
+             | (K[:, 2, 0] != 0) | (K[:, 2, 1] != 0) | (K[:, 2, 2] != 1))
     bad_baseline = ~torch.isfinite(baseline) | (baseline <= 0)
     bad = torch.stack([bad_K, bad_baseline]).tolist()
     if any(bad[0]):
-        raise ValueError(f"K must be finite, with positive focal lengths: not so for batch items {_items(bad[0])}")
+        raise ValueError(f"K must be finite, with positive focal lengths and the last row 0 0 1: not so for batch items "
+                         f"{_items(bad[0])}")
     if any(bad[1]):
         raise ValueError(f"baseline must be finite and > 0 metres: not so for batch items {_items(bad[1])} "
                          f"(baseline {baseline.tolist()})")

@@ -144,9 +144,11 @@ def _K_with(item: int, row: int, col: int, value: float) -> torch.Tensor:
     ("baseline", torch.tensor([0.1, float("nan")]), r"baseline .* batch items \[1\]"),
     ("baseline", torch.tensor([float("inf"), 0.1]), r"baseline .* batch items \[0\]"),
     ("baseline", torch.full((3,), 0.1), r"baseline must be \[B\] = \[2\], got \[3\]"),
-    ("K", torch.zeros(2, 3, 3), r"positive focal lengths: not so for batch items \[0, 1\]"),
-    ("K", _K_with(1, 1, 1, -5.0), r"focal lengths: not so for batch items \[1\]"),
+    ("K", torch.zeros(2, 3, 3), r"positive focal lengths.*: not so for batch items \[0, 1\]"),
+    ("K", _K_with(1, 1, 1, -5.0), r"focal lengths.*: not so for batch items \[1\]"),
     ("K", _K_with(0, 0, 2, float("nan")), r"K must be finite.* batch items \[0\]"),
+    ("K", _K_with(1, 2, 2, 0.0), r"the last row 0 0 1: not so for batch items \[1\]"),
+    ("K", _K_with(0, 2, 0, 1e-3), r"the last row 0 0 1: not so for batch items \[0\]"),
     ("K", torch.eye(3).expand(1, 3, 3), r"K must be \[B, 3, 3\] = \[2, 3, 3\], got \[1, 3, 3\]"),
     ("left", torch.rand(2, 3, 8, 8), "too small|same"),
 ])
