@@ -10,6 +10,7 @@
 # Device call 2 (carry .devdata):                  mkdir -p /root/sgcache && cp .devdata/* /root/sgcache/
 # Device call 3 (carry .gpukit/b, .whl; one call carries at most 64 MiB, each within 30 s of the one before):
 #   SGMODEL_CACHE=/root/sgcache bash scripts/gpu/train_step.sh [tests] [bench] [profile] [big] [curve] [lpips] [convs]
+#   [gntiles]
 #   tests:   the CUDA tests of the layers, concatenation, SSIM term, LPIPS (its
 #            tap-distance kernels), soft-argmin, rasteriser
 #   bench:   `sgmodel bench train` with the SSIM and the LPIPS term (random VGG16 weights: the time does not
@@ -26,6 +27,8 @@
 #   cachecurve: training runs with the encoder run and read from the cache, SEEDS each ($OUT/cache_curves.md)
 #   convs:   the predictor's convolutions alone with their channels padded to 8, 16, 32 and 64
 #            (scripts/profile/gpu_conv_channels.py; $OUT/conv_channels.md)
+#   gntiles: the fused GroupNorm kernels at each tile size and warp count (scripts/profile/gpu_group_norm_tiles.py;
+#            GN_TILES and GN_WARPS, comma-separated, choose others than its defaults; $OUT/gn_tiles.md)
 #   lpips:   the step with the LPIPS term's VGG16 eager (--no-compile-lpips; `bench` times the compiled default),
 #            then training runs with the LPIPS term (random VGG16) compiled and eager, SEEDS each
 #            ($OUT/lpips_curves.md)
@@ -172,6 +175,9 @@ cachecurve)  # training runs with the encoder run and read from the cache, SEEDS
   curves "$OUT/cache_curves.md" "${runs[@]}" ;;
 convs)
   run python3 scripts/profile/gpu_conv_channels.py --out "$OUT/conv_channels.md" ;;
+gntiles)
+  run python3 scripts/profile/gpu_group_norm_tiles.py ${GN_TILES:+--tiles $GN_TILES} ${GN_WARPS:+--warps $GN_WARPS} \
+    --out "$OUT/gn_tiles.md" ;;
 *) echo "unknown phase $what"; rc=2 ;;
 esac; done
 exit $rc

@@ -5,7 +5,8 @@ replayed alone, forward (statistics, combine, apply) and backward (sums, dx), fo
 pair; the times are summed over the calls as a step has them. Prints a markdown table (medians of CUDA-event
 times of the whole set of calls, ms).
 
-    python scripts/profile/gpu_group_norm_tiles.py [--batch-size 32] [--repeats 15] [--out FILE]
+    python scripts/profile/gpu_group_norm_tiles.py [--tiles 2048,4096,8192,16384] [--warps 2,4,8] [--batch-size 32]
+        [--repeats 15] [--out FILE]
 """
 
 from __future__ import annotations
@@ -25,8 +26,8 @@ from sgmodel.kernels import group_norm  # noqa: E402
 from sgmodel.model.layers import amp_autocast  # noqa: E402
 from sgmodel.model.network import create_model  # noqa: E402
 
-TILES = (1024, 2048, 4096, 8192)
-WARPS = (1, 2, 4, 8)
+#: the choices timed by default: tile elements, warps a program
+TILES, WARPS = "2048,4096,8192,16384", "2,4,8"
 
 
 def recorded_calls(batch_size: int) -> collections.Counter:
@@ -66,6 +67,8 @@ def _median_ms(fn, repeats: int) -> float:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tiles", default=TILES, help="tile elements (pixels x channels), comma-separated")
+    ap.add_argument("--warps", default=WARPS, help="warps a program, comma-separated")
     ap.add_argument("--batch-size", type=int, default=32)
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--out", type=Path)
@@ -98,8 +101,8 @@ def main() -> int:
              for _, x, w, b, groups, gelu, parts, _ in cases}
     rows = []
     try:
-        for tile in TILES:
-            for warps in WARPS:
+        for tile in (int(t) for t in args.tiles.split(",")):
+            for warps in (int(w) for w in args.warps.split(",")):
                 group_norm.FORWARD_LAUNCH = group_norm.BACKWARD_LAUNCH = (tile, warps)
                 forward_all(), backward_all()  # compiled for this launch
                 rows.append((tile, warps, _median_ms(forward_all, args.repeats), _median_ms(backward_all, args.repeats)))
