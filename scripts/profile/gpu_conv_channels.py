@@ -28,7 +28,8 @@ def _round_up(n: int, m: int) -> int:
     return -(-n // m) * m
 
 
-def _median_ms(fn, repeats: int) -> float:
+def median_ms(fn, repeats: int) -> float:
+    """Median of ``repeats`` times of ``fn()`` between CUDA events recorded around it (the stream's time), ms."""
     times = []
     for _ in range(repeats):
         start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
@@ -51,11 +52,11 @@ def time_conv(cin: int, cout: int, batch: int, size: int, repeats: int) -> tuple
     for _ in range(3):  # cuDNN's search, then warm
         y = F.conv2d(x, w, padding=1)
         y.backward(dy)
-    forward = _median_ms(lambda: F.conv2d(x, w, padding=1), repeats)
+    forward = median_ms(lambda: F.conv2d(x, w, padding=1), repeats)
 
     def step() -> None:
         torch.autograd.grad(F.conv2d(x, w, padding=1), (x, w), dy)
-    both = _median_ms(step, repeats)
+    both = median_ms(step, repeats)
     return forward, both - forward
 
 

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import torch
+from gpu_conv_channels import median_ms
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
@@ -51,18 +52,6 @@ def recorded_calls(batch_size: int) -> collections.Counter:
     del model
     torch.cuda.empty_cache()
     return calls
-
-
-def _median_ms(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-        start.record()
-        fn()
-        end.record()
-        torch.cuda.synchronize()
-        times.append(start.elapsed_time(end))
-    return sorted(times)[len(times) // 2]
 
 
 def main() -> int:
@@ -105,7 +94,7 @@ def main() -> int:
             for warps in (int(w) for w in args.warps.split(",")):
                 group_norm.FORWARD_LAUNCH = group_norm.BACKWARD_LAUNCH = (tile, warps)
                 forward_all(), backward_all()  # compiled for this launch
-                rows.append((tile, warps, _median_ms(forward_all, args.repeats), _median_ms(backward_all, args.repeats)))
+                rows.append((tile, warps, median_ms(forward_all, args.repeats), median_ms(backward_all, args.repeats)))
     finally:
         group_norm.FORWARD_LAUNCH, group_norm.BACKWARD_LAUNCH = default
     best_f, best_b = min(rows, key=lambda r: r[2]), min(rows, key=lambda r: r[3])
