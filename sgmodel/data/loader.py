@@ -385,10 +385,27 @@ def check_valid_pixels(root: Path, split: str) -> None:
 
 
 def init_loader_worker(_: int) -> None:
-    """A DataLoader worker's setup: one resize thread (the workers are the parallelism), and an exit without
-    Python's finalization (``_leave_at_exit``)."""
+    """A DataLoader worker's setup: one resize thread (the workers are the parallelism), an exit without
+    Python's finalization (``_leave_at_exit``), and no traceback when Ctrl-C cuts a handle's hand-over
+    (``_quiet_hang_ups``)."""
     cv2.setNumThreads(1)
     atexit.register(_leave_at_exit)
+    sys.excepthook = _quiet_hang_ups
+
+
+def _quiet_hang_ups(kind, value, tb) -> None:
+    """``sys.excepthook`` of a loader worker, which prints every exception as Python does except one: a connection
+    that ended in the thread handing this worker's shared-memory handles to the command
+    (``multiprocessing.resource_sharer``, which reports its errors through this hook). On Ctrl-C the command, stopped
+    in the middle of taking a batch's handle, hangs up in the handshake; the worker, which torch keeps running until
+    it is shut down, then printed a traceback beside the command's one line."""
+    files, at = [], tb
+    while at is not None:
+        files.append(at.tb_frame.f_code.co_filename)
+        at = at.tb_next
+    if issubclass(kind, (EOFError, OSError)) and any(f.endswith("resource_sharer.py") for f in files):
+        return
+    sys.__excepthook__(kind, value, tb)
 
 
 def _leave_at_exit() -> None:

@@ -305,6 +305,44 @@ if __name__ == "__main__":
     assert "terminate called" not in run.stderr and "killed by signal" not in run.stderr, run.stderr[-2000:]
 
 
+PROBE = """
+import os, socket, sys, time
+from multiprocessing import resource_sharer
+from sgmodel.data.loader import init_loader_worker
+if sys.argv[1] == "worker":
+    init_loader_worker(0)
+r, w = os.pipe()
+handle = resource_sharer.DupFd(r)  # a handle offered to the command: the sharer's thread listens for it
+s = socket.socket(socket.AF_UNIX)
+s.connect(resource_sharer._resource_sharer._address)
+s.close()  # hung up in the handshake, as a command stopped by Ctrl-C while it takes a batch's handle
+time.sleep(0.5)
+if sys.argv[2] == "raise":
+    raise ValueError("an error of the worker's own")
+print("done")
+"""
+
+
+@pytest.mark.parametrize("setup,then", [("plain", "end"), ("worker", "end"), ("worker", "raise")])
+def test_a_hang_up_in_a_handles_hand_over_leaves_a_loader_worker_quiet(setup, then):
+    """Ctrl-C of a command whose loader worker was handing it a batch's shared-memory handle: the handle-serving
+    thread (``multiprocessing.resource_sharer``) printed the broken connection's traceback beside the command's one
+    line (a CI run of tests/commands/test_interrupts.py saw it). ``init_loader_worker`` leaves it out; an ordinary
+    process prints it (the case this guards against), and a worker's own errors are still printed."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", PROBE, setup, then], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).resolve().parents[3])
+    if setup == "plain":
+        assert "resource_sharer.py" in run.stderr and "Traceback" in run.stderr, run.stderr
+    elif then == "raise":  # printed whole, and nothing else
+        assert run.stderr.startswith("Traceback") and run.stderr.endswith("ValueError: an error of the worker's own\n")
+        assert "resource_sharer.py" not in run.stderr, run.stderr
+    else:
+        assert run.returncode == 0 and run.stdout.strip() == "done" and run.stderr == "", run.stderr
+
+
 def test_training_resumes_on_another_number_of_ranks(demo_dataset):
     """A run stopped after step 4 on 2 ranks continues on 1 (and 4) with the batches the uninterrupted run
     would have seen."""
