@@ -53,9 +53,10 @@ def scratch_dir() -> str:
             base = "/dev/shm" if free_bytes("/dev/shm") >= SHM_MIN_FREE else None
             path = tempfile.mkdtemp(prefix=PREFIX, dir=base)
             # locked under another name, then renamed: ``reap`` never finds an OWNER that is not locked yet
-            owner = os.open(os.path.join(path, OWNER + ".new"), os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+            unnamed = os.path.join(path, OWNER + ".new")
+            owner = os.open(unnamed, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
             fcntl.flock(owner, fcntl.LOCK_EX)  # a new file: no one else holds it
-            os.rename(os.path.join(path, OWNER + ".new"), os.path.join(path, OWNER))
+            os.rename(unnamed, os.path.join(path, OWNER))
             _scratch.update(pid=pid, dir=path, owner=owner)
             reap(os.path.dirname(path))
             # at exit: atexit's in any process, multiprocessing's too in a worker it started (which ends with

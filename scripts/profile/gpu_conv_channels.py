@@ -11,10 +11,15 @@ times, ms).
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from sgmodel.model.layers import round_up  # noqa: E402
 
 #: (the convolution, input channels, output channels) as the predictor has them (256 x 256 pairs, canvas 288).
 CONVS = (("the branches' first layers, stacked", 128 + 3 + 128, 3 * 128),
@@ -22,10 +27,6 @@ CONVS = (("the branches' first layers, stacked", 128 + 3 + 128, 3 * 128),
          ("a front or back layer's final conv", 128, 37),
          ("the dz branch's final conv", 128, 1))
 MULTIPLES = (8, 16, 32, 64)
-
-
-def _round_up(n: int, m: int) -> int:
-    return -(-n // m) * m
 
 
 def median_ms(fn, repeats: int) -> float:
@@ -76,7 +77,7 @@ def main() -> int:
     for name, cin, cout in CONVS:
         seen = set()
         for m in MULTIPLES:
-            shape = (_round_up(cin, m), _round_up(cout, m))
+            shape = (round_up(cin, m), round_up(cout, m))
             if shape in seen:
                 continue
             seen.add(shape)

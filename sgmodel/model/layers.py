@@ -73,7 +73,7 @@ def output_multiple(x: torch.Tensor) -> int:
     return CUDA_OUTPUT_MULTIPLE if x.is_cuda else 1
 
 
-def _round_up(n: int, multiple: int) -> int:
+def round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
 
@@ -92,7 +92,7 @@ def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int]
                          f"one size; got {[tuple(t.shape) for t in tensors]}, {[t.dtype for t in tensors]}, "
                          f"pads {pads}")
     total = sum(t.shape[1] for t in tensors)
-    width = _round_up(total, multiple)
+    width = round_up(total, multiple)
     if x.is_cuda and len(tensors) <= CAT_KERNEL_SOURCES and triton_installed() and x.dtype.is_floating_point:
         return _CatChannels.apply(width, tuple(pads), *tensors)
     tensors = [replicate_pad(t, p) for t, p in zip(tensors, pads)]
@@ -195,7 +195,7 @@ class _ReplicateConv3x3(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, multiple: int) -> torch.Tensor:
         cout, cin = weight.shape[:2]
-        padded = _round_up(cout, multiple)
+        padded = round_up(cout, multiple)
         ride = bias is not None and x.shape[1] > cin  # the bias rides on x's ones channel ``cin``
         if padded != cout or x.shape[1] != cin:
             w = weight.new_zeros(padded, x.shape[1], 3, 3)

@@ -8,18 +8,18 @@ import pytest
 import torch
 
 from sgmodel.model import composer as comp
-from sgmodel.model.layers import CUDA_OUTPUT_MULTIPLE
+from sgmodel.model.layers import CUDA_OUTPUT_MULTIPLE, round_up
 from tests.support.composer_inputs import make_inputs
 from tests.support.kernels import KERNEL_DEVICE, kernel_test
 
 #: the final convs' output channels as the model computes them on CUDA (37 rounded up)
-WIDE = -(-37 // CUDA_OUTPUT_MULTIPLE) * CUDA_OUTPUT_MULTIPLE
+WIDE = round_up(37, CUDA_OUTPUT_MULTIPLE)
 
 
 def _fused_case(dtype: torch.dtype, H: int = 40, W: int = 56):
-    """Inputs as the model gives them on CUDA, on ``KERNEL_DEVICE``: the branches as 37-channel views of ``WIDE``-channel channels-last
-    conv outputs in ``dtype`` (leaves: the wide tensors), extreme residuals, zero quaternion vectors, clipped
-    scales."""
+    """Inputs as the model gives them on CUDA, on ``KERNEL_DEVICE``: the branches as 37-channel views of
+    ``WIDE``-channel channels-last conv outputs in ``dtype`` (leaves: the wide tensors), extreme residuals, zero
+    quaternion vectors, clipped scales."""
     g = torch.Generator().manual_seed(3)
     B = 2
     _, _, dz, z, rgb, K, baseline = make_inputs(B=B, H=H, W=W, dtype=torch.float32)
