@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from sgmodel.bench.train import synthetic_batch  # noqa: E402
 from sgmodel.config import ModelParams  # noqa: E402
+from sgmodel.data.loader import to_device  # noqa: E402
 from sgmodel.kernels import group_norm  # noqa: E402
 from sgmodel.model.layers import amp_autocast  # noqa: E402
 from sgmodel.model.network import create_model  # noqa: E402
@@ -42,7 +43,7 @@ def recorded_calls(batch_size: int) -> collections.Counter:
 
     device = torch.device("cuda")
     model = create_model(ModelParams(resolution=256), device)
-    batch = synthetic_batch(batch_size, 4, 256, device)
+    batch = to_device(synthetic_batch(batch_size, 4, 256), device)
     group_norm.forward = record
     try:
         with torch.no_grad(), amp_autocast(batch["left"]):

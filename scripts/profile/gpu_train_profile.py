@@ -1,11 +1,12 @@
-"""Where a training step's GPU time goes: ``torch.profiler`` over free-running ``train_step`` calls at the
-paper's size (synthetic batches, as ``sgmodel bench train``; the composer and the LPIPS term's VGG16
-compiled, as ``sgmodel train`` runs them on CUDA). Prints markdown: the top CUDA kernels per step, their
+"""Where a training step's GPU time goes: ``torch.profiler`` over steps run back to back as ``sgmodel train`` runs
+them (each batch checked on the host and copied from page-locked memory, each step's values read once the next is
+queued) at the paper's size (synthetic batches, as ``sgmodel bench train``; the LPIPS term's VGG16 compiled, as
+``sgmodel train`` runs it on CUDA). Prints markdown: the top CUDA kernels per step, their
 time by kind, and the GPU's idle gaps (first kernel to last) with the host operation that was running when
 each of the largest began; then the PyTorch operations with the most GPU time of their own, by input shape
 (which elementwise kernel, copy or reduction comes from where). Used by scripts/gpu/train_step.sh
 (profile). ``--cached-encoder``: the encoder's outputs given with the batch, as ``--encoder-cache`` gives them.
-Last, the host synchronisations of one more step, each with where our code called it (torch's sync debug mode:
+Last, the host synchronisations of one more step queued, each with where our code called it (torch's sync debug mode:
 PyTorch's own operations only; Warp's, the binning's read of its sizes, are not seen there).
 
     python scripts/profile/gpu_train_profile.py [--steps 3] [--lpips-random-vgg] [--cached-encoder] [--top 40] [--out FILE]
@@ -29,10 +30,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from sgmodel.bench.train import synthetic_batch  # noqa: E402
 from sgmodel.config import ModelParams  # noqa: E402
+from sgmodel.data.loader import to_device  # noqa: E402
 from sgmodel.metrics.lpips import random_lpips  # noqa: E402
 from sgmodel.model.layers import amp_autocast, compiles  # noqa: E402
 from sgmodel.model.network import create_model, encode_pair  # noqa: E402
-from sgmodel.train.loop import create_optimizer, train_step  # noqa: E402
+from sgmodel.train.loop import create_optimizer, device_batch, queue_step  # noqa: E402
 from sgmodel.train.losses import Objective  # noqa: E402
 
 #: kernel kinds, first match of a name fragment wins.
@@ -76,19 +78,33 @@ def main() -> int:
     objective = Objective(lpips, reason="profiled", amp=True)
     optimizer = create_optimizer([p for p in model.parameters() if p.requires_grad], device, lr=1e-5)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
-    batches = [synthetic_batch(args.batch_size, 4, args.resolution, device, i) for i in range(2)]
-    for batch in batches if args.cached_encoder else []:
+    hosts = [synthetic_batch(args.batch_size, 4, args.resolution, i) for i in range(2)]
+    for host in hosts if args.cached_encoder else []:
+        batch = to_device(host, device)
         with amp_autocast(batch["left"]):
             disparity, features = encode_pair(model.encoder, batch["left"], batch["right"])
-        batch["encoder_disparity"], batch["encoder_features"] = disparity, [f.to(torch.bfloat16) for f in features]
-    for i in range(3):
-        train_step(model, batches[i % 2], objective, optimizer, scheduler, True)
+        host["encoder_disparity"], host["encoder_features"] = disparity.cpu(), [f.to(torch.bfloat16).cpu()
+                                                                              for f in features]
+    hosts = [{k: pinned(v) for k, v in h.items()} for h in hosts]  # as the loader's batches on CUDA
+
+    def queue(i: int):
+        return queue_step(model, device_batch(hosts[i % 2], device), objective, optimizer, scheduler, True)
+
+    def run(steps: int) -> None:  # as `sgmodel train` runs them: each step's values read once the next is queued
+        queued = None
+        for i in range(steps):
+            values = queue(i)
+            if queued is not None:
+                queued.read()
+            queued = values
+        queued.read()
+
+    run(3)
     torch.cuda.synchronize()
     n = args.steps
     t0 = time.perf_counter()
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA], record_shapes=True) as prof:
-        for i in range(n):
-            train_step(model, batches[i % 2], objective, optimizer, scheduler, True)
+        run(n)
         torch.cuda.synchronize()
     wall = (time.perf_counter() - t0) * 1e3 / n
     events = prof.events()
@@ -118,7 +134,7 @@ def main() -> int:
     lines += ["", "| operation | input shapes | self GPU ms / step | calls / step |", "|---|---|---:|---:|"]
     lines += [f"| `{e.key[:100]}` | `{str(e.input_shapes)[:90]}` | {e.self_device_time_total / 1e3 / n:.2f} | "
               f"{e.count / n:.0f} |" for e in ops[:args.top]]
-    lines += [""] + host_syncs(lambda: train_step(model, batches[0], objective, optimizer, scheduler, True))
+    lines += [""] + host_syncs(lambda: queue(0))
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
@@ -154,6 +170,13 @@ def gaps(kernels, host_ops, n: int) -> list[str]:
             j -= 1
         out.append(f"- {g:.0f} us, host in: {', '.join(reversed(names))}")
     return out
+
+
+def pinned(value):
+    """A tensor, or a list of tensors, in page-locked memory; anything else as it is."""
+    if torch.is_tensor(value):
+        return value.pin_memory()
+    return [t.pin_memory() for t in value] if isinstance(value, list) and value and torch.is_tensor(value[0]) else value
 
 
 def host_syncs(step) -> list[str]:

@@ -3,8 +3,10 @@
 Stages (each synchronised on CUDA, so the split is honest and the sum is a little above a free-running
 step): data (the next batch from the loader, when ``--data`` is given; else a synthetic batch and no data
 time), encoder, decoder + predictor, composer, rasterisation forward, loss, backward, optimiser. Then the
-free-running ``train_step`` (no synchronisation inside) as the step time a run sees. Medians of
-``--repeats`` steps after ``--warmup``; peak memory is ``torch.cuda.max_memory_allocated`` over each
+free-running ``train_step`` on the same batch on the device (no synchronisation inside, one before and after).
+Medians of ``--repeats`` steps after ``--warmup``. Then the step time a run sees: ``--repeats`` steps back to
+back as ``sgmodel train`` runs them (each batch checked on the host and copied, each step's values read once the
+next is queued; the last two batches alternate, the loader's time excluded), their mean. Peak memory is ``torch.cuda.max_memory_allocated`` over each
 objective's steps. The step is timed with MSE + 0.05 (1 - SSIM) and, when VGG16 weights are given
 (``--lpips-vgg FILE``) or random ones are asked for (``--lpips-random-vgg``: the time does not depend on
 the weights' values; for machines without the ImageNet file), again with MSE + 0.05 LPIPS-VGG.
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import time
 from pathlib import Path
 
 import torch
@@ -31,13 +34,13 @@ from scenesplat_stereo.common.text import markdown_table
 from sgmodel.args import add_device_argument, add_model_arguments, device_from_flag, params_from_args
 from sgmodel.bench import report
 from sgmodel.data.encoder_cache import open_cache, precision_of
-from sgmodel.data.loader import make_loader, to_device
+from sgmodel.data.loader import make_loader
 from sgmodel.metrics.lpips import random_lpips, vgg16_missing_message
 from sgmodel.model.geometry import depth_from_disparity
 from sgmodel.model.layers import amp_autocast, compiles
 from sgmodel.model.network import create_model
 from sgmodel.model.render import render_views
-from sgmodel.train.loop import cached_encoding, create_optimizer, train_step
+from sgmodel.train.loop import cached_encoding, create_optimizer, device_batch, queue_step, train_step
 from sgmodel.train.losses import Objective, create_objective
 
 OWNER = "sgmodel bench train"  # recorded beside --out: a later run may replace its own report
@@ -47,9 +50,9 @@ STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation f
 BF16_SPEC_TFLOPS = {"H100": 989.4, "H200": 989.4}
 
 
-def synthetic_batch(batch: int, targets: int, size: int, device: torch.device, seed: int = 0) -> dict:
-    """A batch with the shapes of real data: smooth random images, a plausible K and baseline, targets
-    within 0.3 m of the reference camera."""
+def synthetic_batch(batch: int, targets: int, size: int, seed: int = 0) -> dict:
+    """A batch on the host with the shapes of real data: smooth random images, a plausible K and baseline,
+    targets within 0.3 m of the reference camera."""
     g = torch.Generator().manual_seed(seed)
     low = torch.rand(batch, 3, size // 16, size // 16, generator=g)
     left = torch.nn.functional.interpolate(low, size=(size, size), mode="bicubic", align_corners=False).clamp(0, 1)
@@ -57,11 +60,11 @@ def synthetic_batch(batch: int, targets: int, size: int, device: torch.device, s
     K = torch.tensor([[size * 0.9, 0, size / 2], [0, size * 0.9, size / 2], [0, 0, 1]]).expand(batch, 3, 3).clone()
     view = torch.eye(4).expand(batch, targets, 4, 4).clone()
     view[..., :3, 3] = (torch.rand(batch, targets, 3, generator=g) - 0.5) * 0.3
-    return to_device({"left": left, "right": right, "K": K, "baseline": torch.full((batch,), 0.1),
-                      "targets": left[:, None].expand(batch, targets, 3, size, size).clone(),
-                      "masks": torch.ones(batch, targets, 1, size, size, dtype=torch.bool),
-                      "target_viewmats": view, "target_Ks": K[:, None].expand(batch, targets, 3, 3).clone(),
-                      "keys": [f"synthetic_{i}" for i in range(batch)]}, device)
+    return {"left": left, "right": right, "K": K, "baseline": torch.full((batch,), 0.1),
+            "targets": left[:, None].expand(batch, targets, 3, size, size).clone(),
+            "masks": torch.ones(batch, targets, 1, size, size, dtype=torch.bool),
+            "target_viewmats": view, "target_Ks": K[:, None].expand(batch, targets, 3, 3).clone(),
+            "keys": [f"synthetic_{i}" for i in range(batch)]}
 
 
 def _encoded(model, batch: dict, amp: bool):
@@ -133,7 +136,8 @@ def matmul_tflops(device: torch.device, n: int = 8192, repeats: int = 10) -> flo
 
 
 def measure(model, objective: Objective, batches, args, device: torch.device, amp: bool) -> dict:
-    """Stage medians (ms), the free-running step (ms) and the peak memory (MiB) of one objective."""
+    """Stage medians (ms), the free-running step (ms), the back-to-back step (ms) and the peak memory (MiB) of one
+    objective. ``batches(i)``: (host batch i, seconds the loader took for it)."""
     params = [p for p in model.parameters() if p.requires_grad]
     optimizer = create_optimizer(params, device, lr=1e-5)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: 1.0)
@@ -144,8 +148,11 @@ def measure(model, objective: Objective, batches, args, device: torch.device, am
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
     first = 0.0
+    hosts = []
     for i in range(args.warmup + args.repeats):
-        batch, data_s = batches(i)
+        host, data_s = batches(i)
+        hosts = [*hosts[-1:], host]
+        batch = device_batch(host, device)
         t_first = now()
         split = staged_step(model, objective, optimizer, batch, amp, now)
         if i == 0:
@@ -158,9 +165,18 @@ def measure(model, objective: Objective, batches, args, device: torch.device, am
             for k, v in split.items():
                 stages[k].append(v)
             free.append(step_s)
+    t0 = now()
+    queued = None
+    for i in range(args.repeats):  # as `sgmodel train` runs them: each step's values read once the next is queued
+        values = queue_step(model, device_batch(hosts[i % len(hosts)], device), objective, optimizer, scheduler, amp)
+        if queued is not None:
+            queued.read()
+        queued = values
+    queued.read()
+    back_to_back = (now() - t0) / args.repeats
     peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
     return {"stages": {k: statistics.median(v) * 1e3 for k, v in stages.items()},
-            "step": statistics.median(free) * 1e3, "peak": peak, "first": first}
+            "step": statistics.median(free) * 1e3, "back_to_back": back_to_back * 1e3, "peak": peak, "first": first}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -184,14 +200,13 @@ def run(args: argparse.Namespace) -> int:
         if args.encoder_cache is not None else None
     loader = iter(make_loader(args.data, "train", args.batch_size, S, args.targets, 0, args.workers, 0, 1,
                               train=True, cache=cache, pin_memory=device.type == "cuda")) if args.data else None
-    now = synced_clock(device)
 
     def batches(i: int) -> tuple[dict, float]:
         if loader is None:
-            return synthetic_batch(args.batch_size, args.targets, S, device, i), float("nan")
-        t0 = now()
-        batch = to_device(next(loader), device)
-        return batch, now() - t0
+            return synthetic_batch(args.batch_size, args.targets, S, i), float("nan")
+        t0 = time.perf_counter()
+        batch = next(loader)
+        return batch, time.perf_counter() - t0
 
     results = [measure(model, objective, batches, args, device, amp) for objective in objectives]
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
@@ -201,6 +216,8 @@ def run(args: argparse.Namespace) -> int:
     rows += [["**sum of stages (synchronised)**"] + [f"{sum(v for v in r['stages'].values() if v == v):.1f}"
                                                      for r in results],
              ["**free-running step** (`train_step`, data excluded)"] + [f"**{r['step']:.1f}**" for r in results],
+             ["**back-to-back steps** (as `sgmodel train` runs them, data excluded)"]
+             + [f"**{r['back_to_back']:.1f}**" for r in results],
              ["peak memory, MiB"] + [f"{r['peak']:.0f}" for r in results],
              ["first step, s (cuDNN's algorithm search; compilation)"] + [f"{r['first']:.1f}" for r in results]]
     gaussians = (2 if model_params.composer.back_layer else 1) * (S + 2 * model_params.padding) ** 2
@@ -213,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
            + (f"; the LPIPS term's VGG16 {'through torch.compile' if compiled else 'eager'}" if len(objectives) > 1
               else "") + ".\n\n"
            f"{markdown_table(header, rows)}\n\nGaussians per scene: {gaussians:,}.\n\n"
-           + layer_rate(model, batches(0)[0], amp, device, results[0]["stages"]["decoder + predictor"], args.repeats),
+           + layer_rate(model, device_batch(batches(0)[0], device), amp, device, results[0]["stages"]["decoder + predictor"], args.repeats),
            out)
     return 0
 

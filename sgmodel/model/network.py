@@ -50,8 +50,8 @@ class Prediction:
 
 def check_inputs(left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> None:
     """ValueError naming the input (and the batch items) for anything the model cannot use. The shapes are read
-    on the host; K's and the baseline's values on their device, brought back in one transfer: on a GPU, one host
-    synchronisation per forward (each comparison's own was five, the GPU idle after each while the host went on)."""
+    on the host; K's and the baseline's values on their device, brought back in one transfer: for inputs on a GPU,
+    one host synchronisation (training checks its batches on the host before their copy: ``loop.device_batch``)."""
     if left.ndim != 4 or left.shape[1] != 3 or left.shape != right.shape:
         raise ValueError(f"left and right must both be [B, 3, H, W]; got {tuple(left.shape)} and {tuple(right.shape)}")
     B, _, H, W = left.shape
@@ -135,12 +135,15 @@ class StereoGaussians(nn.Module):
                        edge_mask=p.edge_mask, composer=p.composer)
 
     def forward(self, left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor,
-                doffs: float = 0.0, encoded: tuple[torch.Tensor, list[torch.Tensor]] | None = None) -> Prediction:
+                doffs: float = 0.0, encoded: tuple[torch.Tensor, list[torch.Tensor]] | None = None,
+                inputs_checked: bool = False) -> Prediction:
         """left/right [B,3,H,W] in [0,1], K [B,3,3] pixels, baseline [B] metres -> Prediction. ``doffs``:
         the pair's principal-point disparity offset in pixels (Middlebury), added to the encoder's.
         ``encoded``: the encoder's (disparity [B,1,H,W], features) for this pair, read from an encoder cache
-        (``sgmodel.data.encoder_cache``); the encoder does not run."""
-        check_inputs(left, right, K, baseline)
+        (``sgmodel.data.encoder_cache``); the encoder does not run. ``inputs_checked``: the caller has passed these
+        inputs through ``check_inputs`` (on the host, before copying them: ``loop.device_batch``)."""
+        if not inputs_checked:
+            check_inputs(left, right, K, baseline)
         if encoded is None:
             disparity, features = self.encode(left, right)
         else:

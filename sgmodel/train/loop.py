@@ -28,7 +28,7 @@ from sgmodel.metrics import image as metrics
 from sgmodel.metrics.sheets import validation_sheet
 from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
 from sgmodel.model.layers import amp_autocast, compiles
-from sgmodel.model.network import StereoGaussians, create_model
+from sgmodel.model.network import StereoGaussians, check_inputs, create_model
 from sgmodel.model.render import render_views
 from sgmodel.train.distributed import (World, all_sum, broadcast_flag, joined_world, same_on_every_rank,
                                        wrap_model)
@@ -81,10 +81,19 @@ def render_targets(model: StereoGaussians | DistributedDataParallel, batch: dict
     The convolutions run under bf16 autocast on CUDA when ``amp``; the composer and rasteriser in float32."""
     left = batch["left"]
     with amp_autocast(left, amp):
-        pred = model(left, batch["right"], batch["K"], batch["baseline"], encoded=cached_encoding(batch))
+        pred = model(left, batch["right"], batch["K"], batch["baseline"], encoded=cached_encoding(batch),
+                     inputs_checked=batch.get("inputs_checked", False))
     S = batch["targets"].shape[-1]
     rgb, alpha = render_views(pred.gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)
     return rgb, alpha, pred
+
+
+def device_batch(batch: dict, device: torch.device) -> dict:
+    """A loader's batch on ``device`` for ``render_targets``. Its pair inputs are checked on the host first
+    (``network.check_inputs``: K's and the baseline's values read where they are, with no wait for the device)
+    and the batch says so (``inputs_checked``): the model does not read them back from the device."""
+    check_inputs(batch["left"], batch["right"], batch["K"], batch["baseline"])
+    return {**to_device(batch, device), "inputs_checked": True}
 
 
 def create_optimizer(params, device: torch.device, **settings) -> torch.optim.AdamW:
@@ -97,15 +106,48 @@ def _no_mark(_: str) -> None:
     pass
 
 
+class StepValues:
+    """A queued step's loss, its parts and PSNR on their way to the host, and the learning rate it used
+    (``queue_step``). On CUDA they are copied into page-locked memory behind the step's work and ``read`` waits
+    for that copy alone: read once the next step is queued, as ``sgmodel train`` does, the host never waits for
+    the GPU between steps and the GPU never waits for the host."""
+
+    def __init__(self, values: torch.Tensor, names: list[str], lr: float) -> None:
+        self.names, self.lr, self.ready = names, lr, None
+        if values.is_cuda:
+            self.host = torch.empty(values.shape, dtype=values.dtype, pin_memory=True)
+            self.host.copy_(values, non_blocking=True)
+            self.ready = torch.cuda.Event()
+            self.ready.record()
+        else:
+            self.host = values
+
+    def read(self) -> dict:
+        """{"loss", "psnr", "lr", and the loss's parts} as numbers; ``TrainingDiverged`` for a non-finite loss (the
+        step changed no weight: ``skip_unless_finite``)."""
+        if self.ready is not None:
+            self.ready.synchronize()
+        values = self.host.tolist()
+        if not math.isfinite(values[0]):
+            raise TrainingDiverged(f"the loss is {values[0]}")
+        return {"loss": values[0], "psnr": values[1], "lr": self.lr, **dict(zip(self.names, values[2:]))}
+
+
 def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, scheduler, amp: bool,
                mark=_no_mark, accumulate: int = 1) -> dict:
-    """One optimiser step on one batch; returns loss, its parts, PSNR (dB) and the learning rate used.
+    """``queue_step`` and its values read at once: loss, its parts, PSNR (dB) and the learning rate used."""
+    return queue_step(model, batch, objective, optimizer, scheduler, amp, mark, accumulate).read()
+
+
+def queue_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, scheduler, amp: bool,
+               mark=_no_mark, accumulate: int = 1) -> StepValues:
+    """Queue one optimiser step on one batch; its values come back through the returned ``StepValues``.
     ``accumulate``: the batch is computed in that many equal shares (``batch_share``), one after another,
     each share's loss divided by their number: the gradient is the mean of the shares' gradients, as DDP's
-    is the mean of its ranks' (under DDP the all-reduce runs once, after the last share). The returned
-    values are the shares' means. ``mark(name)``: called once the loss ("forward"), the backward
-    ("backward") and the optimiser step ("optimizer") are queued (``StepProfile.mark``; with shares, the
-    last share's loss and backward)."""
+    is the mean of its ranks' (under DDP the all-reduce runs once, after the last share). The values are the
+    shares' means. ``mark(name)``: called once the loss ("forward"), the backward ("backward") and the
+    optimiser step ("optimizer") are queued (``StepProfile.mark``; with shares, the last share's loss and
+    backward). A batch from ``device_batch`` makes no host synchronisation on a GPU."""
     optimizer.zero_grad(set_to_none=True)
     values = []
     for i in range(accumulate):
@@ -125,10 +167,7 @@ def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, 
     optimizer.step()
     scheduler.step()
     mark("optimizer")
-    values = values.tolist()  # one transfer for all of them
-    if not math.isfinite(values[0]):
-        raise TrainingDiverged(f"the loss is {values[0]}")
-    return {"loss": values[0], "psnr": values[1], "lr": lr, **dict(zip(parts, values[2:]))}
+    return StepValues(values, list(parts), lr)
 
 
 def skip_unless_finite(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
@@ -160,7 +199,7 @@ def validate(model, loader, world: World, amp: bool, sheet_samples: int, limit: 
         if limit is not None and samples >= limit:
             break
         samples += len(batch["keys"])
-        batch = to_device(batch, world.device)
+        batch = device_batch(batch, world.device)
         rgb, _, pred = render_targets(model, batch, amp)
         total += metrics.psnr(rgb, batch["targets"]).sum().item()
         defined = metrics.has_valid_pixel(batch["masks"])  # the others' masked PSNR is NaN
@@ -410,29 +449,52 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
         if step == 0:  # where training starts from, for the PSNR curve
             validation(0, best)
         batches = iter(train_loader)
+        queued = None  # (step, StepValues) of the last step queued, its values not read yet
+        since = 0.0  # when the step before the one read next ended on the host (its values read), or began
+
+        def read_values(at: int, values: StepValues) -> tuple[dict, float]:
+            """The values of step ``at`` and the ms since the step before's (the step's time: its start when
+            nothing was in flight); the progress bar moved on."""
+            nonlocal since
+            try:
+                stats = values.read()
+            except TrainingDiverged as e:
+                raise diverged(at, str(e)) from None
+            now = time.perf_counter()
+            ms, since = (now - since) * 1e3, now
+            bar.update(1)
+            bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", ms=f"{ms:.0f}")
+            return stats, ms
+
         while step < tp.steps:
             t0 = time.perf_counter()
-            batch = to_device(next(batches), world.device)
+            if queued is None:
+                since = t0
+            batch = device_batch(next(batches), world.device)
             if profile is not None:
                 data_ms = (time.perf_counter() - t0) * 1e3
                 profile.begin()
             try:
-                stats = train_step(net, batch, objective, optimizer, scheduler, tp.amp,
-                                   profile.mark if profile is not None else _no_mark, tp.accumulate)
+                values = queue_step(net, batch, objective, optimizer, scheduler, tp.amp,
+                                    profile.mark if profile is not None else _no_mark, tp.accumulate)
             except TrainingDiverged as e:
                 raise diverged(step + 1, str(e)) from None
             step += 1
             grads_finite &= all_finite([p.grad for p in params if p.grad is not None])
-            ms = (time.perf_counter() - t0) * 1e3
-            bar.update(1)
-            bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", ms=f"{ms:.0f}")
+            if queued is not None:  # the step before, read while this one runs on the device
+                read_values(*queued)
             logged = step % tp.log_every == 0 or step == tp.steps
             checkpoint = step % tp.val_every == 0 or step == tp.steps
-            if logged or checkpoint:  # one sync for both flags, where the step's .item() calls synced anyway
-                grads_ok, weights_ok = torch.stack([grads_finite, all_finite(params)]).tolist()
-                if not (grads_ok and weights_ok):
-                    raise diverged(step, "a gradient is NaN or infinite" if not grads_ok else
-                                   "a weight is NaN or infinite")
+            if not (logged or checkpoint):
+                queued = (step, values)
+                continue
+            queued = None
+            stats, ms = read_values(step, values)
+            # one sync for both flags, where the step's values were read anyway
+            grads_ok, weights_ok = torch.stack([grads_finite, all_finite(params)]).tolist()
+            if not (grads_ok and weights_ok):
+                raise diverged(step, "a gradient is NaN or infinite" if not grads_ok else
+                               "a weight is NaN or infinite")
             if logged:
                 if profile is None:
                     stats = mean_over_ranks(world, stats)

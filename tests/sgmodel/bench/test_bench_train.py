@@ -26,7 +26,7 @@ def test_layer_flops_match_an_analytical_count():
     params = ModelParams(resolution=S, padding=P, decoder=DecoderParams(channels=C, groups=4),
                          predictor=PredictorParams(channels=Cp, groups=4))
     model = create_model(params, encoder=StandInEncoder())
-    batch = synthetic_batch(B, 2, S, torch.device("cpu"))
+    batch = synthetic_batch(B, 2, S)
     expected = 0
     for cin, s in zip((6 + 4, 8 + 4), (2, 4)):  # the stand-in's feature maps with RGB-D: projection, 4 RCU convs
         expected += conv_flops(B, S // s, S // s, cin, C, 1) + 4 * conv_flops(B, S // s, S // s, C, C, 3)
@@ -68,7 +68,7 @@ def test_bench_train_reports_both_terms_on_the_cpu(tmp_path, capsys):
     assert rc == 0
     text = out.read_text()
     assert "| stage | mse+ssim, median ms | mse+lpips-vgg, median ms |" in text
-    assert "**free-running step**" in text and "peak memory, MiB" in text
+    assert "**free-running step**" in text and "**back-to-back steps**" in text and "peak memory, MiB" in text
     assert "| first step, s (cuDNN's algorithm search; compilation) |" in text
     assert "the LPIPS term's VGG16 eager" in text  # compiled only on CUDA
     assert "| forward (the stage above) |" in text and "| forward + backward, alone |" in text

@@ -165,7 +165,7 @@ def test_resume_gives_the_same_weights(demo_dataset, tmp_path, monkeypatch):
     params, schedule = tiny_model_params(), tiny_schedule()
     train_mod.train(params, schedule, demo_dataset, tmp_path / "a", progress=False)
 
-    real_step, calls = train_mod.train_step, {"n": 0}
+    real_step, calls = train_mod.queue_step, {"n": 0}
 
     def interrupted(*args, **kwargs):
         calls["n"] += 1
@@ -173,10 +173,10 @@ def test_resume_gives_the_same_weights(demo_dataset, tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real_step(*args, **kwargs)
 
-    monkeypatch.setattr(train_mod, "train_step", interrupted)
+    monkeypatch.setattr(train_mod, "queue_step", interrupted)
     with pytest.raises(KeyboardInterrupt):
         train_mod.train(params, schedule, demo_dataset, tmp_path / "b", progress=False)
-    monkeypatch.setattr(train_mod, "train_step", real_step)
+    monkeypatch.setattr(train_mod, "queue_step", real_step)
     assert torch.load(tmp_path / "b/checkpoints/last.pt", weights_only=True)["step"] == 6
     train_mod.train(params, schedule, demo_dataset, tmp_path / "b", progress=False)
     a = torch.load(tmp_path / "a/checkpoints/last.pt", weights_only=True)
@@ -186,6 +186,59 @@ def test_resume_gives_the_same_weights(demo_dataset, tmp_path, monkeypatch):
         assert torch.equal(a["model"][k], b["model"][k]), k
     timeless = [[{k: v for k, v in r.items() if k != "step_ms"} for r in _records(tmp_path / x)] for x in "ab"]
     assert timeless[0] == timeless[1]  # the resumed run logged the same steps, losses and validations
+
+
+def test_each_steps_values_are_read_once_the_next_is_queued_and_at_once_where_logged(demo_dataset, tmp_path,
+                                                                                     monkeypatch):
+    """The loop never waits for a step's values before the next step is queued, except at a logged or
+    validated step (whose record and checkpoint need them); every step is read once, in order."""
+    order, real_queue, real_read = [], train_mod.queue_step, train_mod.StepValues.read
+
+    def queue(*args, **kwargs):
+        values = real_queue(*args, **kwargs)
+        values.number = sum(1 for what, _ in order if what == "queued") + 1
+        order.append(("queued", values.number))
+        return values
+
+    def read(self):
+        order.append(("read", self.number))
+        return real_read(self)
+
+    monkeypatch.setattr(train_mod, "queue_step", queue)
+    monkeypatch.setattr(train_mod.StepValues, "read", read)
+    train_mod.train(tiny_model_params(), tiny_schedule(steps=7, log_every=3, val_every=6), demo_dataset,
+                    tmp_path / "r", progress=False)
+    q, r = (lambda n: ("queued", n)), (lambda n: ("read", n))
+    assert order == [q(1), q(2), r(1), q(3), r(2), r(3), q(4), q(5), r(4), q(6), r(5), r(6), q(7), r(7)]
+
+
+def test_the_model_does_not_check_a_batch_the_loop_checked_on_the_host(demo_dataset, tmp_path, monkeypatch):
+    """``device_batch`` checks K and the baseline where the loader made them (no read back from a GPU); the
+    model is told and does not check them again. A bad batch is refused there, naming its items."""
+    checked = []
+    monkeypatch.setattr(train_mod, "check_inputs", lambda *a: checked.append(a[2].device.type))
+    monkeypatch.setattr("sgmodel.model.network.check_inputs", lambda *a: pytest.fail("the model checked again"))
+    train_mod.train(tiny_model_params(), tiny_schedule(steps=2, val_every=2), demo_dataset, tmp_path / "r",
+                    progress=False)
+    assert checked and set(checked) == {"cpu"}  # the training batches and the validation's
+    monkeypatch.undo()
+    batch = textured_batch(B=3, T=1, S=32)
+    batch["K"][1, 0, 0] = float("nan")
+    batch["baseline"][2] = 0.0
+    with pytest.raises(ValueError, match=r"K must be finite.*batch items \[1\]"):
+        train_mod.device_batch(batch, torch.device("cpu"))
+    batch["K"][1, 0, 0] = 30.0
+    with pytest.raises(ValueError, match=r"baseline must be finite and > 0 metres: not so for batch items \[2\]"):
+        train_mod.device_batch(batch, torch.device("cpu"))
+    batch["baseline"][2] = 0.1
+    assert train_mod.device_batch(batch, torch.device("cpu"))["inputs_checked"] is True
+
+
+def test_step_values_read_as_numbers_and_a_non_finite_loss_raises():
+    values = train_mod.StepValues(torch.tensor([0.5, 21.0, 0.25]), ["mse"], 1e-3)
+    assert values.read() == {"loss": 0.5, "psnr": 21.0, "lr": 1e-3, "mse": 0.25}
+    with pytest.raises(train_mod.TrainingDiverged, match="the loss is inf"):
+        train_mod.StepValues(torch.tensor([float("inf"), 21.0]), [], 1e-3).read()
 
 
 def test_resume_refuses_other_settings(demo_dataset, tmp_path):

@@ -160,13 +160,24 @@ def diverging(monkeypatch, at_call: int, how: str) -> None:
     monkeypatch.setattr(train_mod, "create_objective", create)
 
 
-@pytest.mark.parametrize("how,at_call,what", [("loss", 3, "the loss is nan"),
-                                              ("grad", 3, "a gradient is NaN or infinite")])
+def fused_optimiser(monkeypatch) -> None:
+    """The run's AdamW fused, as on CUDA (fused runs on the CPU too): a non-finite loss then skips its update on
+    the device, and the loop learns of it when it reads the step's values, after the next step is queued."""
+    real = train_mod.create_optimizer
+    monkeypatch.setattr(train_mod, "create_optimizer", lambda params, device, **kw: torch.optim.AdamW(
+        params, fused=True, **kw) if device.type == "cpu" else real(params, device, **kw))
+
+
+@pytest.mark.parametrize("how,at_call,what,fused", [("loss", 3, "the loss is nan", False),
+                                                    ("loss", 3, "the loss is nan", True),
+                                                    ("grad", 3, "a gradient is NaN or infinite", False)])
 def test_a_diverged_run_keeps_its_last_finite_checkpoint_and_the_advice_works(demo_dataset, tmp_path, capsys,
-                                                                             monkeypatch, how, at_call, what):
+                                                                             monkeypatch, how, at_call, what, fused):
     run = tmp_path / "run"
     argv = ["train", "--data", demo_dataset, "--out", run, *TINY, "--steps", "6", "--log-every", "2"]
     diverging(monkeypatch, at_call, how)
+    if fused:  # step 3's values are read while step 4 is queued: the error still names step 3
+        fused_optimiser(monkeypatch)
     rc, err = refusal(main, argv, capsys)
     step = 3 if how == "loss" else 4  # a NaN gradient is read at the next log step, before the checkpoint there
     assert rc == 2 and len(err.splitlines()) == 1, err
