@@ -4,9 +4,10 @@ Stages (each synchronised on CUDA, so the split is honest and the sum is a littl
 step): data (the next batch from the loader, when ``--data`` is given; else a synthetic batch and no data
 time), encoder, decoder + predictor, composer, rasterisation forward, loss, backward, optimiser. Then the
 free-running ``train_step`` on the same batch on the device (no synchronisation inside, one before and after).
-Medians of ``--repeats`` steps after ``--warmup``. Then the step time a run sees: ``--repeats`` steps back to
-back as ``sgmodel train`` runs them (each batch checked on the host and copied, each step's values read once the
-next is queued; the last two batches alternate, the loader's time excluded), their mean. Peak memory is ``torch.cuda.max_memory_allocated`` over each
+Medians of ``--repeats`` steps after ``--warmup``. Then the step time a run sees: steps back to back as ``sgmodel
+train`` runs them (each with the loader's next batch when ``--data`` is given, else two synthetic batches in turn;
+each batch checked on the host and copied, each step's values read once the next is queued), the mean step of a
+round of ``--repeats``, the median of three rounds after one untimed. Peak memory is ``torch.cuda.max_memory_allocated`` over each
 objective's steps. The step is timed with MSE + 0.05 (1 - SSIM) and, when VGG16 weights are given
 (``--lpips-vgg FILE``) or random ones are asked for (``--lpips-random-vgg``: the time does not depend on
 the weights' values; for machines without the ImageNet file), again with MSE + 0.05 LPIPS-VGG.
@@ -48,6 +49,8 @@ STAGES = ("data", "encoder", "decoder + predictor", "composer", "rasterisation f
           "optimiser")
 #: dense bf16 tensor-core rate on the spec sheet, TFLOP/s, by a name fragment of the GPU.
 BF16_SPEC_TFLOPS = {"H100": 989.4, "H200": 989.4}
+#: rounds of ``--repeats`` back-to-back steps timed (their median is reported), after one untimed
+BACK_TO_BACK_ROUNDS = 3
 
 
 def synthetic_batch(batch: int, targets: int, size: int, seed: int = 0) -> dict:
@@ -165,15 +168,20 @@ def measure(model, objective: Objective, batches, args, device: torch.device, am
             for k, v in split.items():
                 stages[k].append(v)
             free.append(step_s)
-    t0 = now()
-    queued = None
-    for i in range(args.repeats):  # as `sgmodel train` runs them: each step's values read once the next is queued
-        values = queue_step(model, device_batch(hosts[i % len(hosts)], device), objective, optimizer, scheduler, amp)
-        if queued is not None:
-            queued.read()
-        queued = values
-    queued.read()
-    back_to_back = (now() - t0) / args.repeats
+    rounds = []
+    for r in range(BACK_TO_BACK_ROUNDS + 1):  # the first round warms up
+        t0 = now()
+        queued = None
+        for i in range(args.repeats):  # as `sgmodel train` runs them: each step's values read once the next is queued
+            values = queue_step(model, device_batch(batches(i)[0] if args.data else hosts[i % len(hosts)], device),
+                                objective, optimizer, scheduler, amp)
+            if queued is not None:
+                queued.read()
+            queued = values
+        queued.read()
+        if r:
+            rounds.append((now() - t0) / args.repeats)
+    back_to_back = statistics.median(rounds)
     peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
     return {"stages": {k: statistics.median(v) * 1e3 for k, v in stages.items()},
             "step": statistics.median(free) * 1e3, "back_to_back": back_to_back * 1e3, "peak": peak, "first": first}
@@ -216,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
     rows += [["**sum of stages (synchronised)**"] + [f"{sum(v for v in r['stages'].values() if v == v):.1f}"
                                                      for r in results],
              ["**free-running step** (`train_step`, data excluded)"] + [f"**{r['step']:.1f}**" for r in results],
-             ["**back-to-back steps** (as `sgmodel train` runs them, data excluded)"]
+             ["**back-to-back steps** (as `sgmodel train` runs them, the loader's batch each step with `--data`)"]
              + [f"**{r['back_to_back']:.1f}**" for r in results],
              ["peak memory, MiB"] + [f"{r['peak']:.0f}" for r in results],
              ["first step, s (cuDNN's algorithm search; compilation)"] + [f"{r['first']:.1f}" for r in results]]
