@@ -234,6 +234,26 @@ def test_the_model_does_not_check_a_batch_the_loop_checked_on_the_host(demo_data
     assert train_mod.device_batch(batch, torch.device("cpu"))["inputs_checked"] is True
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the side stream of device_batch needs a CUDA device")
+def test_a_batch_copied_on_the_side_stream_is_what_the_current_stream_reads():
+    """The copy runs on ``device_batch``'s side stream; the current stream waits for it: held back on purpose
+    (the side stream asleep before the copy), the values read on the current stream are still the batch's."""
+    device = torch.device("cuda")
+    batch = textured_batch(B=4, T=2, S=64)
+    host = {k: v.pin_memory() if torch.is_tensor(v) else v for k, v in batch.items()}
+    train_mod.device_batch(host, device)  # the side stream exists from now on
+    torch.cuda.synchronize()
+    stream = train_mod._copy_streams[torch.device("cuda", torch.cuda.current_device())]
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        torch.cuda._sleep(200_000_000)  # about 0.1 s: the copy queued behind it
+    moved = train_mod.device_batch(host, device)
+    for k, v in batch.items():
+        if torch.is_tensor(v):
+            assert moved[k].device.type == "cuda" and torch.equal(moved[k].cpu(), v), k
+    assert moved["inputs_checked"] is True and moved["keys"] == batch["keys"]
+
+
 def test_step_values_read_as_numbers_and_a_non_finite_loss_raises():
     values = train_mod.StepValues(torch.tensor([0.5, 21.0, 0.25]), ["mse"], 1e-3)
     assert values.read() == {"loss": 0.5, "psnr": 21.0, "lr": 1e-3, "mse": 0.25}
