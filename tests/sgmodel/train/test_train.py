@@ -240,7 +240,7 @@ def test_a_batch_copied_on_the_side_stream_is_what_the_current_stream_reads():
     (the side stream asleep before the copy), the values read on the current stream are still the batch's."""
     device = torch.device("cuda")
     batch = textured_batch(B=4, T=2, S=64)
-    host = {k: v.pin_memory() if torch.is_tensor(v) else v for k, v in batch.items()}
+    host = {k: v.contiguous().pin_memory() if torch.is_tensor(v) else v for k, v in batch.items()}
     train_mod.device_batch(host, device)  # the side stream exists from now on
     torch.cuda.synchronize()
     stream = train_mod._copy_streams[torch.device("cuda", torch.cuda.current_device())]
