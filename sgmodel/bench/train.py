@@ -1,16 +1,17 @@
 """``sgmodel bench train``: one training step split by stage, with the SSIM and the LPIPS term, and its peak memory.
 
-Stages (each synchronised on CUDA, so the split is honest and the sum is a little above a free-running
-step): data (the next batch from the loader, when ``--data`` is given; else a synthetic batch and no data
-time), encoder, decoder + predictor, composer, rasterisation forward, loss, backward, optimiser. Then the
-free-running ``train_step`` on the same batch on the device (no synchronisation inside, one before and after).
-Medians of ``--repeats`` steps after ``--warmup``. Then the step time a run sees: steps back to back as ``sgmodel
-train`` runs them (each with the loader's next batch when ``--data`` is given, else two synthetic batches in turn;
-each batch checked on the host and copied, each step's values read once the next is queued), the mean step of a
-round of ``--repeats``, the median of three rounds after one untimed. Peak memory is ``torch.cuda.max_memory_allocated`` over each
-objective's steps. The step is timed with MSE + 0.05 (1 - SSIM) and, when VGG16 weights are given
-(``--lpips-vgg FILE``) or random ones are asked for (``--lpips-random-vgg``: the time does not depend on
-the weights' values; for machines without the ImageNet file), again with MSE + 0.05 LPIPS-VGG.
+Stages (each synchronised on CUDA, so the split is honest and the sum is a little above a free-running step):
+data (the next batch from the loader, when ``--data`` is given; else a synthetic batch and no data time),
+encoder, decoder + predictor, composer, rasterisation forward, loss, backward, optimiser. Then the free-running
+``train_step`` on the same batch on the device (no synchronisation inside, one before and after). Medians of
+``--repeats`` steps after ``--warmup``. Then the step time a run sees: steps back to back as ``sgmodel train``
+runs them (each with the loader's next batch when ``--data`` is given, else two synthetic batches in turn; each
+batch checked on the host and copied, each step's values read once the next is queued), the mean step of a round
+of ``--repeats``, the median of three rounds after one untimed. Peak memory is
+``torch.cuda.max_memory_allocated`` over each objective's steps. The step is timed with MSE + 0.05 (1 - SSIM)
+and, when VGG16 weights are given (``--lpips-vgg FILE``) or random ones are asked for (``--lpips-random-vgg``:
+the time does not depend on the weights' values; for machines without the ImageNet file), again with MSE + 0.05
+LPIPS-VGG.
 
 The decoder + predictor's FLOPs are counted by ``torch.utils.flop_counter`` (convolutions and matrix
 products, forward and backward) and divided by their forward stage time and by the time of their forward

@@ -22,13 +22,13 @@ the run's size, and a valid pixel in some target of each), the encoder and LPIPS
 and the data). A RUN that holds an earlier attempt of other settings without any checkpoint is started
 afresh (nothing of value is lost).
 
-Divergence: the loss is checked every step, when the loop reads the step's values (``StepValues``: once the
-next step is queued, at once at a log or checkpoint step; on a GPU a non-finite loss has already made its own
-update skip itself on the device); the gradients every step with one fused norm on the device (no sync), read
-together with the weights' norm at every log and checkpoint step. A NaN or infinity stops training with ``TrainingDiverged``, before any checkpoint
-holds it; ``--init-from last.pt`` starts a new run with other settings from the last finite weights.
-A run that diverges ends with the command that goes on from its last checkpoint at half the learning rate
-(``restart_command``).
+Divergence: the loss is checked every step, when the loop reads the step's values (``StepValues``: once the next
+step is queued, at once at a log or checkpoint step; on a GPU a non-finite loss has already made its own update
+skip itself on the device); the gradients every step with one fused norm on the device (no sync), read together
+with the weights' norm at every log and checkpoint step. A NaN or infinity stops training with
+``TrainingDiverged``, before any checkpoint holds it; ``--init-from last.pt`` starts a new run with other
+settings from the last finite weights. A run that diverges ends with the command that goes on from its last
+checkpoint at half the learning rate (``restart_command``).
 """
 
 from __future__ import annotations
