@@ -28,6 +28,7 @@ Bad input raises ``DataError`` naming the file (and the JSON field, through ``Sa
 from __future__ import annotations
 
 import atexit
+import collections
 import json
 import os
 import sys
@@ -222,6 +223,28 @@ def collate(samples: list[dict]) -> dict:
     if any("target_groups" in s for s in samples):
         batch["target_groups"] = [s.get("target_groups") for s in samples]
     return batch
+
+
+#: the batches a loader worker keeps after handing them over (``KeptBatches``)
+KEPT_BATCHES = 2
+
+
+class KeptBatches:
+    """``collate`` in a loader worker, which keeps its last ``KEPT_BATCHES`` batches. A batch's tensors reach
+    the consuming process in shared memory, and whichever process drops a segment last frees its pages: for a
+    cached training batch (264 MiB with float32 features) that took 35 ms of the dropping thread with the GIL
+    held; in a CUDA run that thread is the pin-memory thread, and the main thread could queue no kernel meanwhile
+    (docs/benchmarks.md "The loader's hand-over"). Kept here a little longer, the worker drops them last and
+    frees them in its own process; the consumer's drop only unmaps (0.1 ms). Costs the host's memory for those
+    batches, per worker."""
+
+    def __init__(self) -> None:
+        self._kept: collections.deque = collections.deque(maxlen=KEPT_BATCHES)
+
+    def __call__(self, samples: list[dict]) -> dict:
+        batch = collate(samples)
+        self._kept.append(batch)
+        return batch
 
 
 def grouped_batches(samples: Iterable[dict], batch_size: int) -> Iterator[dict]:
@@ -443,8 +466,8 @@ def make_loader(root: Path, split: str, batch_size: int, resolution: int = RESOL
     # CUDA inherits their locked thread pools, and the workers hang at their first decode.
     workers = dict(worker_init_fn=init_loader_worker, multiprocessing_context="spawn",
                    persistent_workers=not train) if num_workers > 0 else {}
-    return DataLoader(dataset, batch_size=batch_size, collate_fn=collate, num_workers=num_workers,
-                      pin_memory=pin_memory, **workers)
+    return DataLoader(dataset, batch_size=batch_size, collate_fn=KeptBatches() if num_workers > 0 else collate,
+                      num_workers=num_workers, pin_memory=pin_memory, **workers)
 
 
 def batch_share(batch: dict, index: int, shares: int) -> dict:

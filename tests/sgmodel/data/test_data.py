@@ -17,6 +17,7 @@ from scenesplat_stereo.shards.encode import decode_image
 from scenesplat_stereo.shards.sample import SampleMeta
 from scenesplat_stereo.shards.webdataset import iter_shard
 from sgmodel.data import sample_order
+from sgmodel.data import loader as loader_mod
 from sgmodel.data.loader import DataError, ShardStream, make_loader
 from sgmodel.data.square_crop import SquareCrop
 
@@ -139,6 +140,22 @@ def test_training_resume_with_workers(demo_dataset):
     kw = dict(resolution=32, targets=4, num_workers=2, shuffle_buffer=3)
     run = collect(make_loader(demo_dataset, "train", 2, seed=3, **kw), 9)
     assert collect(make_loader(demo_dataset, "train", 2, seed=3, start_step=5, **kw), 4) == run[5:]
+
+
+def test_a_loader_worker_keeps_its_last_batches_and_hands_over_the_same_ones(demo_dataset):
+    """``KeptBatches``: each worker's collate keeps its last ``KEPT_BATCHES`` batches (so that the worker, not the
+    consuming process, frees their shared memory: scripts/profile/loader_handover.py), the batches themselves
+    unchanged; no worker, no keeping."""
+    keep = loader_mod.KeptBatches()
+    samples = [sample for sample, _ in zip(ShardStream(demo_dataset, "val", 32, 2, train=False), range(2))]
+    made = [keep(samples[:1]), keep(samples[1:2]), keep(samples[:2])]
+    assert [id(b) for b in keep._kept] == [id(b) for b in made[-loader_mod.KEPT_BATCHES:]]
+    assert loader_mod.KEPT_BATCHES >= 1 and torch.equal(made[2]["left"], loader_mod.collate(samples[:2])["left"])
+    assert isinstance(make_loader(demo_dataset, "train", 2, 32, 4, num_workers=1).collate_fn, loader_mod.KeptBatches)
+    assert make_loader(demo_dataset, "train", 2, 32, 4).collate_fn is loader_mod.collate
+    kw = dict(resolution=32, targets=4, shuffle_buffer=3)
+    assert collect(make_loader(demo_dataset, "train", 2, seed=3, num_workers=2, **kw), 4) == \
+        collect(make_loader(demo_dataset, "train", 2, seed=3, **kw), 4)
 
 
 @pytest.mark.parametrize("counts", [[4, 2, 4, 2], [4, 1], [3], [5, 5, 5, 1, 2, 7, 3]])
