@@ -239,7 +239,8 @@ def run(args: argparse.Namespace) -> int:
            + (f"; the LPIPS term's VGG16 {'through torch.compile' if compiled else 'eager'}" if len(objectives) > 1
               else "") + ".\n\n"
            f"{markdown_table(header, rows)}\n\nGaussians per scene: {gaussians:,}.\n\n"
-           + layer_rate(model, device_batch(batches(0)[0], device), amp, device, results[0]["stages"]["decoder + predictor"], args.repeats),
+           + layer_rate(model, device_batch(batches(0)[0], device), amp, device,
+                        results[0]["stages"]["decoder + predictor"], args.repeats),
            out)
     return 0
 

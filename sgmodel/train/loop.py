@@ -102,8 +102,9 @@ def device_batch(batch: dict, device: torch.device) -> dict:
     if device.type != "cuda":
         return {**to_device(batch, device), "inputs_checked": True}
     device = torch.device("cuda", torch.cuda.current_device() if device.index is None else device.index)
-    stream = _copy_streams.setdefault(device, torch.cuda.Stream(device))
-    consumer = torch.cuda.current_stream(device)
+    if device not in _copy_streams:
+        _copy_streams[device] = torch.cuda.Stream(device)
+    stream, consumer = _copy_streams[device], torch.cuda.current_stream(device)
     with torch.cuda.stream(stream):
         moved = to_device(batch, device)
     consumer.wait_stream(stream)
