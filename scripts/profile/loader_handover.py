@@ -25,6 +25,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from scenesplat_stereo.common.files import atomic_write_bytes  # noqa: E402
+from scenesplat_stereo.common.text import markdown_table  # noqa: E402
 from sgmodel.config import ModelParams  # noqa: E402
 from sgmodel.data import loader  # noqa: E402
 from sgmodel.data.encoder_cache import open_cache, precision_of  # noqa: E402
@@ -93,20 +95,19 @@ def main() -> int:
         encoder = create_model(ModelParams(resolution=args.resolution)).encoder
         cache = open_cache(args.encoder_cache, args.data, encoder, args.resolution, precision_of("cpu", False),
                            ["train"])
-    rows = [measure(args, cache, kept) for kept in (0, loader.KEPT_BATCHES)]
-    lines = [f"# The loader's hand-over of a batch: {args.batch_size} pairs at {args.resolution}x{args.resolution}, "
-             f"{args.targets} targets{', encoder outputs from ' + str(args.encoder_cache) if cache else ''}; "
-             f"{args.workers} workers; medians of {args.repeats} batches", "",
-             "| batches a worker keeps | batch, MiB (tensors) | take a ready batch, ms | drop it, ms | "
-             "main thread's Python work while another thread drops one |", "|---:|---:|---:|---:|---:|"]
-    lines += [f"| {r['kept']} | {r['MiB']:.0f} ({r['tensors']}) | {r['take']:.1f} | {r['drop']:.1f} | "
-              f"{100 * r['share']:.0f}% |" for r in rows]
-    text = "\n".join(lines) + "\n"
+    results = [measure(args, cache, kept) for kept in (0, loader.KEPT_BATCHES)]
+    table = markdown_table(
+        ["batches a worker keeps", "batch, MiB (tensors)", "take a ready batch, ms", "drop it, ms",
+         "main thread's Python work while another thread drops one"],
+        [[str(r["kept"]), f"{r['MiB']:.0f} ({r['tensors']})", f"{r['take']:.1f}", f"{r['drop']:.1f}",
+          f"{100 * r['share']:.0f}%"] for r in results])
+    text = (f"# The loader's hand-over of a batch: {args.batch_size} pairs at {args.resolution}x{args.resolution}, "
+            f"{args.targets} targets{', encoder outputs from ' + str(args.encoder_cache) if cache else ''}; "
+            f"{args.workers} workers; medians of {args.repeats} batches\n\n{table}\n")
     print(text)
     if args.out:
-        args.out.write_text(text)
+        atomic_write_bytes(args.out, text.encode())
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())
