@@ -236,7 +236,7 @@ class KeptBatches:
     held; in a CUDA run that thread is the pin-memory thread, and the main thread could queue no kernel meanwhile
     (docs/benchmarks.md "The loader's hand-over"). Kept here a little longer, the worker drops them last and
     frees them in its own process; the consumer's drop only unmaps (0.1 ms). Costs the host's memory for those
-    batches, per worker."""
+    batches, per worker; training's loader only (``make_loader``)."""
 
     def __init__(self) -> None:
         self._kept: collections.deque = collections.deque(maxlen=KEPT_BATCHES)
@@ -466,7 +466,9 @@ def make_loader(root: Path, split: str, batch_size: int, resolution: int = RESOL
     # CUDA inherits their locked thread pools, and the workers hang at their first decode.
     workers = dict(worker_init_fn=init_loader_worker, multiprocessing_context="spawn",
                    persistent_workers=not train) if num_workers > 0 else {}
-    return DataLoader(dataset, batch_size=batch_size, collate_fn=KeptBatches() if num_workers > 0 else collate,
+    # training's workers keep their last batches (``KeptBatches``); validation's, persistent, would keep them all run
+    kept = num_workers > 0 and train
+    return DataLoader(dataset, batch_size=batch_size, collate_fn=KeptBatches() if kept else collate,
                       num_workers=num_workers, pin_memory=pin_memory, **workers)
 
 

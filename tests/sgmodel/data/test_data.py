@@ -145,7 +145,7 @@ def test_training_resume_with_workers(demo_dataset):
 def test_a_loader_worker_keeps_its_last_batches_and_hands_over_the_same_ones(demo_dataset):
     """``KeptBatches``: each worker's collate keeps its last ``KEPT_BATCHES`` batches (so that the worker, not the
     consuming process, frees their shared memory: scripts/profile/loader_handover.py), the batches themselves
-    unchanged; no worker, no keeping."""
+    unchanged; no worker or validation's (persistent) workers, no keeping."""
     keep = loader_mod.KeptBatches()
     samples = [sample for sample, _ in zip(ShardStream(demo_dataset, "val", 32, 2, train=False), range(2))]
     made = [keep(samples[:1]), keep(samples[1:2]), keep(samples[:2])]
@@ -153,6 +153,7 @@ def test_a_loader_worker_keeps_its_last_batches_and_hands_over_the_same_ones(dem
     assert loader_mod.KEPT_BATCHES >= 1 and torch.equal(made[2]["left"], loader_mod.collate(samples[:2])["left"])
     assert isinstance(make_loader(demo_dataset, "train", 2, 32, 4, num_workers=1).collate_fn, loader_mod.KeptBatches)
     assert make_loader(demo_dataset, "train", 2, 32, 4).collate_fn is loader_mod.collate
+    assert make_loader(demo_dataset, "val", 2, 32, None, num_workers=1, train=False).collate_fn is loader_mod.collate
     kw = dict(resolution=32, targets=4, shuffle_buffer=3)
     assert collect(make_loader(demo_dataset, "train", 2, seed=3, num_workers=2, **kw), 4) == \
         collect(make_loader(demo_dataset, "train", 2, seed=3, **kw), 4)
