@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from sgmodel.bench.train import synthetic_batch  # noqa: E402
 from sgmodel.config import ModelParams  # noqa: E402
-from sgmodel.data.loader import to_device  # noqa: E402
+from sgmodel.data.loader import map_tensors, to_device  # noqa: E402
 from sgmodel.metrics.lpips import random_lpips  # noqa: E402
 from sgmodel.model.layers import amp_autocast, compiles  # noqa: E402
 from sgmodel.model.network import create_model, encode_pair  # noqa: E402
@@ -85,7 +85,7 @@ def main() -> int:
             disparity, features = encode_pair(model.encoder, batch["left"], batch["right"])
         host["encoder_disparity"], host["encoder_features"] = disparity.cpu(), [f.to(torch.bfloat16).cpu()
                                                                               for f in features]
-    hosts = [{k: pinned(v) for k, v in h.items()} for h in hosts]  # as the loader's batches on CUDA
+    hosts = [map_tensors(h, torch.Tensor.pin_memory) for h in hosts]  # as the loader's batches on CUDA
 
     def queue(i: int):
         return queue_step(model, device_batch(hosts[i % 2], device), objective, optimizer, scheduler, True)
@@ -172,20 +172,14 @@ def gaps(kernels, host_ops, n: int) -> list[str]:
     return out
 
 
-def pinned(value):
-    """A tensor, or a list of tensors, in page-locked memory; anything else as it is."""
-    if torch.is_tensor(value):
-        return value.pin_memory()
-    return [t.pin_memory() for t in value] if isinstance(value, list) and value and torch.is_tensor(value[0]) else value
-
-
 def host_syncs(step) -> list[str]:
     """Each PyTorch operation of ``step()`` that waits for the GPU, by where our code called it (its three
     innermost frames in sgmodel or scenesplat_stereo), with its count."""
     seen: collections.Counter = collections.Counter()
 
     def note(message, *_):
-        ours = [f for f in traceback.extract_stack()[:-1] if "/sgmodel/" in f.filename or "/scenesplat_stereo/" in f.filename]
+        ours = [f for f in traceback.extract_stack()[:-1]
+                if "/sgmodel/" in f.filename or "/scenesplat_stereo/" in f.filename]
         where = " <- ".join(f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in reversed(ours[-3:]))
         seen[(str(message).splitlines()[0][:70], where or "outside our code")] += 1
 

@@ -46,19 +46,15 @@ def spin(seconds: float) -> int:
     return n
 
 
-def tensors_of(batch: dict) -> list[torch.Tensor]:
-    return [t for v in batch.values() for t in (v if isinstance(v, list) else [v]) if torch.is_tensor(t)]
-
-
 def measure(args, cache, kept: int) -> dict:
     """Medians over ``args.repeats`` batches with ``kept`` batches kept by each worker."""
     loader.KEPT_BATCHES = kept  # read when make_loader builds the workers' collate
     batches = iter(loader.make_loader(args.data, "train", args.batch_size, args.resolution, args.targets, 0,
                                       args.workers, cache=cache))
-    first = next(batches)
-    size = sum(t.numel() * t.element_size() for t in tensors_of(first)) / 2**20
-    count = len(tensors_of(first))
-    del first
+    tensors: list[torch.Tensor] = []
+    loader.map_tensors(next(batches), tensors.append)
+    size, count = sum(t.numel() * t.element_size() for t in tensors) / 2**20, len(tensors)
+    del tensors
     take, drop, alone, beside = [], [], [], []
     for _ in range(args.repeats):
         time.sleep(READY_S)

@@ -489,10 +489,16 @@ def batch_share(batch: dict, index: int, shares: int) -> dict:
     return {k: cut(k, v) for k, v in batch.items()}
 
 
+def map_tensors(batch: dict, fn) -> dict:
+    """The batch with ``fn`` applied to each of its tensors (and to each tensor of a list of them, as
+    ``encoder_features``); other values as they are."""
+    def apply(v):
+        if torch.is_tensor(v):
+            return fn(v)
+        return [apply(x) for x in v] if isinstance(v, list) and v and torch.is_tensor(v[0]) else v
+    return {k: apply(v) for k, v in batch.items()}
+
+
 def to_device(batch: dict, device: torch.device) -> dict:
     """The batch's tensors (and lists of tensors) on ``device``; other values as they are."""
-    def move(v):
-        if torch.is_tensor(v):
-            return v.to(device, non_blocking=True)
-        return [move(x) for x in v] if isinstance(v, list) and v and torch.is_tensor(v[0]) else v
-    return {k: move(v) for k, v in batch.items()}
+    return map_tensors(batch, lambda t: t.to(device, non_blocking=True))

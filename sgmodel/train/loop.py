@@ -23,7 +23,7 @@ from scenesplat_stereo.common.text import format_table, value_cell
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
 from sgmodel.data.loader import (RUN_SPLITS, batch_share, check_first_sample, check_valid_pixels, load_sample,
-                                 loader_workers, make_loader, read_split, to_device)
+                                 loader_workers, make_loader, map_tensors, read_split, to_device)
 from sgmodel.metrics import image as metrics
 from sgmodel.metrics.sheets import validation_sheet
 from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
@@ -105,13 +105,15 @@ def device_batch(batch: dict, device: torch.device) -> dict:
     if device not in _copy_streams:
         _copy_streams[device] = torch.cuda.Stream(device)
     stream, consumer = _copy_streams[device], torch.cuda.current_stream(device)
-    with torch.cuda.stream(stream):
-        moved = to_device(batch, device)
+
+    def copy(t: torch.Tensor) -> torch.Tensor:
+        with torch.cuda.stream(stream):
+            moved = t.to(device, non_blocking=True)
+        moved.record_stream(consumer)  # made on the side stream, used and freed on the consumer's
+        return moved
+
+    moved = map_tensors(batch, copy)
     consumer.wait_stream(stream)
-    for value in moved.values():  # made on the side stream, used and freed on the consumer's
-        for t in value if isinstance(value, list) else [value]:
-            if torch.is_tensor(t) and t.device.type == "cuda":
-                t.record_stream(consumer)
     return {**moved, "inputs_checked": True}
 
 
