@@ -11,6 +11,7 @@ docs/formats.md give sizes, quantisation errors and the clients they were checke
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,6 +41,9 @@ FORMATS = {f.name: f for f in (
     SceneFormat("compressed-ply", ".compressed.ply", save_compressed_ply,
                 "PlayCanvas compressed .ply, 16 bytes + 1 byte per higher SH coefficient (SuperSplat)"),
     SceneFormat("spz", ".spz", save_spz, "Niantic .spz v3, gzip'd fixed point (Scaniverse, splat-transform)"),
+    SceneFormat("spz-parallel", ".spz", functools.partial(save_spz, parallel=True),
+                "the same .spz, its gzip stream deflated in 128 KiB pieces side by side (pigz's method): the same "
+                "decoded bytes, about 0.1% larger, several times faster"),
     SceneFormat("sog", ".sog", save_sog, "PlayCanvas SOG v2, zip of lossless WebP images and codebooks "
                 "(SuperSplat, PlayCanvas engine, splat-transform)"),
 )}

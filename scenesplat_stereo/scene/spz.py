@@ -72,6 +72,9 @@ COLOR_SCALE = 0.15
 SH1_BITS, SH_REST_BITS = 5, 4
 #: gzip level of the writer (zlib's default, as the reference writer's Z_DEFAULT_COMPRESSION).
 GZIP_LEVEL = 6
+#: Uncompressed bytes of a piece of ``save_spz(..., parallel=True)`` (pigz's 128 KiB), and deflate's window: the
+#: bytes before a piece that prime its compressor.
+DEFLATE_PIECE, DEFLATE_WINDOW = 1 << 17, 1 << 15
 _HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("num_points", "<u4"), ("sh_degree", "u1"),
                     ("fractional_bits", "u1"), ("flags", "u1"), ("reserved", "u1")])
 _NGSP_HEADER = np.dtype([("magic", "<u4"), ("version", "<u4"), ("num_points", "<u4"), ("sh_degree", "u1"),
@@ -154,18 +157,21 @@ def _fill_sh(out: np.ndarray, x: np.ndarray, bits: int) -> None:
     np.subtract(idx_b, idx, out=out, casting="unsafe")  # the top index's 0 - 1 wraps to 255
 
 
-def _encoded_blocks(scene: GaussianScene, path: Path) -> Iterator[np.ndarray]:
-    """The uncompressed version-3 stream (module docstring) as its blocks in file order: header, positions,
-    alphas, colours, scales, rotations, SH. Every block's rows are quantised in tasks on the shared pool
-    (``row_tasks``), all queued at once in file order; each block is yielded when its own tasks are done,
-    so a consumer (gzip) works on it while later blocks are quantised."""
+def _encoded_stream(scene: GaussianScene, path: Path) -> tuple[np.ndarray, Iterator[int]]:
+    """The uncompressed version-3 stream (module docstring: header, positions, alphas, colours, scales,
+    rotations, SH) as one uint8 array, and an iterator of how many of its leading bytes are final, yielded as
+    each block is done. Every block's rows are quantised in tasks on the shared pool (``row_tasks``), all queued
+    at once in file order, so a consumer (deflate) works on the stream's head while later blocks are quantised.
+    The array is only complete once the iterator is exhausted."""
     n, k = len(scene), (scene.sh_degree + 1) ** 2
     bits = _fraction_bits(scene.means, path)
     header = np.zeros((), _HEADER)
     header[()] = (MAGIC, WRITE_VERSION, n, scene.sh_degree, bits, 0, 0)
     widths = [9, 1, 3, 3, 4, 3 * (k - 1)]
-    body = np.empty((n * sum(widths),), np.uint8)
-    blocks = np.split(body, np.cumsum([n * w for w in widths])[:-1])
+    stream = np.empty((_HEADER.itemsize + n * sum(widths),), np.uint8)
+    stream[:_HEADER.itemsize] = np.frombuffer(header.tobytes(), np.uint8)
+    ends = _HEADER.itemsize + np.cumsum([n * w for w in widths])
+    blocks = np.split(stream[_HEADER.itemsize:], ends[:-1] - _HEADER.itemsize)
     positions, alphas, colours, scales, rotations, sh = (b.reshape(n, w) for b, w in zip(blocks, widths))
     sh = sh.reshape(n, k - 1, 3)
     fills = [
@@ -182,21 +188,28 @@ def _encoded_blocks(scene: GaussianScene, path: Path) -> Iterator[np.ndarray]:
                 _fill_sh(sh[a:b, 3:], scene.sh[a:b, 4:], SH_REST_BITS)
         fills.append(fill_sh)
     tasks = [row_tasks.submit_rows(fill, n) for fill in fills]
-    yield header.tobytes()
-    try:
-        for block, futures in zip(blocks, tasks):
-            row_tasks.wait_all(futures)
-            yield block
-    finally:
-        for futures in tasks:  # an abandoned stream: let its tasks end before the arrays go
-            concurrent.futures.wait(futures)
+
+    def ready() -> Iterator[int]:
+        yield _HEADER.itemsize
+        try:
+            for end, futures in zip(ends, tasks):
+                row_tasks.wait_all(futures)
+                yield int(end)
+        finally:
+            for futures in tasks:  # an abandoned stream: let its tasks end before the arrays go
+                concurrent.futures.wait(futures)
+
+    return stream, ready()
 
 
 def encode_spz(scene: GaussianScene, path: str | os.PathLike = "<memory>") -> bytes:
     """The uncompressed version-3 bytes (header and blocks) of ``scene`` (module docstring). The header's flags
     are 0: not antialiased (bit 0x1 marks scenes trained with mip-splatting's filter; ours render in
     gsplat's "classic" mode)."""
-    return b"".join(bytes(b) for b in _encoded_blocks(scene, Path(path)))
+    stream, ready = _encoded_stream(scene, Path(path))
+    for _ in ready:
+        pass
+    return stream.tobytes()
 
 
 def _gzip_header() -> bytes:
@@ -206,21 +219,55 @@ def _gzip_header() -> bytes:
     return gzip.compress(b"", compresslevel=GZIP_LEVEL, mtime=0)[:10]
 
 
-def save_spz(scene: GaussianScene, path: str | os.PathLike, durable: bool = True) -> Path:
+def _deflate_piece(stream: np.ndarray, start: int, end: int) -> bytes:
+    """Raw deflate at ``GZIP_LEVEL`` of stream[start:end], primed with the 32 KiB before it as zlib's dictionary
+    (what a one-stream deflate could refer back to) and ended by a sync flush (an empty stored block: the output
+    ends on a byte boundary, the stream left open), or by the final block where ``end`` is the stream's: the
+    pieces in order are one raw deflate stream of the whole (pigz's method). zlib runs without the GIL."""
+    zdict = {"zdict": stream[max(0, start - DEFLATE_WINDOW):start]} if start else {}
+    deflate = zlib.compressobj(GZIP_LEVEL, zlib.DEFLATED, -zlib.MAX_WBITS, **zdict)
+    last = end == len(stream)
+    return deflate.compress(stream[start:end]) + deflate.flush(zlib.Z_FINISH if last else zlib.Z_SYNC_FLUSH)
+
+
+def save_spz(scene: GaussianScene, path: str | os.PathLike, durable: bool = True, parallel: bool = False) -> Path:
     """Write ``scene`` as a version-3 ``.spz``, atomically. Returns the path.
 
-    The bytes are ``gzip.compress(encode_spz(scene), compresslevel=GZIP_LEVEL, mtime=0)``'s: its header, one
-    raw deflate stream at that level (zlib's output does not depend on how its input is split between
-    calls) and the CRC-32 and length trailer. The stream is deflated block by block while the later blocks
-    are quantised; deflate is the writer's one serial step."""
+    By default the bytes are ``gzip.compress(encode_spz(scene), compresslevel=GZIP_LEVEL, mtime=0)``'s: its
+    header, one raw deflate stream at that level (zlib's output does not depend on how its input is split between
+    calls) and the CRC-32 and length trailer. The stream is deflated block by block while the later blocks are
+    quantised; that one deflate is the writer's serial step (about 80% of its CPU time).
+
+    ``parallel``: the same gzip header, stream and trailer, but the stream deflated in pieces of
+    ``DEFLATE_PIECE`` bytes in tasks of the shared pool (``_deflate_piece``), each queued as soon as its bytes
+    are quantised: every gzip reader decodes the same bytes, the file is a little larger (each piece starts a
+    new deflate block; docs/formats.md) and its compressed bytes differ from the one-stream writer's."""
     path = Path(path)
-    deflate = zlib.compressobj(GZIP_LEVEL, zlib.DEFLATED, -zlib.MAX_WBITS)
-    parts, crc, size = [_gzip_header()], 0, 0
-    for block in _encoded_blocks(scene, path):
-        parts.append(deflate.compress(block))
-        crc, size = zlib.crc32(block, crc), size + len(memoryview(block))
-    parts += [deflate.flush(), struct.pack("<II", crc, size & 0xFFFFFFFF)]
-    atomic_write_bytes(path, parts, durable=durable)
+    stream, ready = _encoded_stream(scene, path)
+    crc, done, pieces = 0, 0, []
+    try:
+        if parallel:
+            pool, queued = row_tasks.pool(), 0
+            for end in ready:
+                crc, done = zlib.crc32(stream[done:end], crc), end
+                while queued + DEFLATE_PIECE < end or (queued < end == len(stream)):
+                    stop = min(queued + DEFLATE_PIECE, len(stream))
+                    pieces.append(pool.submit(_deflate_piece, stream, queued, stop))
+                    queued = stop
+            deflated = [f.result() for f in pieces]
+        else:
+            deflate = zlib.compressobj(GZIP_LEVEL, zlib.DEFLATED, -zlib.MAX_WBITS)
+            deflated = []
+            for end in ready:
+                deflated.append(deflate.compress(stream[done:end]))
+                crc, done = zlib.crc32(stream[done:end], crc), end
+            deflated.append(deflate.flush())
+    finally:  # after an error or an interrupt, no piece is left running on the stream
+        for f in pieces:
+            f.cancel()
+        concurrent.futures.wait(pieces)
+    atomic_write_bytes(path, [_gzip_header(), *deflated, struct.pack("<II", crc, len(stream) & 0xFFFFFFFF)],
+                       durable=durable)
     return path
 
 

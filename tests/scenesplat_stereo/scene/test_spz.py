@@ -275,6 +275,34 @@ def test_writer_bytes_equal_the_format_description_point_by_point(tmp_path: Path
     finally:
         row_tasks.ROWS_PER_TASK = original
 
+
+@pytest.mark.parametrize("degree", [0, 2])
+@pytest.mark.parametrize("piece", [1000, 4096, 1 << 17])
+def test_parallel_deflate_decodes_to_the_same_stream(tmp_path: Path, degree: int, piece: int, monkeypatch) -> None:
+    """``save_spz(..., parallel=True)``: the gzip header and trailer of the one-stream file, and a deflate stream
+    that GNU gzip's own inflate (not zlib's) and the standard library's both decode to the bytes the format
+    description gives; pieces much smaller than the stream, a piece ending where the stream does, one piece
+    for the whole, and pieces ending inside blocks."""
+    from scenesplat_stereo.scene import row_tasks, spz
+
+    monkeypatch.setattr(spz, "DEFLATE_PIECE", piece)
+    monkeypatch.setattr(row_tasks, "ROWS_PER_TASK", 512)
+    for n in (0, 1, 1228, 3000):
+        scene = tie_scene(np.random.default_rng(20 + degree), n, degree) if n else random_scene(
+            np.random.default_rng(0), 0, degree)
+        expected = reference_encode(scene)
+        if piece == 4096 and n == 1228 and degree == 0:
+            assert len(expected) == 6 * piece  # 16 + 20 n bytes: the last piece ends where the stream does
+        data = save_spz(scene, tmp_path / "p.spz", parallel=True).read_bytes()
+        one = gzip.compress(expected, 6, mtime=0)
+        assert data[:10] == one[:10] and data[-8:] == one[-8:]
+        assert gzip.decompress(data) == expected
+        if shutil.which("gzip"):
+            assert subprocess.run(["gzip", "-dc"], input=data, capture_output=True, check=True).stdout == expected
+        pieces = -(-len(expected) // piece)
+        assert len(data) <= len(one) + 400 * pieces  # each piece: a new block's code tables and a sync flush
+        assert (pieces > 1) == (data != one)
+
 def zstd_compress(data: bytes) -> bytes:
     """One zstd frame of ``data`` through the system's libzstd (the test's own binding)."""
     lib = ctypes.CDLL(ctypes.util.find_library("zstd"))
