@@ -13,7 +13,8 @@ cache lines run together):
   then y = act((x - mean) rstd gamma + beta) in one pass. Statistics in float32, as PyTorch's CUDA GroupNorm.
 - backward, with g = dL/dx^ = dL/da gamma (a the GroupNorm output, dL/da = dL/dy act'(a)):
   dx = rstd (g - mean(g) - x^ mean(g x^)) per group and image, dgamma = sum dL/da x^, dbeta = sum dL/da;
-  one pass for the sums (per tile, added up here), one for dx. a is recomputed from x, never stored.
+  one pass for the sums (each program's over ``SUMS_ITERS`` tiles, the programs' added up here), one for dx. a is
+  recomputed from x, never stored.
 
 act is the exact (erf) GELU, 0.5 a (1 + erf(a / sqrt 2)), or the identity.
 
@@ -33,7 +34,10 @@ import triton.language as tl
 #: of the backward's (sums, dx); any tile of at least 16 pixels computes the same function up to float32 summation
 #: order. ``python scripts/profile/gpu_group_norm_tiles.py`` times the choices (docs/benchmarks.md).
 FORWARD_LAUNCH = (2048, 2)
-BACKWARD_LAUNCH = (2048, 4)
+BACKWARD_LAUNCH = (1024, 4)
+#: Tiles a program of the backward's sums walks (``_backward_sums_kernel``): its reductions across the program, and
+#: its start, once per that many tiles.
+SUMS_ITERS = 16
 
 
 @triton.jit
@@ -135,21 +139,34 @@ def _grad_a(x_ptr, dy, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS: tl.conste
 @triton.jit
 def _backward_sums_kernel(x_ptr, dy0_ptr, dy1_ptr, dy2_ptr, mean_ptr, rstd_ptr, w_ptr, bias_ptr, s1_ptr, s2_ptr,
                           dw_ptr, db_ptr, P, C, CP, T, G: tl.constexpr, GS: tl.constexpr, GS_P2: tl.constexpr,
-                          BLOCK: tl.constexpr, GELU: tl.constexpr, PARTS: tl.constexpr):
+                          BLOCK: tl.constexpr, ITERS: tl.constexpr, GELU: tl.constexpr, PARTS: tl.constexpr):
+    """One group's sums over ``ITERS`` consecutive tiles (chunk t): the products are added up element-wise in
+    float32 registers, tile after tile, and reduced across the program once at the end."""
     g, t, b = tl.program_id(0), tl.program_id(1), tl.program_id(2)
-    offs, mask, c = _tile(b, t, g, P, C, GS, GS_P2, BLOCK)
     mean = tl.load(mean_ptr + b * G + g)
     rstd = tl.load(rstd_ptr + b * G + g)
-    dy = _load_dy(dy0_ptr, dy1_ptr, dy2_ptr, offs, mask, b, t, g, P, CP, G, GS, GS_P2, BLOCK, PARTS)
-    xhat, da, w = _grad_a(x_ptr, dy, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS, GS_P2, GELU)
-    gx = da * w[None, :]
+    sum_gx = tl.zeros([BLOCK, GS_P2], tl.float32)
+    sum_gx_xhat = tl.zeros([BLOCK, GS_P2], tl.float32)
+    sum_da_xhat = tl.zeros([BLOCK, GS_P2], tl.float32)
+    sum_da = tl.zeros([BLOCK, GS_P2], tl.float32)
+    for i in range(ITERS):
+        tile = t * ITERS + i
+        offs, mask, c = _tile(b, tile, g, P, C, GS, GS_P2, BLOCK)
+        dy = _load_dy(dy0_ptr, dy1_ptr, dy2_ptr, offs, mask, b, tile, g, P, CP, G, GS, GS_P2, BLOCK, PARTS)
+        xhat, da, w = _grad_a(x_ptr, dy, offs, mask, c, mean, rstd, w_ptr, bias_ptr, GS, GS_P2, GELU)
+        gx = da * w[None, :]
+        sum_gx += gx
+        sum_gx_xhat += gx * xhat
+        sum_da_xhat += da * xhat
+        sum_da += da
     out = (b * T + t) * G + g
-    tl.store(s1_ptr + out, tl.sum(gx))
-    tl.store(s2_ptr + out, tl.sum(gx * xhat))
+    tl.store(s1_ptr + out, tl.sum(sum_gx))
+    tl.store(s2_ptr + out, tl.sum(sum_gx_xhat))
     row = (b * T + t) * C
+    c = g * GS + tl.arange(0, GS_P2)
     cm = tl.arange(0, GS_P2) < GS
-    tl.store(dw_ptr + row + c, tl.sum(da * xhat, axis=0), mask=cm)
-    tl.store(db_ptr + row + c, tl.sum(da, axis=0), mask=cm)
+    tl.store(dw_ptr + row + c, tl.sum(sum_da_xhat, axis=0), mask=cm)
+    tl.store(db_ptr + row + c, tl.sum(sum_da, axis=0), mask=cm)
 
 
 @triton.jit
@@ -225,17 +242,19 @@ def backward(dys: list[torch.Tensor], x: torch.Tensor, mean: torch.Tensor, rstd:
     _check_parts(C, groups, parts)
     dys = [dy.contiguous(memory_format=torch.channels_last) for dy in dys]
     dys += [dys[-1]] * (3 - parts)  # the kernels take three pointers; the unused ones are never read
-    s1 = torch.empty(B, T, groups, device=x.device, dtype=torch.float32)
+    iters = min(SUMS_ITERS, T)
+    chunks = triton.cdiv(T, iters)
+    s1 = torch.empty(B, chunks, groups, device=x.device, dtype=torch.float32)
     s2 = torch.empty_like(s1)
-    dw = torch.empty(B, T, C, device=x.device, dtype=torch.float32)
+    dw = torch.empty(B, chunks, C, device=x.device, dtype=torch.float32)
     db = torch.empty_like(dw)
-    grid = (groups, T, B)
-    _backward_sums_kernel[grid](x, *dys, mean, rstd, weight, bias, s1, s2, dw, db, P, C, C // parts, T, G=groups,
-                                GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts, num_warps=warps)
+    _backward_sums_kernel[(groups, chunks, B)](x, *dys, mean, rstd, weight, bias, s1, s2, dw, db, P, C, C // parts,
+                                               chunks, G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block, ITERS=iters,
+                                               GELU=gelu, PARTS=parts, num_warps=warps)
     dx = None
     if need_x:
         dx = torch.empty_like(x, memory_format=torch.channels_last)
-        _backward_dx_kernel[grid](x, *dys, dx, mean, rstd, weight, bias, s1.sum(1), s2.sum(1), P, C, C // parts,
-                                  1.0 / (P * gs), G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block, GELU=gelu, PARTS=parts,
-                                  num_warps=warps)
+        _backward_dx_kernel[(groups, T, B)](x, *dys, dx, mean, rstd, weight, bias, s1.sum(1), s2.sum(1), P, C,
+                                            C // parts, 1.0 / (P * gs), G=groups, GS=gs, GS_P2=gs_p2, BLOCK=block,
+                                            GELU=gelu, PARTS=parts, num_warps=warps)
     return dx, dw.sum((0, 1)).to(weight.dtype), db.sum((0, 1)).to(bias.dtype)
