@@ -37,7 +37,9 @@ zstd is read through the system's libzstd (``ctypes``); without it version 4 is 
 Coordinates are stored as they are, without an axis change: that is what Niantic's own ``ply_to_spz``
 (``CoordinateSystem::UNSPECIFIED``) and PlayCanvas' splat-transform write and read, so a scene keeps the
 frame of its ``.ply`` (the README's default RUB applies to callers that declare a coordinate system).
-This writer writes version 3, which every client reads.
+This writer writes version 3, which every client reads: as one deflate stream (``gzip.compress``'s bytes), or
+(``save_spz(..., parallel=True)``, the format ``spz-parallel``) deflated in pieces side by side, decoding to the same
+bytes (docs/formats.md).
 """
 
 from __future__ import annotations

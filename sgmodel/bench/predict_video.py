@@ -111,7 +111,8 @@ def bench_video(args: argparse.Namespace, predictor: Predictor, device: torch.de
     rows = [["model alone (encoder to Gaussians)", b, *_stats(model_times, b), ""]]
     for fmt, run in runs.items():
         latency = [x.latency for x in run.batches for _ in range(x.frames)]
-        scenes = "" if fmt is None else f", a {FORMATS[fmt].suffix} scene per frame (writers busy {busy[fmt]:.0%})"
+        scenes = "" if fmt is None else (f", a {FORMATS[fmt].suffix} scene per frame, format {fmt} (writers busy "
+                                         f"{busy[fmt]:.0%})")
         rows.append([f"end to end (decode, model, one novel view, encode{scenes})", b,
                      _rate(run.frames / run.wall), f"{1e3 * np.median(latency):.1f}",
                      f"{1e3 * np.percentile(latency, 99):.1f}", f"{1e3 * cpu[fmt]:.0f}"])

@@ -114,11 +114,15 @@ def test_spz_encoding_is_niantics(tmp_path: Path) -> None:
     assert gzip.decompress((tmp_path / "theirs.spz").read_bytes()) == encode_spz(scene)
 
 
-@pytest.mark.parametrize("name", ["compressed-ply", "spz"])
-def test_splat_transform_reads_our_files_as_we_do(tmp_path: Path, name: str) -> None:
+@pytest.mark.parametrize("name", ["compressed-ply", "spz", "spz-parallel"])
+def test_splat_transform_reads_our_files_as_we_do(tmp_path: Path, name: str, monkeypatch) -> None:
     """Our compact file converted to .ply by splat-transform decodes to what our reader decodes (the same bits:
     float32 rounding). Opacities stay inside (0, 1): splat-transform writes the alpha bytes 0 and 255 of a
-    compressed file as infinite logits (and clamps them for .spz)."""
+    compressed file as infinite logits (and clamps them for .spz). The parallel .spz in pieces of 4 KiB: eight
+    of them, seven sync-flushed."""
+    from scenesplat_stereo.scene import spz
+
+    monkeypatch.setattr(spz, "DEFLATE_PIECE", 4096)
     scene = random_scene(np.random.default_rng(4), 700, 2)
     scene.opacities[:] = np.clip(scene.opacities, 0.01, 0.99)
     ours = save_scene(scene, tmp_path / f"s{FORMATS[name].suffix}", name)

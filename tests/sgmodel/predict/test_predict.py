@@ -208,13 +208,13 @@ def test_bench_predict_video_on_the_cpu(tmp_path):
     out = tmp_path / "bench.md"
     assert sgmodel_main(["bench", "predict", "--video", "--preset", "cpu-small", "--device", "cpu", "--size", "48x32",
                          "--frames", "5", "--batch-size", "2", "--warmup", "0", "--repeats", "2",
-                         "--scene-formats", "spz", "--out", str(out)]) == 0
+                         "--scene-formats", "spz", "spz-parallel", "--out", str(out)]) == 0
     text = out.read_text()
     assert "Stereo video of 48x32 per eye" in text and "5 frames in batches of 2" in text
     for row in (re.escape("model alone (encoder to Gaussians)"),
                 re.escape("end to end (decode, model, one novel view, encode)"),
-                re.escape("end to end (decode, model, one novel view, encode, a .spz scene per frame (writers busy")
-                + r" \d+%\)\)"):
+                *(re.escape(f"end to end (decode, model, one novel view, encode, a .spz scene per frame, format {fmt} "
+                            "(writers busy") + r" \d+%\)\)" for fmt in ("spz", "spz-parallel"))):
         assert re.search(rf"\| {row} \| 2 \| [\d.]+ \| [\d.]+ \| [\d.]+ \|", text), row
     assert re.search(r"written in as many processes \(started in [\d.]+ s before the stream", text)
 
