@@ -94,6 +94,17 @@ class DPTDecoder(nn.Module):
     def forward(self, features: list[torch.Tensor], rgb: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """features as the encoder gives them; rgb [B,3,H,W] in [0,1]; z [B,1,H,W] metres -> [B,C,H,W] (in
         ``layers.activation_format``: channels-last on CUDA)."""
+        return self.head[2](conv_gelu(self.head[0], self._head_input(features, rgb, z)))
+
+    def without_last_bias(self, features: list[torch.Tensor], rgb: torch.Tensor, z: torch.Tensor
+                          ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(Phi as ``forward`` gives it but for the head's last bias, that bias [C]): for a consumer that adds it as
+        it copies Phi (``GaussianPredictor``'s concatenations), instead of a pass over Phi of its own."""
+        last = self.head[2]
+        return F.conv2d(conv_gelu(self.head[0], self._head_input(features, rgb, z)), last.weight), last.bias
+
+    def _head_input(self, features: list[torch.Tensor], rgb: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """The coarse-to-fine fusion upsampled to H x W: the head's input, in the head's dtype."""
         H, W = rgb.shape[-2:]
         dtype, fmt = compute_dtype(rgb.device), activation_format(rgb)  # cast once, in the convolutions' dtype
         rgb, z = rgb.to(dtype, memory_format=fmt), z.to(dtype, memory_format=fmt)
@@ -105,5 +116,4 @@ class DPTDecoder(nn.Module):
                 parts += [F.interpolate(rgb, size=size, mode="bilinear", align_corners=False, antialias=True).to(dtype),
                           F.interpolate(z, size=size, mode="nearest").to(dtype)]
             fused = self.fuse[i](self.project[i](cat_channels(parts)), fused)
-        head_in = upsample_bilinear(fused, (H, W), dtype)  # in the head's dtype
-        return self.head[2](conv_gelu(self.head[0], head_in))  # head = conv3x3, GELU, conv1x1
+        return upsample_bilinear(fused, (H, W), dtype)  # head = conv3x3, GELU, conv1x1

@@ -77,25 +77,33 @@ def round_up(n: int, multiple: int) -> int:
     return -(-n // multiple) * multiple
 
 
-def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int] | None = None) -> torch.Tensor:
+def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int] | None = None,
+                 biases: list[torch.Tensor | None] | None = None) -> torch.Tensor:
     """Concatenate [B, C_i, H_i, W_i] tensors of one dtype along channels, each first edge-replicated by
-    ``pads[i]`` pixels (``replicate_pad``; default none) to one height and width, in the first one's layout
+    ``pads[i]`` pixels (``replicate_pad``; default none) to one height and width and given ``biases[i]`` [C_i]
+    where there is one (a convolution's bias left to this pass: ``GaussianPredictor``), in the first one's layout
     (``activation_format``), with channels appended up to a multiple of ``multiple``: the first of them all
     ones (the bias channel of ``replicate_conv3x3``), the rest zeros. On CUDA with Triton (at most three
-    tensors) one pass writes it all, padding included (``sgmodel.kernels.concat``), with no padded copy of
-    its own; the same values as the padding and ``torch.cat`` that run elsewhere."""
+    tensors) one pass writes it all, padding and biases included (``sgmodel.kernels.concat``: the bias added in
+    float32), with no padded copy of its own; elsewhere the bias is added in the tensor's dtype, then the padding
+    and ``torch.cat``: the same values but for that rounding."""
     pads = [0] * len(tensors) if pads is None else list(pads)
+    biases = [None] * len(tensors) if biases is None else list(biases)
     x = tensors[0]
     sizes = {(t.shape[0], t.shape[2] + 2 * p, t.shape[3] + 2 * p) for t, p in zip(tensors, pads)}
     if len(pads) != len(tensors) or min(pads) < 0 or len(sizes) != 1 or len({t.dtype for t in tensors}) != 1:
         raise ValueError("cat_channels: tensors must be [B, C, H, W] of one dtype, one batch and, once padded, "
                          f"one size; got {[tuple(t.shape) for t in tensors]}, {[t.dtype for t in tensors]}, "
                          f"pads {pads}")
+    if len(biases) != len(tensors) or any(b is not None and b.shape != (t.shape[1],) for t, b in zip(tensors, biases)):
+        got = [None if b is None else tuple(b.shape) for b in biases]
+        raise ValueError(f"cat_channels: a bias per tensor, [C] or None; got {got} for {[tuple(t.shape) for t in tensors]}")
     total = sum(t.shape[1] for t in tensors)
     width = round_up(total, multiple)
     if x.is_cuda and len(tensors) <= CAT_KERNEL_SOURCES and triton_installed() and x.dtype.is_floating_point:
-        return _CatChannels.apply(width, tuple(pads), *tensors)
-    tensors = [replicate_pad(t, p) for t, p in zip(tensors, pads)]
+        return _CatChannels.apply(width, tuple(pads), len(tensors), *tensors, *biases)
+    tensors = [replicate_pad(t if b is None else t + b.to(t.dtype).view(1, -1, 1, 1), p)
+               for t, p, b in zip(tensors, pads, biases)]
     if width > total:
         spare = x.new_zeros(x.shape[0], width - total, *tensors[0].shape[2:])
         spare[:, 0] = 1.0
@@ -104,24 +112,36 @@ def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int]
 
 
 class _CatChannels(torch.autograd.Function):
-    """The Triton kernels of ``sgmodel.kernels.concat`` (CUDA tensors of one dtype, at most three)."""
+    """The Triton kernels of ``sgmodel.kernels.concat`` (CUDA tensors of one dtype, at most three, each with its
+    bias or None)."""
 
     @staticmethod
-    def forward(ctx, width: int, pads: tuple[int, ...], *tensors: torch.Tensor) -> torch.Tensor:
+    def forward(ctx, width: int, pads: tuple[int, ...], n: int, *tensors_and_biases: torch.Tensor | None
+                ) -> torch.Tensor:
         from sgmodel.kernels import concat as concat_kernels
 
+        tensors, biases = tensors_and_biases[:n], tensors_and_biases[n:]
         ctx.pads, ctx.shapes, ctx.dtypes = pads, [t.shape for t in tensors], [t.dtype for t in tensors]
-        return concat_kernels.forward(list(tensors), list(pads), width)
+        ctx.bias_dtypes = [None if b is None else b.dtype for b in biases]
+        return concat_kernels.forward(list(tensors), list(pads), width, list(biases))
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         from sgmodel.kernels import concat as concat_kernels
 
-        grads, lo = [], 0
-        for need, shape, dtype, p in zip(ctx.needs_input_grad[2:], ctx.shapes, ctx.dtypes, ctx.pads):
-            grads.append(concat_kernels.backward(grad, lo, shape[1], p, shape[2], shape[3], dtype) if need else None)
+        n = len(ctx.shapes)
+        grads, bias_grads, lo = [], [], 0
+        needs = ctx.needs_input_grad[3:]
+        for k, (shape, dtype, p, bias_dtype) in enumerate(zip(ctx.shapes, ctx.dtypes, ctx.pads, ctx.bias_dtypes)):
+            need_x, need_b = needs[k], bias_dtype is not None and needs[n + k]
+            dx = db = None
+            if need_x or need_b:
+                dx, db = concat_kernels.backward(grad, lo, shape[1], p, shape[2], shape[3], dtype,
+                                                 bias_dtype if need_b else None)
+            grads.append(dx if need_x else None)
+            bias_grads.append(db)
             lo += shape[1]
-        return None, None, *grads
+        return None, None, None, *grads, *bias_grads
 
 
 class _ReplicatePad(torch.autograd.Function):

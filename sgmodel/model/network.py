@@ -119,9 +119,9 @@ class StereoGaussians(nn.Module):
                ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, canvas.Canvas]:
         """Decoder at the input size, then the canvas, then the predictor: (front, back, dz, canvas)."""
         P = self.params.padding
-        phi = self.decoder(features, left, z) if self.decoder is not None else None  # extended by the predictor
+        phi, phi_bias = self.decoder.without_last_bias(features, left, z) if self.decoder is not None else (None, None)
         c = canvas.Canvas(rgb=canvas.extend(left, P), depth=canvas.extend(z, P), K=canvas.canvas_intrinsics(K, P))
-        front, back, dz = self.predictor(c.rgb, c.depth, phi, phi_padding=P)
+        front, back, dz = self.predictor(c.rgb, c.depth, phi, phi_padding=P, phi_bias=phi_bias)  # phi extended there
         return front, back, dz, c
 
     def compose(self, front: torch.Tensor, back: torch.Tensor | None, dz: torch.Tensor | None, c: canvas.Canvas,

@@ -100,24 +100,29 @@ class GaussianPredictor(nn.Module):
             for name in ZERO_INIT:
                 conv.weight[CHANNELS[name]] = 0.0
 
-    def forward(self, rgb: torch.Tensor, z: torch.Tensor, phi: torch.Tensor | None, phi_padding: int = 0
-                ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    def forward(self, rgb: torch.Tensor, z: torch.Tensor, phi: torch.Tensor | None, phi_padding: int = 0,
+                phi_bias: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """Canvas inputs rgb [B,3,Hc,Wc] in [0,1], z [B,1,Hc,Wc] metres, phi [B,C,Hc - 2p,Wc - 2p] or None,
         p = ``phi_padding``: phi is edge-replicated onto the canvas by the concatenations that read it
-        (``layers.cat_channels``), with no padded copy of its own. back and dz are None without a back
-        layer. Activations in ``layers.activation_format``; the concatenated inputs carry zero channels up
-        to ``layers.input_multiple``."""
+        (``layers.cat_channels``), with no padded copy of its own; ``phi_bias`` [C]: a bias those concatenations
+        add to phi as they copy it (the decoder's last, ``DPTDecoder.without_last_bias``), or None. back and dz
+        are None without a back layer. Activations in ``layers.activation_format``; the concatenated inputs
+        carry zero channels up to ``layers.input_multiple``. The regressor's last bias is likewise added by the
+        concatenation that copies h (on CUDA: in the copy, not in a pass over h of its own)."""
         dtype, fmt = compute_dtype(rgb.device), activation_format(rgb)  # cast once, in the convolutions' dtype
         rgb, z = rgb.to(dtype, memory_format=fmt), z.to(dtype, memory_format=fmt)
         phi = None if phi is None else phi.to(dtype, memory_format=fmt)
         multiple = input_multiple(rgb)
-        desc = [phi] if self.use_descriptor else []
+        desc, desc_bias = ([phi], [phi_bias]) if self.use_descriptor else ([], [])
 
-        def on_canvas(tensors: list[torch.Tensor]) -> torch.Tensor:  # phi extended on the way
-            return cat_channels(tensors, multiple, [phi_padding if t is phi else 0 for t in tensors])
+        def on_canvas(tensors: list[torch.Tensor], biases: list[torch.Tensor | None]) -> torch.Tensor:
+            return cat_channels(tensors, multiple, [phi_padding if t is phi else 0 for t in tensors], biases)
 
-        h = self.regressor(on_canvas(([rgb, z] if self.rgbd else []) + desc))
-        shared = on_canvas([h] + ([rgb] if self.rgbd else []) + desc)
+        first, gelu, last = self.regressor
+        rgbd, no_bias = ([rgb, z], [None, None]) if self.rgbd else ([], [])
+        h = gelu(first(on_canvas(rgbd + desc, no_bias + desc_bias)))
+        h = replicate_conv3x3(h, last.weight, None, output_multiple(h))  # its bias: in the concatenation below
+        shared = on_canvas([h, *rgbd[:1], *desc], [last.bias, *no_bias[:1], *desc_bias])
         if self.back is None:
             return self.front(shared), None, None
         front, back, dz = fused_branches([self.front, self.back, self.dz], shared)  # the same as each alone

@@ -7,6 +7,7 @@ import torch
 
 from sgmodel.config import ComposerParams, DecoderParams, ModelParams, PredictorParams
 from sgmodel.model import canvas
+from sgmodel.model import predictor as predictor_module
 from sgmodel.model.decoder import DPTDecoder
 from sgmodel.model.network import create_model
 from sgmodel.model.predictor import CHANNELS, LAYER_CHANNELS, GaussianPredictor
@@ -55,6 +56,9 @@ def test_decoder_shapes(features):
         feats = []
     phi = dec(feats, rgb, z)
     assert phi.shape == (B, 16, S, S) and torch.isfinite(phi).all()
+    unbiased, bias = dec.without_last_bias(feats, rgb, z)  # the predictor adds that bias as it copies phi
+    assert bias is dec.head[2].bias
+    torch.testing.assert_close(unbiased + bias[:, None, None], phi, rtol=1e-6, atol=1e-6)
     with pytest.raises(ValueError, match="RGB-D"):
         DPTDecoder((), (), 16, 4, rgbd=False, rgbd_scales=(2, 4))
 
@@ -71,6 +75,22 @@ def test_predictor_zero_initialised_heads():
             assert 0 < v.max() < 0.5, name
     assert torch.all(dz == 0)
     assert sorted((s.start, s.stop) for s in CHANNELS.values()) == [(0, 1), (1, 3), (3, 6), (6, 10), (10, 37)]
+
+
+@pytest.mark.parametrize("rgbd", [True, False])
+def test_predictor_adds_phis_bias_as_it_copies_phi(rgbd, monkeypatch):
+    """``phi_bias`` is phi's: the predictor gives (in float64 here) what it gives for phi with the bias added."""
+    monkeypatch.setattr(predictor_module, "compute_dtype", lambda device: torch.float64)
+    pred = GaussianPredictor(PredictorParams(channels=16, groups=4), descriptor_channels=12, rgbd=rgbd).double()
+    with torch.no_grad():
+        for t in pred.parameters():
+            t.normal_(std=0.2)
+    rgb, z = torch.rand(2, 3, 14, 18, dtype=torch.float64), 1 + torch.rand(2, 1, 14, 18, dtype=torch.float64)
+    phi, bias = torch.randn(2, 12, 8, 12, dtype=torch.float64), torch.randn(12, dtype=torch.float64)
+    want = pred(rgb, z, phi + bias[:, None, None], phi_padding=3)
+    got = pred(rgb, z, phi, phi_padding=3, phi_bias=bias)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
 
 
 def test_predictor_without_back_layer_has_no_back_branch():
