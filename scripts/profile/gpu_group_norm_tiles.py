@@ -1,9 +1,9 @@
 """What the fused GroupNorm (+ GELU) kernels cost with each tile and warp count (the choice behind
-``sgmodel.kernels.group_norm.FORWARD_LAUNCH``, ``BACKWARD_LAUNCH`` and ``SUMS_ITERS``). The GroupNorm calls of one training
-forward of the paper's model (256 x 256 pairs, batch 32, bf16 autocast, the encoder run once to record them) are
-replayed alone, forward (statistics, combine, apply) and backward (sums, dx), for every (tile elements, warps)
-pair and, for the backward, every count of tiles a program of its sums walks; the times are summed over the calls as a step has them. Prints a markdown table (medians of CUDA-event
-times of the whole set of calls, ms).
+``sgmodel.kernels.group_norm.FORWARD_LAUNCH``, ``BACKWARD_LAUNCH`` and ``SUMS_ITERS``). The GroupNorm calls of one
+training forward of the paper's model (256 x 256 pairs, batch 32, bf16 autocast, the encoder run once to record
+them) are replayed alone, forward (statistics, combine, apply) and backward (sums, dx), for every (tile elements,
+warps) pair and, for the backward, every count of tiles a program of its sums walks; the times are summed over the
+calls as a step has them. Prints a markdown table (medians of CUDA-event times of the whole set of calls, ms).
 
     python scripts/profile/gpu_group_norm_tiles.py [--tiles 2048,4096,8192,16384] [--warps 2,4,8] [--batch-size 32]
         [--iters 1,4,8,16] [--repeats 15] [--out FILE]

@@ -85,7 +85,7 @@ def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int]
     (``activation_format``), with channels appended up to a multiple of ``multiple``: the first of them all
     ones (the bias channel of ``replicate_conv3x3``), the rest zeros. On CUDA with Triton (at most three
     tensors) one pass writes it all, padding and biases included (``sgmodel.kernels.concat``: the bias added in
-    float32), with no padded copy of its own; elsewhere the bias is added in the tensor's dtype, then the padding
+    float32, float64 for float64 tensors), with no padded copy of its own; elsewhere the bias is added in the tensor's dtype, then the padding
     and ``torch.cat``: the same values but for that rounding."""
     pads = [0] * len(tensors) if pads is None else list(pads)
     biases = [None] * len(tensors) if biases is None else list(biases)
@@ -97,7 +97,8 @@ def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int]
                          f"pads {pads}")
     if len(biases) != len(tensors) or any(b is not None and b.shape != (t.shape[1],) for t, b in zip(tensors, biases)):
         got = [None if b is None else tuple(b.shape) for b in biases]
-        raise ValueError(f"cat_channels: a bias per tensor, [C] or None; got {got} for {[tuple(t.shape) for t in tensors]}")
+        raise ValueError(f"cat_channels: a bias per tensor, [C] or None; got {got} for "
+                         f"{[tuple(t.shape) for t in tensors]}")
     total = sum(t.shape[1] for t in tensors)
     width = round_up(total, multiple)
     if x.is_cuda and len(tensors) <= CAT_KERNEL_SOURCES and triton_installed() and x.dtype.is_floating_point:
