@@ -22,7 +22,7 @@ import json
 import logging
 import os
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -34,10 +34,11 @@ class FileFormatError(ValueError):
     """A file that cannot be read as what it should be; the message names the file and the place."""
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes | Sequence[Any], durable: bool = True) -> Path:
-    """Write ``data`` (bytes, or a sequence of bytes-like objects such as contiguous numpy arrays, written in
-    order without joining them) to ``path`` (parents created) through a temp file (fsync'd when ``durable``)
-    and ``os.replace``."""
+def atomic_write_bytes(path: str | os.PathLike, data: bytes | Iterable[Any], durable: bool = True) -> Path:
+    """Write ``data`` (bytes, or an iterable of bytes-like objects such as contiguous numpy arrays, written in
+    order as it gives them, without joining them: a generator may wait for each part) to ``path`` (parents
+    created) through a temp file (fsync'd when ``durable``) and ``os.replace``. An error while writing, the
+    iterable's included, leaves ``path`` as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f"{TMP_PREFIX}{path.name}.")

@@ -39,13 +39,15 @@ threads. Sizes, times and errors of a round trip: docs/formats.md.
 from __future__ import annotations
 
 import functools
-import io
+import itertools
 import json
 import math
 import os
+import struct
 import tempfile
 import zipfile
-from collections.abc import Callable, Iterator
+import zlib
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, wait
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -381,20 +383,38 @@ def quantise_sog(scene: GaussianScene, ready: Callable[[str, SogImage], object],
     return meta
 
 
-def bundle_sog(files: dict[str, bytes], meta: dict) -> bytes:
-    """The bundled ``.sog`` (a zip, members stored, dated 1980-01-01) of the encoded images (in the zip's order,
-    ``image_names``) and ``meta.json``."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
-        for name, data in files.items():
-            z.writestr(zipfile.ZipInfo(name, (1980, 1, 1, 0, 0, 0)), data)
-        z.writestr(zipfile.ZipInfo("meta.json", (1980, 1, 1, 0, 0, 0)), json.dumps(meta))
-    return buf.getvalue()
+def stored_zip(members: Iterable[tuple[str, bytes, int]]) -> Iterator[bytes]:
+    """The bytes of a zip of ``members`` (ASCII name, data, its CRC-32), stored (no compression), dated 1980-01-01,
+    as Python's ``zipfile`` writes ``ZipFile(f, "w").writestr(ZipInfo(name, (1980, 1, 1, 0, 0, 0)), data)``:
+    yielded member by member as ``members`` gives them (a local header, then the data as it is), then the central
+    directory. Archives reaching 2 GiB (``zipfile``'s switch to zip64) are refused."""
+    central, offset = [], 0
+    for name, data, crc in members:
+        raw, size = name.encode("ascii"), len(memoryview(data))
+        fields = struct.pack("<HHHHHIII", 20, 0, 0, 0, 33, crc, size, size)  # version 2.0, date 1980-01-01
+        local = b"PK\x03\x04" + fields + struct.pack("<HH", len(raw), 0) + raw
+        if offset + len(local) + size > zipfile.ZIP64_LIMIT:
+            raise SogError(f"a SOG of {offset + len(local) + size:,} bytes: beyond the 2 GiB its zip is written to")
+        yield local
+        yield data
+        central.append(b"PK\x01\x02" + struct.pack("<H", 0x0314) + fields  # made by: version 2.0, Unix
+                       + struct.pack("<HHHHHII", len(raw), 0, 0, 0, 0, 0o600 << 16, offset) + raw)
+        offset += len(local) + size
+    directory = b"".join(central)
+    yield directory + struct.pack("<4sHHHHIIH", b"PK\x05\x06", 0, 0, len(central), len(central), len(directory),
+                                  offset, 0)
+
+
+def _encoded(image: SogImage) -> tuple[bytes, int]:
+    """(``image.encode()``, its CRC-32): a pool task's, so that the zip need not read the bytes again."""
+    data = image.encode()
+    return data, zlib.crc32(data)
 
 
 @contextmanager
 def _encodes() -> Iterator[dict[str, Future]]:
-    """A dict for the images' encode futures; on leaving, none is left running (after an error: cancelled)."""
+    """A dict for the images' encode futures (``_encoded``); on leaving, none is left running (after an error:
+    cancelled)."""
     futures: dict[str, Future] = {}
     try:
         yield futures
@@ -404,18 +424,32 @@ def _encodes() -> Iterator[dict[str, Future]]:
         wait(list(futures.values()))
 
 
-def _bundled(futures: dict[str, Future], meta: dict) -> bytes:
-    """``bundle_sog`` of the images' encode futures, in the zip's order."""
-    return bundle_sog({name: futures[name].result() for name in image_names(meta.get("shN", {}).get("bands", 0))},
-                      meta)
+def _bundled(futures: dict[str, Future], meta: dict) -> Iterator[bytes]:
+    """The bundled ``.sog`` (``stored_zip``) of the images' encode futures in the zip's order (``image_names``),
+    then ``meta.json``: each image yielded once its encode and those before it are done."""
+    names = image_names(meta.get("shN", {}).get("bands", 0))
+    text = json.dumps(meta).encode()
+    members = ((name, *futures[name].result()) for name in names)
+    return stored_zip(itertools.chain(members, [("meta.json", text, zlib.crc32(text))]))
 
 
-def encode_images(images: dict[str, SogImage], meta: dict) -> bytes:
-    """``bundle_sog`` of ``images`` encoded side by side in tasks of the shared pool (``row_tasks``)."""
+def encode_images(images: dict[str, SogImage], meta: dict) -> Iterator[bytes]:
+    """The bundled ``.sog`` of ``images`` encoded side by side in tasks of the shared pool (``row_tasks``), as its
+    parts (``_bundled``: for ``atomic_write_bytes``, which writes each as it comes)."""
     pool = row_tasks.pool()
     with _encodes() as futures:
-        futures.update((name, pool.submit(image.encode)) for name, image in images.items())
-        return _bundled(futures, meta)
+        futures.update((name, pool.submit(_encoded, image)) for name, image in images.items())
+        yield from _bundled(futures, meta)
+
+
+def _sog_parts(scene: GaussianScene, path: str | os.PathLike, sh_palette_max: int) -> Iterator[bytes]:
+    """``encode_sog``'s bytes as their parts, each yielded once it exists: the quantisation (``quantise_sog``)
+    queues each image's encode as soon as its texels exist, and the zip's members follow the encodes."""
+    pool = row_tasks.pool()
+    with _encodes() as futures:
+        meta = quantise_sog(scene, lambda name, image: futures.__setitem__(name, pool.submit(_encoded, image)), path,
+                            sh_palette_max)
+        yield from _bundled(futures, meta)
 
 
 def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
@@ -431,15 +465,13 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
     one thread it takes as long as in three tasks side by side (docs/benchmarks.md "Issue 35: the SOG writer's
     encodes queued as their texels are ready"). Not to be called from a task of that pool (this function waits
     for tasks of it)."""
-    pool = row_tasks.pool()
-    with _encodes() as futures:
-        meta = quantise_sog(scene, lambda name, image: futures.__setitem__(name, pool.submit(image.encode)), path,
-                            sh_palette_max)
-        return _bundled(futures, meta)
+    return b"".join(_sog_parts(scene, path, sh_palette_max))
 
 
 def save_sog(scene: GaussianScene, path: str | os.PathLike, durable: bool = True) -> Path:
-    """Write ``scene`` as a bundled version-2 ``.sog``, atomically. Returns the path."""
+    """Write ``scene`` as a bundled version-2 ``.sog`` (``encode_sog``'s bytes), atomically. Returns the path. Each
+    member of the zip is written as soon as its encode and those before it are done, while the later ones encode:
+    what is left after the last encode is its member and the zip's directory (no copy of the whole into memory)."""
     path = Path(path)
-    atomic_write_bytes(path, encode_sog(scene, path), durable=durable)
+    atomic_write_bytes(path, _sog_parts(scene, path, SH_PALETTE_MAX), durable=durable)
     return path

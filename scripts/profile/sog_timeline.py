@@ -7,7 +7,8 @@ zip) can be read off on the machine measured.
 The scene is ``bench scenes``' prediction-shaped one. The stages are the writer's own functions, wrapped for the run
 (the texels' three stages ``placed``, ``scale_texels`` and ``colour_texels``, on the GPU where there is one; the
 codebooks, the nearest-entry labels, the SH palette's k-means, the quaternion bytes, the Morton order, every WebP
-encode) and every task of the shared pool of ``row_tasks`` (a lambda there is an encode, timed again inside).
+encode) and every task of the shared pool of ``row_tasks`` (``_encoded`` there is an encode and its CRC, timed
+again inside).
 ``--repeats`` writes after two unmeasured ones; the timeline shown is the run of median length. Milliseconds from
 the call's start; threads named as the pool names them.
 """

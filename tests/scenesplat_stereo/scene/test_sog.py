@@ -272,3 +272,47 @@ def test_texels_on_the_gpu_are_those_on_the_cpu() -> None:
         for fn in (sog_texels.scale_texels, sog_texels.colour_texels):
             for cpu, gpu in zip(fn(scene, torch.device("cpu")), fn(scene, torch.device("cuda"))):
                 np.testing.assert_array_equal(cpu, gpu)
+
+
+@pytest.mark.parametrize("sizes", [[5, 0, 70000], [1], []])
+def test_stored_zip_is_zipfiles_stored_zip(sizes: list[int]) -> None:
+    """``stored_zip``'s bytes are those of ``zipfile``'s stored members dated 1980-01-01 (the writer's before
+    it streamed its members), and ``zipfile`` reads them back with their CRCs checked; empty members, one, none."""
+    import io
+    import zlib
+
+    from scenesplat_stereo.scene.sog import stored_zip
+
+    rng = np.random.default_rng(0)
+    members = [(f"m{i}.webp", rng.integers(0, 256, n, dtype=np.uint8).tobytes()) for i, n in enumerate(sizes)]
+    members.append(("meta.json", json.dumps({"version": 2}).encode()))
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
+        for name, data in members:
+            z.writestr(zipfile.ZipInfo(name, (1980, 1, 1, 0, 0, 0)), data)
+    ours = b"".join(stored_zip((name, data, zlib.crc32(data)) for name, data in members))
+    assert ours == buf.getvalue()
+    with zipfile.ZipFile(io.BytesIO(ours)) as z:
+        assert z.testzip() is None and [(i.filename, z.read(i)) for i in z.infolist()] == members
+
+
+def test_a_failed_encode_leaves_the_sog_there_as_it_was(tmp_path: Path, monkeypatch) -> None:
+    """``save_sog`` writes the zip's members as their encodes end; an encode that fails after others were written
+    leaves the file that was there untouched, and no temporary file."""
+    from scenesplat_stereo.scene import sog
+
+    scene = random_scene(np.random.default_rng(1), 500, 0)
+    path = save_sog(scene, tmp_path / "s.sog")
+    before = path.read_bytes()
+    write_webp, calls = sog.write_webp, []
+
+    def failing(rgba, width, height, method=sog.WEBP_METHOD):
+        calls.append(1)
+        if len(calls) == 4:
+            raise sog.SogError("OpenImageIO cannot write WebP: the disk is full (a test)")
+        return write_webp(rgba, width, height, method)
+
+    monkeypatch.setattr(sog, "write_webp", failing)
+    with pytest.raises(sog.SogError, match="a test"):
+        save_sog(random_scene(np.random.default_rng(2), 700, 0), path)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["s.sog"]
