@@ -442,14 +442,13 @@ def encode_images(images: dict[str, SogImage], meta: dict) -> Iterator[bytes]:
         yield from _bundled(futures, meta)
 
 
-def _sog_parts(scene: GaussianScene, path: str | os.PathLike, sh_palette_max: int) -> Iterator[bytes]:
-    """``encode_sog``'s bytes as their parts, each yielded once it exists: the quantisation (``quantise_sog``)
-    queues each image's encode as soon as its texels exist, and the zip's members follow the encodes."""
+def _queue_encodes(scene: GaussianScene, futures: dict[str, Future], path: str | os.PathLike,
+                   sh_palette_max: int) -> dict:
+    """``quantise_sog``, each image's encode (``_encoded``) queued on the shared pool into ``futures`` as soon as its
+    texels exist; returns the ``meta.json`` dict."""
     pool = row_tasks.pool()
-    with _encodes() as futures:
-        meta = quantise_sog(scene, lambda name, image: futures.__setitem__(name, pool.submit(_encoded, image)), path,
-                            sh_palette_max)
-        yield from _bundled(futures, meta)
+    return quantise_sog(scene, lambda name, image: futures.__setitem__(name, pool.submit(_encoded, image)), path,
+                        sh_palette_max)
 
 
 def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
@@ -465,13 +464,17 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
     one thread it takes as long as in three tasks side by side (docs/benchmarks.md "Issue 35: the SOG writer's
     encodes queued as their texels are ready"). Not to be called from a task of that pool (this function waits
     for tasks of it)."""
-    return b"".join(_sog_parts(scene, path, sh_palette_max))
+    with _encodes() as futures:
+        return b"".join(_bundled(futures, _queue_encodes(scene, futures, path, sh_palette_max)))
 
 
 def save_sog(scene: GaussianScene, path: str | os.PathLike, durable: bool = True) -> Path:
     """Write ``scene`` as a bundled version-2 ``.sog`` (``encode_sog``'s bytes), atomically. Returns the path. Each
     member of the zip is written as soon as its encode and those before it are done, while the later ones encode:
-    what is left after the last encode is its member and the zip's directory (no copy of the whole into memory)."""
+    what is left after the last encode is its member and the zip's directory (no copy of the whole into memory).
+    A scene a SOG cannot hold is refused by the quantisation, before any file is opened."""
     path = Path(path)
-    atomic_write_bytes(path, _sog_parts(scene, path, SH_PALETTE_MAX), durable=durable)
+    with _encodes() as futures:
+        meta = _queue_encodes(scene, futures, path, SH_PALETTE_MAX)
+        atomic_write_bytes(path, _bundled(futures, meta), durable=durable)
     return path

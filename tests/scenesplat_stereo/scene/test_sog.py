@@ -316,3 +316,12 @@ def test_a_failed_encode_leaves_the_sog_there_as_it_was(tmp_path: Path, monkeypa
     with pytest.raises(sog.SogError, match="a test"):
         save_sog(random_scene(np.random.default_rng(2), 700, 0), path)
     assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["s.sog"]
+
+
+def test_a_scene_a_sog_cannot_hold_is_refused_before_any_file(tmp_path: Path) -> None:
+    """The quantisation refuses it before ``save_sog`` opens a file: not even the folder is made."""
+    from scenesplat_stereo.scene.sog import SogError
+
+    with pytest.raises(SogError, match="an empty scene has no SOG"):
+        save_sog(random_scene(np.random.default_rng(0), 0, 0), tmp_path / "new" / "s.sog")
+    assert not (tmp_path / "new").exists()
