@@ -32,7 +32,7 @@ from sgmodel.bench import report
 from sgmodel.data.loader import make_loader, to_device
 from sgmodel.model.network import create_model
 from sgmodel.train.distributed import joined_world, wrap_model
-from sgmodel.train.loop import train_step
+from sgmodel.train.step import train_step
 from sgmodel.train.losses import create_objective
 
 SEED = 0

@@ -42,7 +42,7 @@ from sgmodel.args import preset_params
 from sgmodel.bench import report
 from sgmodel.data.loader import make_loader, to_device
 from sgmodel.model.network import create_model
-from sgmodel.train.loop import create_optimizer, train_step
+from sgmodel.train.step import create_optimizer, train_step
 from sgmodel.train.losses import create_objective
 
 

@@ -34,7 +34,7 @@ from sgmodel.data.loader import map_tensors, to_device  # noqa: E402
 from sgmodel.metrics.lpips import random_lpips  # noqa: E402
 from sgmodel.model.layers import amp_autocast, compiles  # noqa: E402
 from sgmodel.model.network import create_model, encode_pair  # noqa: E402
-from sgmodel.train.loop import create_optimizer, device_batch, queue_step  # noqa: E402
+from sgmodel.train.step import create_optimizer, device_batch, queue_step, steps_back_to_back  # noqa: E402
 from sgmodel.train.losses import Objective  # noqa: E402
 
 #: kernel kinds, first match of a name fragment wins.
@@ -90,21 +90,12 @@ def main() -> int:
     def queue(i: int):
         return queue_step(model, device_batch(hosts[i % 2], device), objective, optimizer, scheduler, True)
 
-    def run(steps: int) -> None:  # as `sgmodel train` runs them: each step's values read once the next is queued
-        queued = None
-        for i in range(steps):
-            values = queue(i)
-            if queued is not None:
-                queued.read()
-            queued = values
-        queued.read()
-
-    run(3)
+    steps_back_to_back(queue, 3)
     torch.cuda.synchronize()
     n = args.steps
     t0 = time.perf_counter()
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA], record_shapes=True) as prof:
-        run(n)
+        steps_back_to_back(queue, n)
         torch.cuda.synchronize()
     wall = (time.perf_counter() - t0) * 1e3 / n
     events = prof.events()

@@ -42,7 +42,8 @@ from sgmodel.model.geometry import depth_from_disparity
 from sgmodel.model.layers import amp_autocast, compiles
 from sgmodel.model.network import create_model
 from sgmodel.model.render import render_views
-from sgmodel.train.loop import cached_encoding, create_optimizer, device_batch, queue_step, train_step
+from sgmodel.train.step import (cached_encoding, create_optimizer, device_batch, queue_step, steps_back_to_back,
+                                train_step)
 from sgmodel.train.losses import Objective, create_objective
 
 OWNER = "sgmodel bench train"  # recorded beside --out: a later run may replace its own report
@@ -172,14 +173,9 @@ def measure(model, objective: Objective, batches, args, device: torch.device, am
     rounds = []
     for r in range(BACK_TO_BACK_ROUNDS + 1):  # the first round warms up
         t0 = now()
-        queued = None
-        for i in range(args.repeats):  # as `sgmodel train` runs them: each step's values read once the next is queued
-            values = queue_step(model, device_batch(batches(i)[0] if args.data else hosts[i % len(hosts)], device),
-                                objective, optimizer, scheduler, amp)
-            if queued is not None:
-                queued.read()
-            queued = values
-        queued.read()
+        steps_back_to_back(lambda i: queue_step(model, device_batch(batches(i)[0] if args.data else
+                                                                    hosts[i % len(hosts)], device),
+                                                objective, optimizer, scheduler, amp), args.repeats)
         if r:
             rounds.append((now() - t0) / args.repeats)
     back_to_back = statistics.median(rounds)

@@ -51,7 +51,7 @@ class Prediction:
 def check_inputs(left: torch.Tensor, right: torch.Tensor, K: torch.Tensor, baseline: torch.Tensor) -> None:
     """ValueError naming the input (and the batch items) for anything the model cannot use. The shapes are read
     on the host; K's and the baseline's values on their device, brought back in one transfer: for inputs on a GPU,
-    one host synchronisation (training checks its batches on the host before their copy: ``loop.device_batch``)."""
+    one host synchronisation (training checks its batches on the host before their copy: ``step.device_batch``)."""
     if left.ndim != 4 or left.shape[1] != 3 or left.shape != right.shape:
         raise ValueError(f"left and right must both be [B, 3, H, W]; got {tuple(left.shape)} and {tuple(right.shape)}")
     B, _, H, W = left.shape
@@ -141,7 +141,7 @@ class StereoGaussians(nn.Module):
         the pair's principal-point disparity offset in pixels (Middlebury), added to the encoder's.
         ``encoded``: the encoder's (disparity [B,1,H,W], features) for this pair, read from an encoder cache
         (``sgmodel.data.encoder_cache``); the encoder does not run. ``inputs_checked``: the caller has passed these
-        inputs through ``check_inputs`` (on the host, before copying them: ``loop.device_batch``)."""
+        inputs through ``check_inputs`` (on the host, before copying them: ``step.device_batch``)."""
         if not inputs_checked:
             check_inputs(left, right, K, baseline)
         if encoded is None:

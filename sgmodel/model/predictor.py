@@ -119,10 +119,11 @@ class GaussianPredictor(nn.Module):
             return cat_channels(tensors, multiple, [phi_padding if t is phi else 0 for t in tensors], biases)
 
         first, gelu, last = self.regressor
-        rgbd, no_bias = ([rgb, z], [None, None]) if self.rgbd else ([], [])
-        h = gelu(first(on_canvas(rgbd + desc, no_bias + desc_bias)))
+        rgbd = [rgb, z] if self.rgbd else []
+        h = gelu(first(on_canvas(rgbd + desc, [None] * len(rgbd) + desc_bias)))
         h = replicate_conv3x3(h, last.weight, None, output_multiple(h))  # its bias: in the concatenation below
-        shared = on_canvas([h, *rgbd[:1], *desc], [last.bias, *no_bias[:1], *desc_bias])
+        colour = rgbd[:1]  # the branches read RGB~, not z~
+        shared = on_canvas([h, *colour, *desc], [last.bias, *[None] * len(colour), *desc_bias])
         if self.back is None:
             return self.front(shared), None, None
         front, back, dz = fused_branches([self.front, self.back, self.dz], shared)  # the same as each alone

@@ -1,18 +1,15 @@
-"""The training loop: a step function (``train_step``), validation (``validate``) and the loop (``train``); what
-a run does and writes is the command's description (``sgmodel.train.command``)."""
+"""The training loop: validation (``validate``) and the loop (``train``) around the step (``sgmodel.train.step``);
+what a run does and writes is the command's description (``sgmodel.train.command``)."""
 
 from __future__ import annotations
 
 import json
 import logging
-import math
 import time
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from scenesplat_stereo.common.commandline import Interrupted
@@ -22,32 +19,22 @@ from scenesplat_stereo.common.ownership import FolderLock, check_apart, check_re
 from scenesplat_stereo.common.text import format_table, value_cell
 from sgmodel.config import ModelParams, TrainParams
 from sgmodel.data.encoder_cache import EncoderCache, open_cache, precision_of
-from sgmodel.data.loader import (RUN_SPLITS, batch_share, check_first_sample, check_valid_pixels, load_sample,
-                                 loader_workers, make_loader, map_tensors, read_split, to_device)
+from sgmodel.data.loader import (RUN_SPLITS, check_first_sample, check_valid_pixels, load_sample, loader_workers,
+                                 make_loader, read_split)
 from sgmodel.metrics import image as metrics
 from sgmodel.metrics.sheets import validation_sheet
 from sgmodel.model.checkpoint import CheckpointError, load_checkpoint, load_weights, save_checkpoint
-from sgmodel.model.layers import amp_autocast, compiles
-from sgmodel.model.network import StereoGaussians, check_inputs, create_model
-from sgmodel.model.render import render_views
+from sgmodel.model.layers import compiles
+from sgmodel.model.network import StereoGaussians, create_model
 from sgmodel.train.distributed import (World, all_sum, broadcast_flag, joined_world, same_on_every_rank,
                                        wrap_model)
 from sgmodel.train.losses import create_objective
+from sgmodel.train.step import (StepValues, TrainingDiverged, all_finite, create_optimizer, device_batch, no_mark,
+                                queue_step, render_targets)
 from sgmodel.train.step_profile import StepProfile, gathered_record
 
 log = logging.getLogger(__name__)
 OWNER = "sgmodel train"  # a run folder holds config.json; any other --out must be new or empty
-
-
-class TrainingDiverged(ValueError):
-    """The loss, a gradient or a weight became NaN or infinite; training stopped and saved nothing of it.
-    ``step``: the step it happened at; ``checkpoint``: the last checkpoint written (holding
-    ``checkpoint_step``), or None; ``lr``: the peak learning rate used."""
-
-    def __init__(self, message: str, step: int | None = None, checkpoint: Path | None = None,
-                 checkpoint_step: int | None = None, lr: float | None = None) -> None:
-        super().__init__(message)
-        self.step, self.checkpoint, self.checkpoint_step, self.lr = step, checkpoint, checkpoint_step, lr
 
 
 @dataclass(frozen=True)
@@ -74,134 +61,6 @@ class RunPaths:
 
     def sheet(self, step: int) -> Path:
         return self.root / "sheets" / f"val_{step:06d}.png"
-
-
-def render_targets(model: StereoGaussians | DistributedDataParallel, batch: dict, amp: bool):
-    """Predict Gaussians for the batch's pairs and render every target: (rgb [B,T,3,S,S], alpha, Prediction).
-    The convolutions run under bf16 autocast on CUDA when ``amp``; the composer and rasteriser in float32."""
-    left = batch["left"]
-    with amp_autocast(left, amp):
-        pred = model(left, batch["right"], batch["K"], batch["baseline"], encoded=cached_encoding(batch),
-                     inputs_checked=batch.get("inputs_checked", False))
-    S = batch["targets"].shape[-1]
-    rgb, alpha = render_views(pred.gaussians, batch["target_viewmats"], batch["target_Ks"], S, S)
-    return rgb, alpha, pred
-
-
-#: per CUDA device, the side stream ``device_batch`` copies batches on
-_copy_streams: dict[torch.device, torch.cuda.Stream] = {}
-
-
-def device_batch(batch: dict, device: torch.device) -> dict:
-    """A loader's batch on ``device`` for ``render_targets``. Its pair inputs are checked on the host first
-    (``network.check_inputs``: K's and the baseline's values read where they are, with no wait for the device)
-    and the batch says so (``inputs_checked``): the model does not read them back from the device. On CUDA the
-    copy runs on a side stream that the current stream waits for: the copy engine moves the next batch while
-    the step before still computes (4.1 ms of the step's stream time on an H200 otherwise)."""
-    check_inputs(batch["left"], batch["right"], batch["K"], batch["baseline"])
-    if device.type != "cuda":
-        return {**to_device(batch, device), "inputs_checked": True}
-    device = torch.device("cuda", torch.cuda.current_device() if device.index is None else device.index)
-    if device not in _copy_streams:
-        _copy_streams[device] = torch.cuda.Stream(device)
-    stream, consumer = _copy_streams[device], torch.cuda.current_stream(device)
-
-    def copy(t: torch.Tensor) -> torch.Tensor:
-        with torch.cuda.stream(stream):
-            moved = t.to(device, non_blocking=True)
-        moved.record_stream(consumer)  # made on the side stream, used and freed on the consumer's
-        return moved
-
-    moved = map_tensors(batch, copy)
-    consumer.wait_stream(stream)
-    return {**moved, "inputs_checked": True}
-
-
-def create_optimizer(params, device: torch.device, **settings) -> torch.optim.AdamW:
-    """AdamW over ``params`` (``settings``: lr, betas, weight_decay); on CUDA its fused kernel (one launch
-    for every parameter: 0.4 ms against 6.5 ms a step on an H100, the same update)."""
-    return torch.optim.AdamW(params, fused=device.type == "cuda", **settings)
-
-
-def _no_mark(_: str) -> None:
-    pass
-
-
-class StepValues:
-    """A queued step's loss, its parts and PSNR on their way to the host, and the learning rate it used
-    (``queue_step``). On CUDA they are copied into page-locked memory behind the step's work and ``read`` waits
-    for that copy alone: read once the next step is queued, as ``sgmodel train`` does, the host never waits for
-    the GPU between steps and the GPU never waits for the host."""
-
-    def __init__(self, values: torch.Tensor, names: list[str], lr: float) -> None:
-        self.names, self.lr, self.ready = names, lr, None
-        if values.is_cuda:
-            self.host = torch.empty(values.shape, dtype=values.dtype, pin_memory=True)
-            self.host.copy_(values, non_blocking=True)
-            self.ready = torch.cuda.Event()
-            self.ready.record()
-        else:
-            self.host = values
-
-    def read(self) -> dict:
-        """{"loss", "psnr", "lr", and the loss's parts} as numbers; ``TrainingDiverged`` for a non-finite loss (the
-        step changed no weight: ``skip_unless_finite``)."""
-        if self.ready is not None:
-            self.ready.synchronize()
-        values = self.host.tolist()
-        if not math.isfinite(values[0]):
-            raise TrainingDiverged(f"the loss is {values[0]}")
-        return {"loss": values[0], "psnr": values[1], "lr": self.lr, **dict(zip(self.names, values[2:]))}
-
-
-def train_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, scheduler, amp: bool,
-               mark=_no_mark, accumulate: int = 1) -> dict:
-    """``queue_step`` and its values read at once: loss, its parts, PSNR (dB) and the learning rate used."""
-    return queue_step(model, batch, objective, optimizer, scheduler, amp, mark, accumulate).read()
-
-
-def queue_step(model, batch: dict, objective, optimizer: torch.optim.Optimizer, scheduler, amp: bool,
-               mark=_no_mark, accumulate: int = 1) -> StepValues:
-    """Queue one optimiser step on one batch; its values come back through the returned ``StepValues``.
-    ``accumulate``: the batch is computed in that many equal shares (``batch_share``), one after another,
-    each share's loss divided by their number: the gradient is the mean of the shares' gradients, as DDP's
-    is the mean of its ranks' (under DDP the all-reduce runs once, after the last share). The values are the
-    shares' means. ``mark(name)``: called once the loss ("forward"), the backward ("backward") and the
-    optimiser step ("optimizer") are queued (``StepProfile.mark``; with shares, the last share's loss and
-    backward). A batch from ``device_batch`` makes no host synchronisation on a GPU."""
-    optimizer.zero_grad(set_to_none=True)
-    values = []
-    for i in range(accumulate):
-        part, last = batch_share(batch, i, accumulate), i == accumulate - 1
-        with model.no_sync() if not last and isinstance(model, DistributedDataParallel) else nullcontext():
-            rgb, _, _ = render_targets(model, part, amp)
-            loss, parts = objective(rgb.flatten(0, 1), part["targets"].flatten(0, 1))
-            if last:
-                mark("forward")
-            (loss / accumulate).backward()
-        psnr = metrics.psnr(rgb.detach(), part["targets"]).mean()
-        values.append(torch.stack([loss.detach(), psnr, *(v.detach() for v in parts.values())]))
-    mark("backward")
-    values = torch.stack(values).mean(0)
-    skip_unless_finite(optimizer, values[0])
-    lr = optimizer.param_groups[0]["lr"]
-    optimizer.step()
-    scheduler.step()
-    mark("optimizer")
-    return StepValues(values, list(parts), lr)
-
-
-def skip_unless_finite(optimizer: torch.optim.Optimizer, loss: torch.Tensor) -> None:
-    """Make sure a non-finite ``loss`` changes no weight in the ``optimizer.step()`` that follows. A fused
-    optimizer (``create_optimizer`` on CUDA) is given ``found_inf`` (as ``torch.amp.GradScaler`` gives it): its
-    kernel leaves the weights, moments and step count as they were where the flag is set, decided on the device,
-    so the host queues the step right after the backward instead of waiting for the loss (the GPU stood idle
-    about 1 ms a step while the host then started the optimiser). Any other optimiser: the loss is read here
-    (``TrainingDiverged``), which on the CPU costs nothing."""
-    if optimizer.defaults.get("fused"):
-        optimizer.found_inf = (~torch.isfinite(loss)).float()
-    elif not torch.isfinite(loss):
-        raise TrainingDiverged(f"the loss is {loss.item()}")
 
 
 @torch.no_grad()
@@ -244,20 +103,6 @@ def mean_over_ranks(world: World, stats: dict) -> dict:
     batch, all shares the same size), so a record means the same on any number of GPUs; lr as it is."""
     keys = [k for k in stats if k != "lr"]
     return {**stats, **dict(zip(keys, (v / world.size for v in all_sum(world, [stats[k] for k in keys]))))}
-
-
-def cached_encoding(batch: dict) -> tuple[torch.Tensor, list[torch.Tensor]] | None:
-    """The batch's frozen-encoder outputs read from an encoder cache (disparity, features), or None."""
-    return (batch["encoder_disparity"], batch["encoder_features"]) if "encoder_disparity" in batch else None
-
-
-def all_finite(tensors: list[torch.Tensor]) -> torch.Tensor:
-    """True (a 0-d bool tensor on their device, no sync) when every value of every tensor is finite: one
-    fused multi-tensor norm (``torch._foreach_norm``), which is NaN or infinite exactly when a value is (or
-    when a float32 norm overflows, above 1e19: a divergence too)."""
-    if not tensors:
-        return torch.tensor(True)
-    return torch.stack(torch._foreach_norm(tensors)).isfinite().all()
 
 
 def _trim_metrics(path: Path, step: int | None) -> None:
@@ -497,7 +342,7 @@ def _run(model, objective, config: dict, model_params: ModelParams, tp: TrainPar
                 profile.begin()
             try:
                 values = queue_step(net, batch, objective, optimizer, scheduler, tp.amp,
-                                    profile.mark if profile is not None else _no_mark, tp.accumulate)
+                                    profile.mark if profile is not None else no_mark, tp.accumulate)
             except TrainingDiverged as e:
                 raise diverged(step + 1, str(e)) from None
             step += 1

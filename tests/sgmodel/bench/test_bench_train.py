@@ -11,7 +11,7 @@ from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams
 from sgmodel.metrics.lpips import CHANNELS, random_lpips
 from sgmodel.model.network import create_model
-from sgmodel.train.loop import create_optimizer
+from sgmodel.train.step import create_optimizer
 from tests.support.model_helpers import StandInEncoder
 
 

@@ -22,6 +22,7 @@ from sgmodel.encoders import ENCODERS
 from sgmodel.model.network import create_model, encode_pair
 from sgmodel.train import encode_cache as encode_mod
 from sgmodel.train import loop as train_mod
+from sgmodel.train import step as step_mod
 from sgmodel.train.losses import create_objective
 from tests.sgmodel.train.test_train import tiny_model_params, tiny_schedule
 from tests.support.model_helpers import StandInEncoder, sgmodel_status
@@ -84,7 +85,7 @@ def test_a_step_from_the_cache_equals_a_step_that_runs_the_encoder(cache, demo_d
         params = [p for p in model.parameters() if p.requires_grad]
         opt = torch.optim.AdamW(params, lr=1e-3)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0)
-        stats.append(train_mod.train_step(model, b, objective, opt, sched, amp=False))
+        stats.append(step_mod.train_step(model, b, objective, opt, sched, amp=False))
         grads.append([p.grad for p in params])
     assert stats[0]["loss"] == pytest.approx(stats[1]["loss"], rel=1e-6)
     for ga, gb in zip(*grads, strict=True):

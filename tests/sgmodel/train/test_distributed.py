@@ -120,7 +120,7 @@ def _batch_and_model(data, rank: int, world: int):
 
 
 def _gradient(model, batch) -> dict:
-    from sgmodel.train.loop import render_targets
+    from sgmodel.train.step import render_targets
     from sgmodel.train.losses import create_objective
 
     rgb, _, _ = render_targets(model, batch, amp=False)

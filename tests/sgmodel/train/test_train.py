@@ -15,6 +15,7 @@ from sgmodel.cli import main as sgmodel_main
 from sgmodel.config import DecoderParams, ModelParams, PredictorParams, TrainParams
 from sgmodel.model.network import create_model
 from sgmodel.train import loop as train_mod
+from sgmodel.train import step as step_mod
 from sgmodel.train.distributed import World
 from sgmodel.train.losses import create_objective
 from tests.support.model_helpers import StandInEncoder, textured_batch
@@ -44,9 +45,9 @@ def test_overfitting_one_batch_raises_psnr_by_10db():
     objective = create_objective(None, device="cpu")
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=3e-3)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0)
-    first = train_mod.train_step(model, batch, objective, opt, sched, amp=False)["psnr"]
+    first = step_mod.train_step(model, batch, objective, opt, sched, amp=False)["psnr"]
     for _ in range(150):
-        last = train_mod.train_step(model, batch, objective, opt, sched, amp=False)["psnr"]
+        last = step_mod.train_step(model, batch, objective, opt, sched, amp=False)["psnr"]
     assert last >= first + 10.0, (first, last)
 
 
@@ -62,7 +63,7 @@ def test_a_non_finite_loss_changes_no_weight_with_a_fused_or_a_plain_optimiser(f
     opt = torch.optim.AdamW(params, lr=1e-3, fused=fused)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0)
     objective = create_objective(None, device="cpu")
-    train_mod.train_step(model, batch, objective, opt, sched, amp=False)  # the moments exist and are not zero
+    step_mod.train_step(model, batch, objective, opt, sched, amp=False)  # the moments exist and are not zero
 
     def held():
         return [t.clone() for p in params for t in (p.detach(), *opt.state[p].values())]
@@ -72,11 +73,11 @@ def test_a_non_finite_loss_changes_no_weight_with_a_fused_or_a_plain_optimiser(f
         loss, parts = objective(render, target)
         return loss * float("nan"), parts
 
-    with pytest.raises(train_mod.TrainingDiverged, match="the loss is nan"):
-        train_mod.train_step(model, batch, nan, opt, sched, amp=False)
+    with pytest.raises(step_mod.TrainingDiverged, match="the loss is nan"):
+        step_mod.train_step(model, batch, nan, opt, sched, amp=False)
     assert all(torch.equal(a, b) for a, b in zip(before, held()))
     assert getattr(opt, "found_inf", None) is None or opt.found_inf.item() == 1.0
-    train_mod.train_step(model, batch, objective, opt, sched, amp=False)
+    step_mod.train_step(model, batch, objective, opt, sched, amp=False)
     after = held()
     assert not torch.equal(before[0], after[0]) and opt.state[params[0]]["step"].item() == 2
 
@@ -104,7 +105,7 @@ def test_a_step_in_shares_is_the_step_on_the_whole_batch():
         # SGD, not AdamW: its step is proportional to the gradient, so a sum of shares not divided is seen
         opt = torch.optim.SGD([p for p in model.parameters() if p.requires_grad], lr=1e-2)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda _: 1.0)
-        stats = train_mod.train_step(model, batch, objective, opt, sched, amp=False, accumulate=shares)
+        stats = step_mod.train_step(model, batch, objective, opt, sched, amp=False, accumulate=shares)
         runs.append((stats, torch.cat([p.detach().flatten() for p in model.parameters()])))
     moved = (runs[0][1] - torch.cat([p.detach().flatten() for p in model0.parameters()])).norm()
     for stats, weights in runs[1:]:
@@ -192,7 +193,7 @@ def test_each_steps_values_are_read_once_the_next_is_queued_and_at_once_where_lo
                                                                                      monkeypatch):
     """The loop never waits for a step's values before the next step is queued, except at a logged or
     validated step (whose record and checkpoint need them); every step is read once, in order."""
-    order, real_queue, real_read = [], train_mod.queue_step, train_mod.StepValues.read
+    order, real_queue, real_read = [], train_mod.queue_step, step_mod.StepValues.read
 
     def queue(*args, **kwargs):
         values = real_queue(*args, **kwargs)
@@ -205,7 +206,7 @@ def test_each_steps_values_are_read_once_the_next_is_queued_and_at_once_where_lo
         return real_read(self)
 
     monkeypatch.setattr(train_mod, "queue_step", queue)
-    monkeypatch.setattr(train_mod.StepValues, "read", read)
+    monkeypatch.setattr(step_mod.StepValues, "read", read)
     train_mod.train(tiny_model_params(), tiny_schedule(steps=7, log_every=3, val_every=6), demo_dataset,
                     tmp_path / "r", progress=False)
     q, r = (lambda n: ("queued", n)), (lambda n: ("read", n))
@@ -216,7 +217,7 @@ def test_the_model_does_not_check_a_batch_the_loop_checked_on_the_host(demo_data
     """``device_batch`` checks K and the baseline where the loader made them (no read back from a GPU); the
     model is told and does not check them again. A bad batch is refused there, naming its items."""
     checked = []
-    monkeypatch.setattr(train_mod, "check_inputs", lambda *a: checked.append(a[2].device.type))
+    monkeypatch.setattr(step_mod, "check_inputs", lambda *a: checked.append(a[2].device.type))
     monkeypatch.setattr("sgmodel.model.network.check_inputs", lambda *a: pytest.fail("the model checked again"))
     train_mod.train(tiny_model_params(), tiny_schedule(steps=2, val_every=2), demo_dataset, tmp_path / "r",
                     progress=False)
@@ -226,12 +227,12 @@ def test_the_model_does_not_check_a_batch_the_loop_checked_on_the_host(demo_data
     batch["K"][1, 0, 0] = float("nan")
     batch["baseline"][2] = 0.0
     with pytest.raises(ValueError, match=r"K must be finite.*batch items \[1\]"):
-        train_mod.device_batch(batch, torch.device("cpu"))
+        step_mod.device_batch(batch, torch.device("cpu"))
     batch["K"][1, 0, 0] = 30.0
     with pytest.raises(ValueError, match=r"baseline must be finite and > 0 metres: not so for batch items \[2\]"):
-        train_mod.device_batch(batch, torch.device("cpu"))
+        step_mod.device_batch(batch, torch.device("cpu"))
     batch["baseline"][2] = 0.1
-    assert train_mod.device_batch(batch, torch.device("cpu"))["inputs_checked"] is True
+    assert step_mod.device_batch(batch, torch.device("cpu"))["inputs_checked"] is True
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="the side stream of device_batch needs a CUDA device")
@@ -241,13 +242,13 @@ def test_a_batch_copied_on_the_side_stream_is_what_the_current_stream_reads():
     device = torch.device("cuda")
     batch = textured_batch(B=4, T=2, S=64)
     host = {k: v.contiguous().pin_memory() if torch.is_tensor(v) else v for k, v in batch.items()}
-    train_mod.device_batch(host, device)  # the side stream exists from now on
+    step_mod.device_batch(host, device)  # the side stream exists from now on
     torch.cuda.synchronize()
-    stream = train_mod._copy_streams[torch.device("cuda", torch.cuda.current_device())]
+    stream = step_mod._copy_streams[torch.device("cuda", torch.cuda.current_device())]
     stream.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(stream):
         torch.cuda._sleep(200_000_000)  # about 0.1 s: the copy queued behind it
-    moved = train_mod.device_batch(host, device)
+    moved = step_mod.device_batch(host, device)
     for k, v in batch.items():
         if torch.is_tensor(v):
             assert moved[k].device.type == "cuda" and torch.equal(moved[k].cpu(), v), k
@@ -255,10 +256,10 @@ def test_a_batch_copied_on_the_side_stream_is_what_the_current_stream_reads():
 
 
 def test_step_values_read_as_numbers_and_a_non_finite_loss_raises():
-    values = train_mod.StepValues(torch.tensor([0.5, 21.0, 0.25]), ["mse"], 1e-3)
+    values = step_mod.StepValues(torch.tensor([0.5, 21.0, 0.25]), ["mse"], 1e-3)
     assert values.read() == {"loss": 0.5, "psnr": 21.0, "lr": 1e-3, "mse": 0.25}
-    with pytest.raises(train_mod.TrainingDiverged, match="the loss is inf"):
-        train_mod.StepValues(torch.tensor([float("inf"), 21.0]), [], 1e-3).read()
+    with pytest.raises(step_mod.TrainingDiverged, match="the loss is inf"):
+        step_mod.StepValues(torch.tensor([float("inf"), 21.0]), [], 1e-3).read()
 
 
 def test_resume_refuses_other_settings(demo_dataset, tmp_path):
