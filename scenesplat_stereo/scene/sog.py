@@ -1,5 +1,5 @@
 """PlayCanvas SOG ("spatially ordered Gaussians"): reader (versions 1 and 2, bundled or not; numpy) and writer
-(version 2, bundled; torch, ``sog_texels``; its WebP images by ``vp8l``).
+(version 2, bundled; torch, ``sog_texels``), and OpenImageIO's WebP codec.
 
 Written from the format as PlayCanvas' splat-transform 3.7.0 reads and writes it (``readSog`` / ``writeSog``).
 A SOG is a ``meta.json`` and lossless WebP images, either side by side in a folder or bundled in one zip file
@@ -29,10 +29,11 @@ without alpha reads as A = 255).
 The writer (``save_sog``) writes version 2 as splat-transform does: Morton order, 16-bit positions, 256-entry
 codebooks for log-scales and colours (density-weighted 1-D k-means over all values), and for SH a k-means palette of
 min(64 Ki, 2^floor(log2(N / 1024)) Ki) centroids, capped at ``SH_PALETTE_MAX``, with a 256-entry codebook of
-their values (``palettes``). It rounds to nearest where splat-transform truncates. Its lossless WebP images are
-encoded by ``vp8l`` (a predictor, subtract-green and one prefix code a channel, vectorised; exact, the colour of
-texels whose alpha is 0 included), side by side in threads; OpenImageIO (libwebp) reads them. Sizes, times and
-errors of a round trip: docs/formats.md.
+their values (``palettes``). It rounds to nearest where splat-transform truncates. OpenImageIO writes lossless
+WebP exactly, at libwebp's fastest method for the per-Gaussian images (``WEBP_METHOD``), except that libwebp
+drops the colour of texels whose alpha is 0: a Gaussian whose opacity byte is 0 (opacity < 1/510, invisible)
+reads back with another colour (which one depends on the method). The images are encoded side by side in
+threads. Sizes, times and errors of a round trip: docs/formats.md.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from scenesplat_stereo.common.files import atomic_write_bytes
-from scenesplat_stereo.scene import row_tasks, vp8l
+from scenesplat_stereo.scene import row_tasks
 from scenesplat_stereo.scene.compressed_ply import morton_order
 from scenesplat_stereo.scene.gaussians import GaussianScene, decoded_scene
 
@@ -71,6 +72,13 @@ V1_CENTROID_WIDTHS = {192: 1, 512: 2, 960: 3}
 SH_PALETTE_MAX = 4096
 #: Opacity clamp of splat-transform's reader (its logit is clamped to logit(1e-6)).
 OPACITY_EPS = 1e-6
+WEBP_MAX_SIDE = 16383
+#: libwebp's lossless effort (OpenImageIO's ``compression=lossless:<effort>``, 0..100, default 70) and method (0
+#: fastest .. 6, OpenImageIO's default) of the per-Gaussian images, and the method of the SH palette's two images.
+#: Method 0 encodes a 452x452 image in about 20 ms of one core (6: 1-2.5 s) into 4-20% more bytes; the labels
+#: shrink most from method 1 on, for little time (docs/formats.md "The SOG writer": each image by method).
+WEBP_EFFORT, WEBP_METHOD, WEBP_PALETTE_METHOD = 0, 0, 1
+
 
 class SogError(ValueError):
     """A SOG that cannot be read (or a scene that cannot be written); names the file and the field."""
@@ -96,6 +104,27 @@ def read_webp(path: Path, source: str) -> tuple[np.ndarray, int, int]:
     rgba = np.full((spec.width * spec.height, 4), 255, np.uint8)
     rgba[:, :spec.nchannels] = pixels.reshape(-1, spec.nchannels)
     return rgba, spec.width, spec.height
+
+
+def write_webp(rgba: np.ndarray, width: int, height: int, method: int = WEBP_METHOD) -> bytes:
+    """Lossless WebP bytes of uint8 RGBA texels [width * height, 4] (fewer are padded with zeros), alpha
+    unassociated, at libwebp's ``method`` and ``WEBP_EFFORT``. Through ``ImageBuf.write``, which releases
+    the GIL while libwebp encodes (``ImageOutput.close``, where OpenImageIO 3.1+ encodes, holds it), so that
+    images in threads are encoded side by side."""
+    import OpenImageIO as oiio
+
+    img = np.zeros((height, width, 4), np.uint8)
+    img.reshape(-1, 4)[:len(rgba)] = rgba
+    spec = oiio.ImageSpec(width, height, 4, "uint8")
+    spec.attribute("compression", f"lossless:{WEBP_EFFORT}")
+    spec.attribute("webp:method", method)
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    buf = oiio.ImageBuf(spec)
+    with tempfile.TemporaryDirectory(prefix="sog-") as tmp:
+        name = os.path.join(tmp, "image.webp")
+        if not buf.set_pixels(oiio.ROI(), img) or not buf.write(name):
+            raise SogError(f"OpenImageIO cannot write WebP: {buf.geterror() or oiio.geterror()}")
+        return Path(name).read_bytes()
 
 
 # ----------------------------------------------------------------------------------------------- reading
@@ -283,21 +312,18 @@ IMAGES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp
 @dataclass
 class SogImage:
     """One image of a SOG to encode: uint8 RGBA texels [m, 4] (in the scene's order when ``order`` is given: the
-    file's texel i is ``texels[order[i]]``), the image's width and height."""
+    file's texel i is ``texels[order[i]]``), the image's width and height, libwebp's method."""
 
     texels: np.ndarray
     width: int
     height: int
+    method: int = WEBP_METHOD
     order: np.ndarray | None = None
 
     def encode(self) -> bytes:
-        """The image's lossless WebP bytes (``vp8l.encode``), the texels beyond ``m`` zero."""
-        full = np.zeros((self.height * self.width, 4), np.uint8)
-        if self.order is None:
-            full[:len(self.texels)] = self.texels
-        else:
-            np.take(self.texels, self.order, axis=0, out=full[:len(self.order)])
-        return vp8l.encode(full, self.width, self.height)
+        """The image's lossless WebP bytes (``write_webp``)."""
+        texels = self.texels if self.order is None else np.take(self.texels, self.order, axis=0)
+        return write_webp(texels, self.width, self.height, self.method)
 
 
 def image_names(degree: int) -> list[str]:
@@ -320,8 +346,8 @@ def quantise_sog(scene: GaussianScene, ready: Callable[[str, SogImage], object],
         raise SogError(f"{path}: an empty scene has no SOG (images of at least one texel)")
     width = math.ceil(math.sqrt(n) / 4) * 4
     height = math.ceil(n / width / 4) * 4
-    if max(width, height) > vp8l.MAX_SIDE:
-        raise SogError(f"{path}: {n} Gaussians need {width}x{height} texels, beyond WebP's {vp8l.MAX_SIDE}")
+    if max(width, height) > WEBP_MAX_SIDE:
+        raise SogError(f"{path}: {n} Gaussians need {width}x{height} texels, beyond WebP's {WEBP_MAX_SIDE}")
     degree, dev = scene.sh_degree, dev or row_tasks.device()
     shn = None
     try:
@@ -346,8 +372,8 @@ def quantise_sog(scene: GaussianScene, ready: Callable[[str, SogImage], object],
                 "sh0": {"codebook": colour_book.tolist(), "files": ["sh0.webp"]}}
         if degree:
             book, px, centroid_rows, labels = shn.result()
-            ready("shN_centroids.webp", SogImage(px, 64 * SH_COEFFS[degree], centroid_rows))
-            ready(IMAGES[5], ordered(labels))
+            ready("shN_centroids.webp", SogImage(px, 64 * SH_COEFFS[degree], centroid_rows, WEBP_PALETTE_METHOD))
+            ready(IMAGES[5], ordered(labels, method=WEBP_PALETTE_METHOD))
             meta["shN"] = {"count": palette, "bands": degree, "codebook": book.tolist(),
                            "files": ["shN_centroids.webp", "shN_labels.webp"]}
     finally:  # after an error, the palette's task is not left running
@@ -433,8 +459,8 @@ def encode_sog(scene: GaussianScene, path: str | os.PathLike = "<memory>",
     Morton order and then quantises the texels in the scene's order with ``sog_texels`` (all of it in torch on
     ``row_tasks.device()``, a GPU where there is one): the colours, then the positions and quaternions, then the
     scales, the order of their images' encode times, longest first. Each image is gathered into Morton order and
-    encoded in a pool task of its own as soon as its texels exist (``vp8l.encode``, numpy, which releases the GIL
-    in its passes over the texels), so the encodes overlap the rest of the quantisation. On a GPU that work is bound by the host's kernel launches: in
+    encoded in a pool task of its own as soon as its texels exist (``write_webp`` runs without the GIL), so the
+    encodes overlap the rest of the quantisation. On a GPU that work is bound by the host's kernel launches: in
     one thread it takes as long as in three tasks side by side (docs/benchmarks.md "Issue 35: the SOG writer's
     encodes queued as their texels are ready"). Not to be called from a task of that pool (this function waits
     for tasks of it)."""

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from scenesplat_stereo.bench.scenes import PREDICTION_GAUSSIANS, synthetic_scene  # noqa: E402
 from scenesplat_stereo.common.ownership import OwnedFile  # noqa: E402
-from scenesplat_stereo.scene import palettes, row_tasks, sog, sog_texels, vp8l  # noqa: E402
+from scenesplat_stereo.scene import palettes, row_tasks, sog, sog_texels  # noqa: E402
 from sgmodel.bench import report  # noqa: E402
 
 events: list[tuple[str, str, float, float]] = []  # (stage, thread, start, end), perf_counter seconds
@@ -58,8 +58,8 @@ def instrument() -> None:
     palettes.kmeans = timed("kmeans", palettes.kmeans)
     palettes.Nearest.__init__ = timed("nearest table", palettes.Nearest.__init__)
     palettes.Nearest.__call__ = timed("nearest labels", palettes.Nearest.__call__)
-    sog.morton_order = timed("morton_order", sog.morton_order)
-    vp8l.encode = timed("webp encode", vp8l.encode)
+    for name in ("write_webp", "morton_order"):
+        setattr(sog, name, timed(name, getattr(sog, name)))
     for name in ("placed", "scale_texels", "colour_texels", "pack_quats", "sh_palette"):
         setattr(sog_texels, name, timed(name, getattr(sog_texels, name)))
     row_tasks._pool = TimedPool(row_tasks.workers(), thread_name_prefix="row-tasks")

@@ -87,20 +87,20 @@ def _scene_file(arrays: dict[str, np.ndarray], path: Path, sh_degree: int, forma
 
 def _sog_parts(scene: GaussianScene, path: Path, dev: torch.device) -> tuple[dict[str, np.ndarray], tuple]:
     """In the model's process: the SOG's quantisation on ``dev`` (``sog.quantise_sog``) as (the images' texels and
-    the Morton order, (the images' sizes, meta.json)) for ``_sog_file``."""
+    the Morton order, (the images' sizes and methods, meta.json)) for ``_sog_file``."""
     images: dict[str, SogImage] = {}
     meta = quantise_sog(scene, images.__setitem__, path, dev=dev)
     arrays = {name: image.texels for name, image in images.items()}
     arrays["order"] = images[IMAGES[0]].order
-    return arrays, ({name: (i.width, i.height, i.order is not None) for name, i in images.items()}, meta)
+    return arrays, ({name: (i.width, i.height, i.method, i.order is not None) for name, i in images.items()}, meta)
 
 
-def _sog_file(arrays: dict[str, np.ndarray], path: Path, sizes: dict[str, tuple[int, int, bool]],
+def _sog_file(arrays: dict[str, np.ndarray], path: Path, sizes: dict[str, tuple[int, int, int, bool]],
               meta: dict) -> Path:
     """In a writer process: the SOG of ``_sog_parts``' images, encoded and bundled (``sog.encode_images``),
     written as ``write_scene`` writes it."""
-    images = {name: SogImage(arrays[name], w, h, arrays["order"] if ordered else None)
-              for name, (w, h, ordered) in sizes.items()}
+    images = {name: SogImage(arrays[name], w, h, method, arrays["order"] if ordered else None)
+              for name, (w, h, method, ordered) in sizes.items()}
     atomic_write_bytes(path, encode_images(images, meta), durable=False)
     return path
 
