@@ -85,8 +85,8 @@ def cat_channels(tensors: list[torch.Tensor], multiple: int = 1, pads: list[int]
     (``activation_format``), with channels appended up to a multiple of ``multiple``: the first of them all
     ones (the bias channel of ``replicate_conv3x3``), the rest zeros. On CUDA with Triton (at most three
     tensors) one pass writes it all, padding and biases included (``sgmodel.kernels.concat``: the bias added in
-    float32, float64 for float64 tensors), with no padded copy of its own; elsewhere the bias is added in the tensor's dtype, then the padding
-    and ``torch.cat``: the same values but for that rounding."""
+    float32, float64 for float64 tensors), with no padded copy of its own; elsewhere the bias is added in the
+    tensor's dtype, then the padding and ``torch.cat``: the same values but for that rounding."""
     pads = [0] * len(tensors) if pads is None else list(pads)
     biases = [None] * len(tensors) if biases is None else list(biases)
     x = tensors[0]

@@ -80,7 +80,6 @@ def create_optimizer(params, device: torch.device, **settings) -> torch.optim.Ad
 
 def no_mark(_: str) -> None:
     """``queue_step``'s ``mark`` when nothing is profiled."""
-    pass
 
 
 class StepValues:

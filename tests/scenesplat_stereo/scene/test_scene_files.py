@@ -36,7 +36,8 @@ def test_every_format_round_trips_by_its_first_bytes(tmp_path: Path, name: str) 
     m = scene.means.astype(np.float64)  # SOG: 16 bits of t = sign(x) ln(|x| + 1) over its range, dx/dt = e^|t|
     t = np.sign(m) * np.log1p(np.abs(m))
     sog_step = float((np.exp(np.abs(t).max()) * (t.max(0) - t.min(0)) / 65535 / 2).max()) * 1.01 + 1e-6
-    step = {"ply": 0.0, "spz": 2.0**-13, "spz-parallel": 2.0**-13, "compressed-ply": 1e-2, "sog": sog_step}[name]  # half a step;
+    step = {"ply": 0.0, "spz": 2.0**-13, "spz-parallel": 2.0**-13, "compressed-ply": 1e-2,
+            "sog": sog_step}[name]  # half a step;
     assert np.abs(back.means - scene.means[order]).max() <= step  # compressed: 10 bits over a chunk box of
     # random points metres apart
     moved = tmp_path / "no_suffix"
